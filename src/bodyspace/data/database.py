@@ -1,0 +1,695 @@
+"""The scan database: registered meshes of many subjects in many poses, with per-subject labels.
+
+Both papers start here. Every scan shares one topology (same vertex count, same faces, same
+vertex *index* for the same point of the body), so the whole set is one array (N, V, 3).
+
+On disk a database is a folder (``FORMAT_VERSION = 1``)::
+
+    vertices.npy    (N_scans, V, 3) float32, opened with mmap_mode="r" (lazy: 2,000 scans stay on disk)
+    faces.npy       (F, 3) int32
+    subjects.csv    one row per subject: ``subject`` id, optional ``sex`` (female/male), and
+                    numeric labels whose name ends in their unit (``height_cm``, ``bmi_kg_m2``...)
+    scans.csv       one row per scan, in the order of vertices.npy: ``scan``, ``subject``, ``pose``
+    rotations.npy   optional (N_scans, J, 3) float32 axis-angle joint rotations that posed each scan
+    meta.json       format_version, template, units, provenance, licence, n_scans, n_vertices,
+                    n_faces, and ``joints`` (J names) when rotations.npy is present
+
+No pickle anywhere: arrays are read with ``allow_pickle=False``, tables are CSV, metadata JSON.
+Vertex coordinates are in metres; label units are in the column names and are kept as written.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from bodyspace.atomic import atomic_dir, atomic_path
+from bodyspace.errors import DatabaseError
+from bodyspace.mesh.io import load_mesh
+
+FORMAT_VERSION = 1
+REST_POSE = "rest"
+
+# Label column suffix -> unit. "_kg_m2" (BMI) also ends in "_m2"; unit_of_label tries the
+# longest suffix first so BMI is not read as an area.
+LABEL_UNITS = {
+    "_kg_m2": "kg/m^2",
+    "_cm": "cm",
+    "_kg": "kg",
+    "_m3": "m^3",
+    "_m2": "m^2",
+    "_years": "years",
+    "_percent": "%",
+    "_1": "1",
+}
+SEXES = ("female", "male")
+SUBJECT_ID_COLUMN = "subject"
+SEX_COLUMN = "sex"
+SCAN_COLUMNS = ("scan", "subject", "pose")
+MESH_COLUMN = "mesh"
+
+VERTICES_FILE = "vertices.npy"
+FACES_FILE = "faces.npy"
+SUBJECTS_FILE = "subjects.csv"
+SCANS_FILE = "scans.csv"
+ROTATIONS_FILE = "rotations.npy"
+META_FILE = "meta.json"
+
+# Scans checked for NaN per step while loading: bounds the memory the check touches at once
+# (256 scans of 13k vertices are 40 MB) while the result stays a lazy memmap.
+_CHECK_CHUNK = 256
+# Mesh suffixes accepted by from_meshes (registered meshes need shared vertices: no STL).
+_MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf")
+
+Table = dict[str, np.ndarray]
+
+
+# ----------------------------------------------------------------------------------------------
+# Label columns and CSV tables
+# ----------------------------------------------------------------------------------------------
+
+def unit_of_label(column: str) -> str | None:
+    """The unit a label column's suffix declares (``'waist_cm'`` -> ``'cm'``), or None."""
+    for suffix in sorted(LABEL_UNITS, key=len, reverse=True):
+        if column.endswith(suffix) and len(column) > len(suffix):
+            return LABEL_UNITS[suffix]
+    return None
+
+
+def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None:
+    """Raise DatabaseError for a column that is neither reserved nor ends in a known unit suffix."""
+    seen = set()
+    for column in columns:
+        if column in seen:
+            raise DatabaseError(f"{source}: column '{column}' appears twice, expected unique column names")
+        seen.add(column)
+        if column not in reserved and unit_of_label(column) is None:
+            raise DatabaseError(
+                f"{source}: unknown column '{column}'. Expected one of {', '.join(reserved)} or a numeric "
+                f"label whose name ends in its unit: {', '.join(LABEL_UNITS)} (e.g. 'height_cm', "
+                f"'mass_kg', 'bmi_kg_m2', 'gender_1')")
+
+
+def read_csv_table(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    """A CSV file -> (header, rows of stripped strings, file line number of each row)."""
+    if not path.is_file():
+        raise DatabaseError(f"{path}: file not found")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            reader = csv.reader(handle)
+            header = [name.strip() for name in next(reader, [])]
+            rows, lines = [], []
+            for row in reader:
+                if not any(cell.strip() for cell in row):
+                    continue  # blank lines, e.g. a trailing newline from a spreadsheet
+                if len(row) != len(header):
+                    raise DatabaseError(f"{path}, line {reader.line_num}: {len(row)} fields, "
+                                        f"expected {len(header)} (one per header column)")
+                rows.append([cell.strip() for cell in row])
+                lines.append(reader.line_num)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DatabaseError(f"{path}: could not read as CSV: {exc}") from exc
+    if not header or header == [""]:
+        raise DatabaseError(f"{path}: empty file, expected a header row")
+    return header, rows, lines
+
+
+def parse_label_column(column: str, cells: list[str], lines: list[int], source: str) -> np.ndarray:
+    """Cells of one column -> (n,) str array for ``sex``/ids, float64 for unit-suffixed labels.
+
+    An empty numeric cell is a missing label (NaN).
+    """
+    if column == SEX_COLUMN:
+        values = [cell.lower() for cell in cells]
+        for value, line in zip(values, lines):
+            if value not in SEXES:
+                raise DatabaseError(f"{source}, line {line}, column '{column}': '{value}', "
+                                    f"expected one of {', '.join(SEXES)}")
+        return np.array(values, dtype=str)
+    if unit_of_label(column) is None:
+        return np.array(cells, dtype=str)
+    numbers = np.empty(len(cells), dtype=np.float64)
+    for i, (cell, line) in enumerate(zip(cells, lines)):
+        try:
+            numbers[i] = float(cell) if cell else math.nan
+        except ValueError:
+            raise DatabaseError(f"{source}, line {line}, column '{column}': '{cell}' is not a number "
+                                f"(expected a number in {unit_of_label(column)}, or empty if unknown)") from None
+        if math.isinf(numbers[i]):
+            raise DatabaseError(f"{source}, line {line}, column '{column}': '{cell}' is infinite, expected a finite number")
+    return numbers
+
+
+def parse_subject_table(header: list[str], rows: list[list[str]], lines: list[int], source: str) -> Table:
+    """subjects.csv rows -> {column: (n_subjects,) array}; checks columns, ids, duplicates."""
+    check_label_columns(header, (SUBJECT_ID_COLUMN, SEX_COLUMN), source)
+    if SUBJECT_ID_COLUMN not in header:
+        raise DatabaseError(f"{source}: no '{SUBJECT_ID_COLUMN}' column, found {header}")
+    columns = list(zip(*rows)) if rows else [()] * len(header)
+    subjects = {name: parse_label_column(name, list(cells), lines, source) for name, cells in zip(header, columns)}
+    ids = subjects[SUBJECT_ID_COLUMN]
+    for subject_id, line in zip(ids, lines):
+        if not subject_id:
+            raise DatabaseError(f"{source}, line {line}: empty subject id, expected a non-empty string")
+    first_line: dict[str, int] = {}
+    for subject_id, line in zip(ids.tolist(), lines):
+        if subject_id in first_line:
+            raise DatabaseError(f"{source}, line {line}: subject '{subject_id}' already listed on line "
+                                f"{first_line[subject_id]}, expected one row per subject")
+        first_line[subject_id] = line
+    return subjects
+
+
+def parse_scan_table(header: list[str], rows: list[list[str]], lines: list[int], source: str) -> Table:
+    """scans.csv rows -> {'scan': int64, 'subject': str, 'pose': str}, each (n_scans,)."""
+    if sorted(header) != sorted(SCAN_COLUMNS):
+        unknown = [c for c in header if c not in SCAN_COLUMNS]
+        missing = [c for c in SCAN_COLUMNS if c not in header]
+        raise DatabaseError(f"{source}: columns {header}; expected exactly {', '.join(SCAN_COLUMNS)}"
+                            + (f" (unknown column {', '.join(map(repr, unknown))})" if unknown else "")
+                            + (f" (missing {', '.join(map(repr, missing))})" if missing else ""))
+    cells = {name: [row[i] for row in rows] for i, name in enumerate(header)}
+    scan = np.empty(len(rows), dtype=np.int64)
+    for i, (cell, line) in enumerate(zip(cells["scan"], lines)):
+        try:
+            scan[i] = int(cell)
+        except ValueError:
+            raise DatabaseError(f"{source}, line {line}, column 'scan': '{cell}' is not an integer index") from None
+    for name in ("subject", "pose"):
+        for cell, line in zip(cells[name], lines):
+            if not cell:
+                raise DatabaseError(f"{source}, line {line}, column '{name}': empty, expected a name")
+    return {"scan": scan, "subject": np.array(cells["subject"], dtype=str), "pose": np.array(cells["pose"], dtype=str)}
+
+
+def write_csv_table(path: Path, table: Mapping[str, np.ndarray]) -> None:
+    """Write {column: (n,) array} as CSV, atomically; floats round-trip exactly, NaN as empty."""
+    columns = list(table)
+    formatted = []
+    for name in columns:
+        values = np.asarray(table[name])
+        if values.dtype.kind == "f":
+            formatted.append(["" if math.isnan(x) else repr(float(x)) for x in values.tolist()])
+        else:
+            formatted.append([str(x) for x in values.tolist()])
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(columns)
+            writer.writerows(zip(*formatted))
+
+
+# ----------------------------------------------------------------------------------------------
+# Consistency checks shared by load, the constructor and the writer
+# ----------------------------------------------------------------------------------------------
+
+def check_vertices(vertices: np.ndarray, source: str, dtype=None) -> None:
+    """``vertices`` must be (N, V, 3) (of ``dtype`` if given) and finite; checked in chunks."""
+    if vertices.ndim != 3 or vertices.shape[2] != 3:
+        raise DatabaseError(f"{source}: shape {vertices.shape}, expected (n_scans, n_vertices, 3)")
+    if dtype is not None and vertices.dtype != dtype:
+        raise DatabaseError(f"{source}: dtype {vertices.dtype}, expected {np.dtype(dtype).name}")
+    if vertices.dtype.kind != "f":
+        raise DatabaseError(f"{source}: dtype {vertices.dtype}, expected floating point coordinates")
+    for start in range(0, len(vertices), _CHECK_CHUNK):
+        finite = np.isfinite(vertices[start:start + _CHECK_CHUNK]).all(axis=(1, 2))
+        if not finite.all():
+            raise DatabaseError(f"{source}: scan {start + int(np.argmin(finite))} contains NaN or infinity, "
+                                f"expected finite coordinates")
+
+
+def check_faces(faces: np.ndarray, n_vertices: int, source: str) -> None:
+    """``faces`` must be (F, 3) integers in [0, n_vertices)."""
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise DatabaseError(f"{source}: shape {faces.shape}, expected (n_faces > 0, 3)")
+    if faces.dtype.kind not in "iu":
+        raise DatabaseError(f"{source}: dtype {faces.dtype}, expected integers")
+    if faces.min() < 0 or faces.max() >= n_vertices:
+        raise DatabaseError(f"{source}: faces index vertices {faces.min()}..{faces.max()}, "
+                            f"expected 0..{n_vertices - 1} (the meshes have {n_vertices} vertices)")
+
+
+def check_tables(subjects: Table, scans: Table, n_scans: int, subjects_source: str, scans_source: str,
+                 vertices_source: str = "vertices") -> None:
+    """Scans and subjects agree: one scan row per mesh, numbered 0..n-1, every subject known."""
+    if len(scans["scan"]) != n_scans:
+        raise DatabaseError(f"{scans_source}: {len(scans['scan'])} scan rows, but {vertices_source} holds "
+                            f"{n_scans} scans; expected one row per scan")
+    if not np.array_equal(scans["scan"], np.arange(n_scans)):
+        bad = int(np.argmax(scans["scan"] != np.arange(n_scans)))
+        raise DatabaseError(f"{scans_source}: row {bad} has scan {scans['scan'][bad]}, expected the rows to "
+                            f"number the meshes 0..{n_scans - 1} in order")
+    known = set(subjects[SUBJECT_ID_COLUMN].tolist())
+    unknown = sorted(set(scans["subject"].tolist()) - known)
+    if unknown:
+        raise DatabaseError(f"{scans_source}: subject(s) {', '.join(map(repr, unknown[:5]))}"
+                            f"{' ...' if len(unknown) > 5 else ''} not found in {subjects_source}")
+    lengths = {name: len(values) for name, values in subjects.items()}
+    if len(set(lengths.values())) > 1:
+        raise DatabaseError(f"{subjects_source}: columns have different lengths {lengths}")
+
+
+def check_rotations(rotations: np.ndarray | None, joints, n_scans: int, source: str) -> None:
+    """``rotations`` (n_scans, J, 3) float with J == len(joints); both present or both absent."""
+    if rotations is None:
+        if joints is not None:
+            raise DatabaseError(f"{source}: joint names given but no rotations, expected both or neither")
+        return
+    if rotations.ndim != 3 or rotations.shape[0] != n_scans or rotations.shape[2] != 3:
+        raise DatabaseError(f"{source}: shape {rotations.shape}, expected ({n_scans}, n_joints, 3)")
+    if rotations.dtype.kind != "f":
+        raise DatabaseError(f"{source}: dtype {rotations.dtype}, expected float32 axis-angle rotations")
+    if joints is None or len(joints) != rotations.shape[1]:
+        found = "none" if joints is None else len(joints)
+        raise DatabaseError(f"{source}: {rotations.shape[1]} joints per scan, but {found} joint names "
+                            f"(meta.json 'joints'); expected one name per joint")
+    if not np.isfinite(rotations).all():
+        raise DatabaseError(f"{source}: contains NaN or infinity, expected finite rotations")
+
+
+def normalize_subjects(subjects: Mapping, source: str = "subjects") -> Table:
+    """In-memory subject table -> {column: str array or float64 array}, with the file's rules."""
+    columns = list(subjects)
+    check_label_columns(columns, (SUBJECT_ID_COLUMN, SEX_COLUMN), source)
+    if SUBJECT_ID_COLUMN not in subjects:
+        raise DatabaseError(f"{source}: no '{SUBJECT_ID_COLUMN}' column, found {columns}")
+    table = {}
+    for name in columns:
+        values = np.asarray(subjects[name])
+        if values.ndim != 1:
+            raise DatabaseError(f"{source}: column '{name}' has shape {values.shape}, expected (n_subjects,)")
+        if unit_of_label(name) is not None and name != SEX_COLUMN:
+            try:
+                table[name] = values.astype(np.float64)
+            except ValueError:
+                raise DatabaseError(f"{source}: column '{name}' holds non-numeric values, expected numbers") from None
+        else:
+            table[name] = values.astype(str)
+    if SEX_COLUMN in table:
+        table[SEX_COLUMN] = np.char.lower(table[SEX_COLUMN])
+        bad = sorted(set(table[SEX_COLUMN].tolist()) - set(SEXES))
+        if bad:
+            raise DatabaseError(f"{source}: column '{SEX_COLUMN}' holds {bad}, expected {', '.join(SEXES)}")
+    ids = table[SUBJECT_ID_COLUMN].tolist()
+    if len(set(ids)) != len(ids):
+        duplicate = next(i for i in ids if ids.count(i) > 1)
+        raise DatabaseError(f"{source}: subject '{duplicate}' appears twice, expected unique subject ids")
+    return table
+
+
+def normalize_scans(scans: Mapping, n_scans: int, source: str = "scans") -> Table:
+    """In-memory scan table -> {'scan': int64, 'subject': str, 'pose': str}; 'scan' defaults to 0..n-1."""
+    unknown = [c for c in scans if c not in SCAN_COLUMNS]
+    if unknown or "subject" not in scans or "pose" not in scans:
+        raise DatabaseError(f"{source}: columns {list(scans)}, expected subject, pose and optionally scan")
+    scan = np.asarray(scans["scan"]) if "scan" in scans else np.arange(n_scans)
+    return {"scan": scan.astype(np.int64), "subject": np.asarray(scans["subject"]).astype(str),
+            "pose": np.asarray(scans["pose"]).astype(str)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Writer
+# ----------------------------------------------------------------------------------------------
+
+def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, subjects: Mapping,
+                   scans: Mapping, meta: Mapping | None = None, rotations: np.ndarray | None = None,
+                   joints: list[str] | None = None, overwrite: bool = False) -> Path:
+    """Write a database folder; it appears complete or not at all (temp folder, then rename).
+
+    vertices (N, V, 3) in metres (any float; stored float32, copied in chunks so a memmap
+    input is never loaded whole); faces (F, 3) int; subjects {column: (n_subjects,)};
+    scans {'subject', 'pose', optional 'scan': (N,)}; meta: template, provenance, licence,
+    units (counts and format_version are filled in here); rotations (N, J, 3) axis-angle with
+    ``joints`` (J names). Returns the folder path.
+    """
+    folder = Path(folder)
+    if folder.exists() and not overwrite:
+        raise DatabaseError(f"{folder}: already exists; pass overwrite=True to replace it")
+    vertices = vertices if isinstance(vertices, np.ndarray) else np.asarray(vertices)
+    faces = np.asarray(faces)
+    check_vertices(vertices, "vertices")
+    check_faces(faces, vertices.shape[1], "faces")
+    subject_table = normalize_subjects(subjects)
+    scan_table = normalize_scans(scans, len(vertices))
+    check_tables(subject_table, scan_table, len(vertices), "subjects", "scans")
+    if rotations is not None:
+        rotations = np.asarray(rotations)
+    meta = dict(meta or {})
+    joints = list(joints) if joints is not None else meta.get("joints")
+    check_rotations(rotations, joints, len(vertices), "rotations")
+    meta = build_meta(meta, vertices.shape, len(faces), joints)
+    with atomic_dir(folder, overwrite=overwrite) as tmp:
+        stored = np.lib.format.open_memmap(tmp / VERTICES_FILE, mode="w+", dtype=np.float32, shape=vertices.shape)
+        for start in range(0, len(vertices), _CHECK_CHUNK):
+            stored[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK]
+        stored.flush()
+        del stored
+        np.save(tmp / FACES_FILE, faces.astype(np.int32), allow_pickle=False)
+        if rotations is not None:
+            np.save(tmp / ROTATIONS_FILE, rotations.astype(np.float32), allow_pickle=False)
+        write_csv_table(tmp / SUBJECTS_FILE, subject_table)
+        write_csv_table(tmp / SCANS_FILE, scan_table)
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    return folder
+
+
+def build_meta(meta: Mapping, vertices_shape: tuple, n_faces: int, joints) -> dict:
+    """meta.json content: the caller's fields, defaults for missing ones, counts from the arrays."""
+    result = {
+        "format_version": FORMAT_VERSION,
+        "template": str(meta.get("template", "custom")),
+        "units": dict(meta.get("units", {"length": "m"})),
+        "provenance": dict(meta.get("provenance", {})),
+        "licence": str(meta.get("licence", "unspecified")),
+        "n_scans": int(vertices_shape[0]),
+        "n_vertices": int(vertices_shape[1]),
+        "n_faces": int(n_faces),
+    }
+    # Fields we do not know about are kept, not dropped.
+    result.update({key: value for key, value in meta.items() if key not in result and key != "joints"})
+    if joints is not None:
+        result["joints"] = [str(j) for j in joints]
+    return result
+
+
+# ----------------------------------------------------------------------------------------------
+# Reader
+# ----------------------------------------------------------------------------------------------
+
+def read_meta(path: Path) -> dict:
+    """meta.json -> dict, with format_version and required fields checked."""
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatabaseError(f"{path}: could not read as JSON: {exc}") from exc
+    if not isinstance(meta, dict):
+        raise DatabaseError(f"{path}: top level is {type(meta).__name__}, expected a JSON object")
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise DatabaseError(f"{path}: format_version {version!r}, expected {FORMAT_VERSION} "
+                            f"(written by another bodyspace version?)")
+    required = ("template", "units", "provenance", "licence", "n_scans", "n_vertices", "n_faces")
+    missing = [key for key in required if key not in meta]
+    if missing:
+        raise DatabaseError(f"{path}: missing field(s) {', '.join(missing)}, expected {', '.join(required)}")
+    if not isinstance(meta["units"], dict) or meta["units"].get("length") != "m":
+        raise DatabaseError(f"{path}: units {meta['units']!r}, expected {{\"length\": \"m\", ...}}")
+    return meta
+
+
+def _load_npy(path: Path, mmap: bool) -> np.ndarray:
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        # ValueError also covers object arrays, which would need pickle.
+        raise DatabaseError(f"{path}: could not read as a numeric .npy array: {exc}") from exc
+
+
+def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
+    """Read and validate every file of a database folder; the parts of a ScanDatabase."""
+    if not folder.is_dir():
+        raise DatabaseError(f"{folder}: not a folder, expected a scan database folder")
+    missing = [name for name in (META_FILE, VERTICES_FILE, FACES_FILE, SUBJECTS_FILE, SCANS_FILE)
+               if not (folder / name).is_file()]
+    if missing:
+        raise DatabaseError(f"{folder}: missing {', '.join(missing)}; a scan database folder holds "
+                            f"{META_FILE}, {VERTICES_FILE}, {FACES_FILE}, {SUBJECTS_FILE}, {SCANS_FILE}")
+    meta = read_meta(folder / META_FILE)
+    vertices = _load_npy(folder / VERTICES_FILE, mmap=True)
+    if vertices.ndim != 3 or vertices.shape[2] != 3 or vertices.dtype != np.float32:
+        raise DatabaseError(f"{folder / VERTICES_FILE}: shape {vertices.shape} dtype {vertices.dtype}, "
+                            f"expected (n_scans, n_vertices, 3) float32")
+    if check_values:
+        check_vertices(vertices, str(folder / VERTICES_FILE))
+    faces = _load_npy(folder / FACES_FILE, mmap=False)
+    check_faces(faces, vertices.shape[1], str(folder / FACES_FILE))
+    subjects = parse_subject_table(*read_csv_table(folder / SUBJECTS_FILE), str(folder / SUBJECTS_FILE))
+    scans = parse_scan_table(*read_csv_table(folder / SCANS_FILE), str(folder / SCANS_FILE))
+    check_tables(subjects, scans, len(vertices), str(folder / SUBJECTS_FILE), str(folder / SCANS_FILE),
+                 str(folder / VERTICES_FILE))
+    rotations = None
+    if (folder / ROTATIONS_FILE).is_file():
+        rotations = _load_npy(folder / ROTATIONS_FILE, mmap=True)
+    check_rotations(rotations, meta.get("joints"), len(vertices), str(folder / ROTATIONS_FILE))
+    counts = {"n_scans": vertices.shape[0], "n_vertices": vertices.shape[1], "n_faces": faces.shape[0]}
+    for key, found in counts.items():
+        if meta[key] != found:
+            raise DatabaseError(f"{folder / META_FILE}: {key} is {meta[key]}, but the arrays hold {found}")
+    return {"vertices": vertices, "faces": faces.astype(np.int64), "subjects": subjects, "scans": scans,
+            "meta": meta, "rotations": rotations}
+
+
+# ----------------------------------------------------------------------------------------------
+# A user's own registered meshes
+# ----------------------------------------------------------------------------------------------
+
+_LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> dict:
+    """Registered meshes + labels CSV -> the parts of a ScanDatabase (vertices in memory, float32).
+
+    labels_csv: required ``mesh`` (file name relative to ``folder``), optional ``subject``
+    (default: the mesh file stem) and ``pose`` (default 'rest'), plus per-subject label columns
+    with unit suffixes whose values must agree across the scans of one subject.
+    """
+    if length_unit not in _LENGTH_UNITS:
+        raise DatabaseError(f"length_unit '{length_unit}', expected one of {', '.join(_LENGTH_UNITS)}")
+    if not folder.is_dir():
+        raise DatabaseError(f"{folder}: not a folder, expected a folder of registered meshes")
+    source = str(labels_csv)
+    header, rows, lines = read_csv_table(labels_csv)
+    check_label_columns(header, (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose", SEX_COLUMN), source)
+    if MESH_COLUMN not in header:
+        raise DatabaseError(f"{source}: no '{MESH_COLUMN}' column (mesh file name relative to {folder}), found {header}")
+    if not rows:
+        raise DatabaseError(f"{source}: no rows, expected one row per mesh")
+    cells = {name: [row[i] for row in rows] for i, name in enumerate(header)}
+    mesh_names = cells[MESH_COLUMN]
+    seen: dict[str, int] = {}
+    for name, line in zip(mesh_names, lines):
+        if name in seen:
+            raise DatabaseError(f"{source}, line {line}: mesh '{name}' already listed on line {seen[name]}")
+        seen[name] = line
+    subject_ids = cells.get(SUBJECT_ID_COLUMN) or [Path(name).stem for name in mesh_names]
+    subject_ids = [sid or Path(name).stem for sid, name in zip(subject_ids, mesh_names)]
+    poses = [pose or REST_POSE for pose in cells.get("pose", [REST_POSE] * len(rows))]
+
+    vertices, faces = _read_registered_meshes(folder, mesh_names, lines, source)
+    vertices *= _LENGTH_UNITS[length_unit]
+
+    label_columns = [c for c in header if c not in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose")]
+    # Subjects in order of first appearance; each subject's labels come from its first row.
+    first_row: dict[str, int] = {}
+    for row, sid in enumerate(subject_ids):
+        first_row.setdefault(sid, row)
+    order = list(first_row)
+    row_of_subject = {sid: i for i, sid in enumerate(order)}
+    subject_row = np.fromiter((row_of_subject[sid] for sid in subject_ids), dtype=np.int64, count=len(subject_ids))
+    subjects: Table = {SUBJECT_ID_COLUMN: np.array(order, dtype=str)}
+    for column in label_columns:
+        per_scan = parse_label_column(column, cells[column], lines, source)
+        per_subject = per_scan[[first_row[sid] for sid in order]]
+        agree = per_scan == per_subject[subject_row]
+        if per_scan.dtype.kind == "f":
+            agree |= np.isnan(per_scan) & np.isnan(per_subject[subject_row])
+        if not agree.all():
+            bad = int(np.argmin(agree))
+            sid = subject_ids[bad]
+            raise DatabaseError(f"{source}, line {lines[bad]}, column '{column}': subject '{sid}' has "
+                                f"'{cells[column][bad]}' here but '{cells[column][first_row[sid]]}' on line "
+                                f"{lines[first_row[sid]]}; expected one value per subject")
+        subjects[column] = per_subject
+    scans = {"scan": np.arange(len(rows), dtype=np.int64), "subject": np.array(subject_ids, dtype=str),
+             "pose": np.array(poses, dtype=str)}
+    meta = build_meta({"template": "custom", "units": {"length": "m"},
+                       "provenance": {"source": "from_meshes", "folder": str(folder), "labels": str(labels_csv),
+                                      "length_unit": length_unit}},
+                      vertices.shape, len(faces), None)
+    return {"vertices": vertices, "faces": faces, "subjects": subjects, "scans": scans, "meta": meta,
+            "rotations": None}
+
+
+def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int],
+                            source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Meshes sharing one topology -> vertices (N, V, 3) float32, faces (F, 3) int64.
+
+    Every mesh must have the first mesh's vertex count and exactly its faces.
+    """
+    vertices = None
+    first_path = None
+    for i, (name, line) in enumerate(zip(mesh_names, lines)):
+        path = folder / name
+        if path.suffix.lower() not in _MESH_SUFFIXES:
+            raise DatabaseError(f"{source}, line {line}: mesh '{name}' has suffix '{path.suffix}', "
+                                f"expected one of {', '.join(_MESH_SUFFIXES)}")
+        if not path.is_file():
+            raise DatabaseError(f"{source}, line {line}: mesh file {path} not found")
+        mesh_vertices, mesh_faces = load_mesh(path)
+        if vertices is None:
+            first_path, faces = path, mesh_faces
+            # One preallocated float32 block: no list of float64 copies, no final stacking.
+            vertices = np.empty((len(mesh_names), len(mesh_vertices), 3), dtype=np.float32)
+        elif len(mesh_vertices) != vertices.shape[1]:
+            raise DatabaseError(f"{path}: {len(mesh_vertices)} vertices, but {first_path} has {vertices.shape[1]}; "
+                                f"expected every mesh registered to one topology (mixed topology)")
+        elif not np.array_equal(mesh_faces, faces):
+            detail = (f"{len(mesh_faces)} faces vs {len(faces)}" if len(mesh_faces) != len(faces) else
+                      f"{int((mesh_faces != faces).any(axis=1).sum())} of {len(faces)} faces differ")
+            raise DatabaseError(f"{path}: faces differ from {first_path} ({detail}); expected every mesh "
+                                f"registered to one topology (mixed topology)")
+        vertices[i] = mesh_vertices
+    return vertices, faces
+
+
+# ----------------------------------------------------------------------------------------------
+# The database object
+# ----------------------------------------------------------------------------------------------
+
+class ScanDatabase:
+    """Registered scans of many subjects in many poses, with per-subject labels.
+
+    Attributes
+    ----------
+    vertices : (N_scans, V, 3) float32 memmap (after ``load``) or array, metres
+    faces : (F, 3) int64
+    subjects : {column: (n_subjects,) array}; 'subject' ids and 'sex' as str, labels float64
+    scans : {'scan': (N,) int64, 'subject': (N,) str, 'pose': (N,) str}
+    rotations : (N_scans, J, 3) float32 axis-angle joint rotations, or None
+    meta : dict (meta.json); ``meta['joints']`` names the J joints when rotations are present
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, subjects: Mapping, scans: Mapping,
+                 meta: Mapping | None = None, rotations: np.ndarray | None = None, *, _checked: bool = False):
+        if not _checked:
+            vertices = np.asarray(vertices)
+            faces = np.asarray(faces)
+            check_vertices(vertices, "vertices")
+            check_faces(faces, vertices.shape[1], "faces")
+            subjects = normalize_subjects(subjects)
+            scans = normalize_scans(scans, len(vertices))
+            check_tables(subjects, scans, len(vertices), "subjects", "scans")
+            meta = dict(meta or {})
+            check_rotations(None if rotations is None else np.asarray(rotations), meta.get("joints"),
+                            len(vertices), "rotations")
+            meta = build_meta(meta, vertices.shape, len(faces), meta.get("joints"))
+            faces = faces.astype(np.int64)
+        self.vertices = vertices
+        self.faces = faces
+        self.subjects = dict(subjects)
+        self.scans = dict(scans)
+        self.meta = dict(meta)
+        self.rotations = rotations
+
+    # -- constructors -------------------------------------------------------------------------
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike, check_values: bool = True) -> "ScanDatabase":
+        """Open a database folder; vertices stay on disk (memmap). Validates every file.
+
+        ``check_values=False`` skips the NaN scan of vertices.npy (a full read of the file).
+        """
+        return cls(**load_database_arrays(Path(folder), check_values=check_values), _checked=True)
+
+    @classmethod
+    def from_meshes(cls, folder: str | os.PathLike, labels_csv: str | os.PathLike,
+                    length_unit: str = "m") -> "ScanDatabase":
+        """Build an in-memory database from a folder of registered OBJ/PLY/GLB meshes and a labels CSV.
+
+        See ``read_mesh_folder`` for the CSV columns; ``length_unit`` ('m', 'cm', 'mm') is the
+        unit of the mesh coordinates, converted to metres.
+        """
+        return cls(**read_mesh_folder(Path(folder), Path(labels_csv), length_unit), _checked=True)
+
+    def save(self, folder: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Write this database as a folder (atomically); returns the folder path."""
+        return write_database(folder, self.vertices, self.faces, self.subjects, self.scans, self.meta,
+                              rotations=self.rotations, joints=self.meta.get("joints"), overwrite=overwrite)
+
+    # -- sizes --------------------------------------------------------------------------------
+
+    @property
+    def n_scans(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[1])
+
+    @property
+    def n_subjects(self) -> int:
+        return len(self.subjects[SUBJECT_ID_COLUMN])
+
+    @property
+    def joints(self) -> list[str] | None:
+        return self.meta.get("joints")
+
+    def __len__(self) -> int:
+        return self.n_scans
+
+    def __repr__(self) -> str:
+        return (f"ScanDatabase({self.n_scans} scans, {self.n_subjects} subjects, {self.n_vertices} vertices, "
+                f"template={self.meta.get('template')!r})")
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def scan_subject_index(self) -> np.ndarray:
+        """(N_scans,) int64: the row in ``subjects`` of each scan's subject."""
+        row_of = {sid: row for row, sid in enumerate(self.subjects[SUBJECT_ID_COLUMN].tolist())}
+        return np.fromiter((row_of[sid] for sid in self.scans["subject"].tolist()), dtype=np.int64,
+                           count=self.n_scans)
+
+    def label(self, name: str) -> np.ndarray:
+        """(N_scans,) value of subject column ``name`` for each scan."""
+        if name not in self.subjects:
+            raise DatabaseError(f"label '{name}' not found; the database has {', '.join(self.subjects)}")
+        return self.subjects[name][self.scan_subject_index()]
+
+    def mesh(self, scan: int) -> np.ndarray:
+        """(V, 3) float64 vertices of one scan (read from disk if memory-mapped)."""
+        return np.asarray(self.vertices[scan], dtype=np.float64)
+
+    def select(self, mask_or_indices) -> "ScanDatabase":
+        """A new in-memory database with the chosen scans, renumbered, and only their subjects.
+
+        ``mask_or_indices``: (N_scans,) bool mask, or integer scan indices (order kept).
+        """
+        selection = np.asarray(mask_or_indices)
+        if selection.dtype == bool:
+            if selection.shape != (self.n_scans,):
+                raise DatabaseError(f"select: mask has shape {selection.shape}, expected ({self.n_scans},)")
+            indices = np.flatnonzero(selection)
+        elif selection.dtype.kind in "iu" or selection.size == 0:
+            indices = selection.astype(np.int64).reshape(-1)
+            if indices.size and (indices.min() < -self.n_scans or indices.max() >= self.n_scans):
+                raise DatabaseError(f"select: scan indices {indices.min()}..{indices.max()}, "
+                                    f"expected 0..{self.n_scans - 1}")
+            indices = indices % max(self.n_scans, 1)
+        else:
+            raise DatabaseError(f"select: got dtype {selection.dtype}, expected a bool mask or integer indices")
+        # Sorted indices let a memmap read contiguous runs; the order is restored afterwards.
+        order = np.argsort(indices, kind="stable")
+        vertices = np.empty((len(indices),) + self.vertices.shape[1:], dtype=self.vertices.dtype)
+        vertices[order] = self.vertices[indices[order]]
+        scan_subjects = self.scans["subject"][indices]
+        keep = np.isin(self.subjects[SUBJECT_ID_COLUMN], scan_subjects)
+        subjects = {name: values[keep] for name, values in self.subjects.items()}
+        scans = {"scan": np.arange(len(indices), dtype=np.int64), "subject": scan_subjects,
+                 "pose": self.scans["pose"][indices]}
+        rotations = None if self.rotations is None else np.array(self.rotations[indices])
+        meta = build_meta(self.meta, vertices.shape, len(self.faces), self.meta.get("joints"))
+        return ScanDatabase(vertices, self.faces.copy(), subjects, scans, meta, rotations, _checked=True)
+
+    def rest_pose(self) -> "ScanDatabase":
+        """The scans in the rest pose (pose == 'rest')."""
+        mask = self.scans["pose"] == REST_POSE
+        if not mask.any():
+            raise DatabaseError(f"no scan has pose '{REST_POSE}'; poses present: "
+                                f"{', '.join(sorted(set(self.scans['pose'].tolist()))[:10])}")
+        return self.select(mask)

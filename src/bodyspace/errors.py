@@ -1,0 +1,25 @@
+"""One error hierarchy for the whole package.
+
+Every message names the file or field, what was found and what was expected, so a user can
+fix the input without reading our code.
+"""
+
+
+class BodyspaceError(Exception):
+    """Base class of every error bodyspace raises on purpose."""
+
+
+class AssetError(BodyspaceError):
+    """The CC0 asset set is missing, incomplete, or does not verify."""
+
+
+class MeshError(BodyspaceError):
+    """A mesh has the wrong shape, topology or values."""
+
+
+class DatabaseError(BodyspaceError):
+    """A scan database folder or a user's mesh folder is malformed."""
+
+
+class ParameterError(BodyspaceError):
+    """A phenotype or pose parameter is unknown or out of range."""

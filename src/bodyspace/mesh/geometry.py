@@ -1,0 +1,109 @@
+"""Per-mesh geometric quantities: normals, areas, boundary loops, capped volume.
+
+All functions take ``vertices`` of shape (V, 3) or a batch (N, V, 3) and ``faces`` (F, 3) int.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bodyspace.errors import MeshError
+
+
+def check_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> None:
+    """Raise MeshError unless ``vertices`` is (..., V, 3) finite and ``faces`` (F, 3) indexes it."""
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    if vertices.ndim < 2 or vertices.shape[-1] != 3:
+        raise MeshError(f"{name}: vertices have shape {vertices.shape}, expected (V, 3) or (N, V, 3)")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise MeshError(f"{name}: faces have shape {faces.shape}, expected (F, 3)")
+    if faces.size and (faces.min() < 0 or faces.max() >= vertices.shape[-2]):
+        raise MeshError(f"{name}: faces index vertices 0..{faces.max()}, but there are only "
+                        f"{vertices.shape[-2]} vertices")
+    if not np.isfinite(vertices).all():
+        raise MeshError(f"{name}: vertices contain NaN or infinity")
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
+    """Face normals (..., F, 3); with ``normalize=False`` their length is twice the face area."""
+    v = np.asarray(vertices)
+    a, b, c = v[..., faces[:, 0], :], v[..., faces[:, 1], :], v[..., faces[:, 2], :]
+    n = np.cross(b - a, c - a)
+    if normalize:
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    return n
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Triangle areas (..., F)."""
+    return 0.5 * np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=-1)
+
+
+def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """Ordered vertex loops of the mesh boundary (edges used by exactly one face).
+
+    Each loop follows the faces' orientation, so capping it with a fan keeps the closed surface
+    consistently oriented (the cap's triangles use the loop reversed).
+    """
+    faces = np.asarray(faces)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = np.sort(e, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = e[counts[inverse.ravel()] == 1]
+    nxt = {int(a): int(b) for a, b in boundary}
+    if len(nxt) != len(boundary):
+        raise MeshError("mesh boundary is not manifold: a vertex starts two boundary edges")
+    loops, seen = [], set()
+    for start in nxt:
+        if start in seen:
+            continue
+        loop, v = [], start
+        while v not in seen:
+            seen.add(v)
+            loop.append(v)
+            v = nxt[v]
+        loops.append(np.array(loop))
+    return loops
+
+
+def cap_holes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Close every boundary loop with a fan around an added centroid vertex.
+
+    Returns ``(vertices', faces')`` for one mesh (V, 3); the new vertices are appended.
+    For a batch use ``capped_volume``, which does not build the meshes.
+    """
+    loops = boundary_loops(faces)
+    verts, new_faces = [np.asarray(vertices, dtype=float)], [np.asarray(faces)]
+    nv = len(vertices)
+    for k, loop in enumerate(loops):
+        verts.append(np.asarray(vertices)[loop].mean(axis=0, keepdims=True))
+        c = nv + k
+        nxt = np.roll(loop, -1)
+        new_faces.append(np.stack([nxt, loop, np.full_like(loop, c)], axis=1))
+    return np.concatenate(verts), np.concatenate(new_faces)
+
+
+def capped_volume(vertices: np.ndarray, faces: np.ndarray, loops: list[np.ndarray] | None = None) -> np.ndarray:
+    """Enclosed volume (...,) of a mesh whose holes are capped by centroid fans, in units^3.
+
+    Divergence theorem: the sum of signed tetrahedra from the origin; the caps are added
+    analytically so no capped mesh is built. Works on batches (N, V, 3).
+    """
+    v = np.asarray(vertices, dtype=float)
+    if loops is None:
+        loops = boundary_loops(faces)
+    a, b, c = v[..., faces[:, 0], :], v[..., faces[:, 1], :], v[..., faces[:, 2], :]
+    vol = np.einsum("...i,...i->...", a, np.cross(b, c)).sum(axis=-1)
+    for loop in loops:
+        p = v[..., loop, :]
+        q = v[..., np.roll(loop, -1), :]
+        centre = p.mean(axis=-2, keepdims=True)
+        # Cap triangles (q, p, centre), matching cap_holes.
+        vol = vol + np.einsum("...i,...i->...", q, np.cross(p, np.broadcast_to(centre, p.shape))).sum(axis=-1)
+    return vol / 6.0
+
+
+def surface_area(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Total area (...,) of the (uncapped) surface."""
+    return face_areas(vertices, faces).sum(axis=-1)

@@ -1,0 +1,231 @@
+"""Read and write triangle meshes as plain arrays, keeping the vertex order exactly.
+
+Registered meshes share one topology *by vertex index*: vertex 1234 is the same point of the
+body in every scan. So a reader must never merge, split or reorder vertices.
+
+- OBJ is parsed here (numpy, no trimesh): trimesh splits OBJ files with several ``o``/``g``
+  groups or materials into separate geometries and duplicates/reorders vertices when it joins
+  them again, which silently breaks the shared topology. Our parser keeps every ``v`` line, in
+  file order, and fan-triangulates polygons in face order (quads become (0,1,2),(0,2,3), as
+  trimesh does).
+- PLY, GLB/GLTF and STL go through trimesh with ``process=False, maintain_order=True``.
+  STL stores three fresh vertices per triangle, so an STL file has no shared vertices and
+  cannot carry a registered topology; use it for export only.
+
+Arrays: ``vertices`` (V, 3) float64, ``faces`` (F, 3) int64, in the file's units (the caller
+converts to metres).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from bodyspace.atomic import atomic_path
+from bodyspace.errors import MeshError
+
+READ_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
+WRITE_SUFFIXES = (".obj", ".ply", ".glb", ".stl")
+
+# Nine significant digits reproduce any float32 exactly (the on-disk precision of the scan
+# database) and are 1 nm at 1 m, far below any scanner's noise.
+OBJ_FLOAT_FORMAT = "%.9g"
+
+_OBJ_VERTEX_LINE = re.compile(r"^[ \t]*v[ \t]+([^\r\n]*)", re.MULTILINE)
+_OBJ_FACE_LINE = re.compile(r"^[ \t]*f[ \t]+([^\r\n]*)", re.MULTILINE)
+# In a face corner "v/vt/vn" only the position index matters to us.
+_OBJ_CORNER_TAIL = re.compile(r"/[^\s]*")
+
+
+def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle mesh, keeping the file's vertex order and count.
+
+    Returns ``vertices`` (V, 3) float64 and ``faces`` (F, 3) int64. Raises MeshError naming the
+    file if it is missing, unreadable, has no faces, indexes missing vertices or holds NaN/inf.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in READ_SUFFIXES:
+        raise MeshError(f"{path}: unsupported mesh format '{suffix}', expected one of {', '.join(READ_SUFFIXES)}")
+    if not path.is_file():
+        raise MeshError(f"{path}: mesh file not found")
+    if suffix == ".obj":
+        vertices, faces = _read_obj(path)
+    else:
+        vertices, faces = _read_with_trimesh(path, suffix[1:])
+    _check_loaded(path, vertices, faces)
+    return vertices, faces
+
+
+def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write ``vertices`` (V, 3) and ``faces`` (F, 3) to ``path``; the format follows the suffix.
+
+    The file appears complete or not at all (written to a temporary name, then renamed).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in WRITE_SUFFIXES:
+        raise MeshError(f"{path}: cannot write mesh format '{suffix}', expected one of {', '.join(WRITE_SUFFIXES)}")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"{path}: vertices have shape {vertices.shape}, expected (V, 3)")
+    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and faces.dtype.kind not in "iu"):
+        raise MeshError(f"{path}: faces have shape {faces.shape} and dtype {faces.dtype}, expected (F, 3) integers")
+    _check_loaded(path, vertices, faces.astype(np.int64))
+    with atomic_path(path) as tmp:
+        if suffix == ".obj":
+            _write_obj(tmp, vertices, faces)
+        else:
+            import trimesh
+
+            mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+            # The temporary file ends in ".part", so the format must be named explicitly.
+            mesh.export(file_obj=str(tmp), file_type=suffix[1:])
+
+
+def _check_loaded(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Raise MeshError unless ``faces`` (F, 3) is non-empty and indexes finite ``vertices`` (V, 3)."""
+    if len(faces) == 0:
+        raise MeshError(f"{path}: found {len(vertices)} vertices and no faces, expected a triangle mesh")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(f"{path}: faces index vertices {faces.min()}..{faces.max()}, "
+                        f"but the file has {len(vertices)} vertices")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise MeshError(f"{path}: {int(bad.sum())} vertices contain NaN or infinity "
+                        f"(first: vertex {int(np.argmax(bad))}), expected finite coordinates")
+
+
+def _read_with_trimesh(path: Path, file_type: str) -> tuple[np.ndarray, np.ndarray]:
+    """PLY / glTF / STL through trimesh without any merging or reordering."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), file_type=file_type, process=False, maintain_order=True)
+    except Exception as exc:  # trimesh raises many types for a damaged file
+        raise MeshError(f"{path}: could not read as {file_type.upper()}: {exc}") from exc
+    if isinstance(loaded, trimesh.Scene):
+        meshes = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        if not meshes:
+            raise MeshError(f"{path}: found no triangle mesh in the {file_type.upper()} scene, expected one")
+        loaded = meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
+    if not isinstance(loaded, trimesh.Trimesh):
+        n_points = len(getattr(loaded, "vertices", []))
+        raise MeshError(f"{path}: found {type(loaded).__name__} with {n_points} vertices and no faces, "
+                        f"expected a triangle mesh")
+    return (np.asarray(loaded.vertices, dtype=np.float64).reshape(-1, 3),
+            np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3))
+
+
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Wavefront OBJ: every ``v`` line in file order; polygons triangulated as trimesh does."""
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except OSError as exc:
+        raise MeshError(f"{path}: could not read: {exc}") from exc
+    if "\n " in text or "\n\t" in text or text[:1] in (" ", "\t"):
+        # Indented lines are rare; the regular expressions handle them, the fast path does not.
+        vertex_lines = _OBJ_VERTEX_LINE.findall(text)
+        face_lines = _OBJ_FACE_LINE.findall(text)
+    else:
+        lines = text.split("\n")
+        vertex_lines = [line[2:] for line in lines if line[:2] in ("v ", "v\t")]
+        face_lines = [line[2:] for line in lines if line[:2] in ("f ", "f\t")]
+    vertices = _parse_obj_vertices(path, vertex_lines)
+    if not face_lines:
+        return vertices, np.zeros((0, 3), dtype=np.int64)
+    corner_counts = np.fromiter(map(len, map(str.split, face_lines)), dtype=np.int64, count=len(face_lines))
+    if corner_counts.min() < 3:
+        bad = int(np.argmax(corner_counts < 3))
+        raise MeshError(f"{path}: face {bad} ('f {face_lines[bad].strip()}') has {corner_counts[bad]} corners, "
+                        f"expected at least 3")
+    indices = _parse_numbers(_OBJ_CORNER_TAIL.sub("", "\n".join(face_lines)), np.int64, int(corner_counts.sum()))
+    if indices is None:
+        raise MeshError(f"{path}: a face line holds a non-integer vertex index, expected 'f i j k' with i >= 1")
+    if (indices == 0).any():
+        raise MeshError(f"{path}: a face uses vertex index 0, but OBJ indices start at 1")
+    if (indices < 0).any():
+        # Negative indices count back from the last vertex defined *before* that face line.
+        defined = np.repeat(_vertices_defined_before_each_face(text), corner_counts)
+        indices = np.where(indices < 0, defined + indices, indices - 1)
+    else:
+        indices = indices - 1
+    return vertices, triangulate_polygons(indices, corner_counts)
+
+
+def _parse_numbers(text: str, dtype, expected: int) -> np.ndarray | None:
+    """Whitespace-separated numbers -> (expected,) array, or None if any token is not a number."""
+    with warnings.catch_warnings():
+        # numpy warns (rather than raises) when it stops at a bad token; the count tells us.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            values = np.fromstring(text, dtype=dtype, sep=" ")
+        except ValueError:
+            return None
+    return values if values.size == expected else None
+
+
+def _parse_obj_vertices(path: Path, vertex_lines: list[str]) -> np.ndarray:
+    """``v x y z [w | r g b]`` lines -> (V, 3) float64 (extra values are dropped)."""
+    values = _parse_numbers(" ".join(vertex_lines), np.float64, 3 * len(vertex_lines))
+    if values is not None:
+        return values.reshape(-1, 3)
+    # Some lines carry a w or colours: take the first three values of each line.
+    rows = [line.split()[:3] for line in vertex_lines]
+    for i, row in enumerate(rows):
+        if len(row) < 3:
+            raise MeshError(f"{path}: vertex {i} ('v {vertex_lines[i].strip()}') has fewer than 3 coordinates")
+    try:
+        return np.array(rows, dtype=np.float64).reshape(-1, 3)
+    except ValueError as exc:
+        raise MeshError(f"{path}: a 'v' line holds a non-numeric coordinate ({exc})") from exc
+
+
+def _vertices_defined_before_each_face(text: str) -> np.ndarray:
+    """(P,) number of ``v`` lines preceding each of the P ``f`` lines."""
+    counts, n_vertices = [], 0
+    for line in text.splitlines():
+        head = line.lstrip()[:2]
+        if head in ("v ", "v\t"):
+            n_vertices += 1
+        elif head in ("f ", "f\t"):
+            counts.append(n_vertices)
+    return np.asarray(counts, dtype=np.int64)
+
+
+def triangulate_polygons(indices: np.ndarray, corner_counts: np.ndarray) -> np.ndarray:
+    """Polygons as flat vertex ``indices`` (sum(corner_counts),) -> triangles (F, 3).
+
+    Same triangles in the same order as trimesh's OBJ reader, so faces agree with meshes loaded
+    through it: a quad (a,b,c,d) gives (a,b,c),(c,d,a), a larger polygon the fan (a,b,c),(a,c,d)...
+    A file of only quads lists every quad's first triangle, then every quad's second; otherwise
+    the triangles follow the polygons in file order.
+    """
+    indices = np.asarray(indices, dtype=np.int64)
+    corner_counts = np.asarray(corner_counts, dtype=np.int64)
+    if (corner_counts == 3).all():
+        return indices.reshape(-1, 3)
+    if (corner_counts == 4).all():
+        quads = indices.reshape(-1, 4)
+        return np.concatenate([quads[:, [0, 1, 2]], quads[:, [2, 3, 0]]])
+    starts = np.cumsum(corner_counts) - corner_counts
+    triangles_per_polygon = corner_counts - 2
+    polygon = np.repeat(np.arange(len(corner_counts)), triangles_per_polygon)
+    k = np.arange(len(polygon)) - (np.cumsum(triangles_per_polygon) - triangles_per_polygon)[polygon]
+    local = np.stack([np.zeros_like(k), k + 1, k + 2], axis=1)
+    # A quad's second triangle starts at its third corner: (2, 3, 0) rather than (0, 2, 3).
+    local[(corner_counts[polygon] == 4) & (k == 1)] = (2, 3, 0)
+    return indices[starts[polygon][:, None] + local]
+
+
+def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Positions and 1-based triangles only: no normals or UVs, so nothing can split vertices."""
+    with open(path, "w", encoding="utf-8") as handle:
+        handle.write(f"# bodyspace mesh: {len(vertices)} vertices, {len(faces)} faces\n")
+        np.savetxt(handle, vertices, fmt=f"v {OBJ_FLOAT_FORMAT} {OBJ_FLOAT_FORMAT} {OBJ_FLOAT_FORMAT}")
+        np.savetxt(handle, np.asarray(faces, dtype=np.int64) + 1, fmt="f %d %d %d")

@@ -1,0 +1,1 @@
+"""Reports: headless pictures of bodies (``render``) and of population statistics."""
