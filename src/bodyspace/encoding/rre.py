@@ -1,0 +1,613 @@
+"""Relative rotation encoding (RRE) of registered meshes (Hasler et al. 2009, Sec. 3).
+
+Encoding, per triangle i of a mesh registered to the template:
+
+1. deformation gradient ``U_i`` from the template triangle to the scan triangle (Sumner and
+   Popovic's frame with a scaled normal, so ``U_i`` is a full 3x3 map);
+2. polar decomposition ``U_i = R_i S_i``: rotation R_i, symmetric stretch S_i;
+3. relative rotations to the edge neighbours, ``R_ij = R_i R_j^-1`` (Eq. 8), one per edge slot;
+4. everything relative to the *mean model*, the average of all components of all fitted scans:
+   ``r_ij = log(R_ij M_ij^-1)`` with ``M_ij = exp(mean of log R_ij)`` and ``s_i = S_i - mean S_i``.
+
+Code layout, 15 numbers per triangle, triangle-major (``code.reshape(F, 15)``):
+``[r_i0 (3), r_i1 (3), r_i2 (3), S_00, S_01, S_02, S_11, S_12, S_22]``, where slot k is the
+triangle's edge ``(faces[i, k], faces[i, (k+1) % 3])`` and ``r`` are rotation vectors (axis times
+angle, radians). A boundary edge has no neighbour: its three numbers are zero in every code and
+ignored by ``decode`` (``slot_mask_`` says which), so every code has the same length, 15 F.
+
+Decoding, two sparse solves (Sec. 3):
+
+1. rotations R_i from the relative rotations by least squares on Eq. 9, ``R_ij R_j - R_i = 0``
+   for every stored pair (both directions), with the rotation of one *anchor* triangle per
+   connected part fixed to the identity (the "global rotation fixed");
+2. projection of each R_i back onto SO(3) (polar factor), since a modified code gives
+   matrices with scale or shear;
+3. ``U_i = R_i S_i`` and Poisson reconstruction of the vertices (``mesh.solver.PoissonSolver``),
+   with optional soft positional constraints;
+4. placement: each connected part is moved rigidly (Kabsch: rotation and translation, no
+   scale) onto the same vertices of the mean model. A decoded body is therefore never at an
+   arbitrary offset: it overlaps the mean model as well as a rigid motion allows, and a round
+   trip ``decode(encode(x))`` returns ``x`` rigidly aligned to the mean model. The mean
+   model's own vertices ``mean_vertices_`` are placed the same way onto the template.
+
+How step 1 avoids a factorization per body (the system matrix changes with every code): the
+normal matrix of Eq. 9 is a *connection Laplacian*: diagonal blocks ``2 deg_i I`` (relative
+rotations are orthogonal), off-diagonal blocks ``-(R_ij + R_ji^T)``. Conjugated by the
+rotations ``T_i`` obtained by chaining the relative rotations along a breadth-first spanning
+tree from the anchor (``R_c = R_cp R_p``), it becomes ``2 L (x) I`` plus a perturbation that
+vanishes wherever the code is consistent, with L the uniform Laplacian of the dual graph,
+which is fixed per template. So we factor ``2 L`` once (with the anchors as Dirichlet rows)
+and solve the conjugated system by conjugate gradients preconditioned with it. For an
+unmodified code (a round trip) the tree rotations already solve Eq. 9 exactly and no
+iteration runs; a modified code (interpolation, PCA sample) converges in a few iterations.
+The answer is the least-squares solution of Eq. 9 whatever the tree: only the number of
+iterations depends on it. ``rotation_solver="direct"`` assembles and factors the full system for
+every body instead (the baseline the benchmark compares against).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
+from bodyspace.errors import MeshError
+from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
+from bodyspace.mesh.operators import deformation_gradients, dual_laplacian, triangle_frames
+from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints
+from bodyspace.mesh.topology import (check_topology, dual_graph, face_components, spanning_forest,
+                                     vertex_components)
+from scipy.sparse.csgraph import breadth_first_order
+
+FEATURES_PER_FACE = 15
+# A scan triangle whose area shrank below this fraction of its template area is degenerate:
+# its deformation gradient is (nearly) singular and has no meaningful polar decomposition.
+DEGENERATE_AREA_RATIO = 1e-8
+# Bodies decoded together: arrays per body are ~30 MB on the 26,756-face template, so larger
+# batches run in chunks of this size.
+DECODE_CHUNK = 8
+ENCODE_CHUNK = 16
+_STRETCH_ROWS = np.array([0, 0, 0, 1, 1, 2])
+_STRETCH_COLS = np.array([0, 1, 2, 1, 2, 2])
+
+
+# ---------------------------------------------------------------------------- rotations
+# Quaternions are (..., 4) arrays (w, x, y, z).
+
+def quaternion_from_matrix(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) with w >= 0 from rotation matrices (..., 3, 3) (Shepperd 1978).
+
+    The largest of 4w^2, 4x^2, 4y^2, 4z^2 is used as the pivot, so no branch divides by a small
+    number.
+    """
+    r = np.asarray(r, dtype=float)
+    m00, m01, m02 = r[..., 0, 0], r[..., 0, 1], r[..., 0, 2]
+    m10, m11, m12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
+    m20, m21, m22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
+    tr = m00 + m11 + m22
+    cand = np.stack([
+        np.stack([1 + tr, m21 - m12, m02 - m20, m10 - m01], axis=-1),
+        np.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], axis=-1),
+        np.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21], axis=-1),
+        np.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22], axis=-1),
+    ], axis=-2)  # (..., 4, 4): row k is 4 q_k q (up to scale)
+    k = np.argmax(np.stack([tr, m00, m11, m22], axis=-1), axis=-1)
+    q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return q * np.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) from unit quaternions (..., 4)."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return np.stack([
+        np.stack([1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)], axis=-1),
+        np.stack([2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)], axis=-1),
+        np.stack([2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)], axis=-1),
+    ], axis=-2)
+
+
+def quaternion_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product p q (..., 4): the rotation q followed by p."""
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
+    v = pw * qv + qw * pv + np.cross(pv, qv)
+    return np.concatenate([w, v], axis=-1)
+
+
+def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
+    """Inverse rotation of unit quaternions (..., 4)."""
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quaternion_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3), angle in [0, pi], of unit quaternions (..., 4).
+
+    ``atan2`` keeps full precision for tiny angles, where ``arccos`` of the trace would not.
+    """
+    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
+    w, v = q[..., 0], q[..., 1:]
+    s = np.linalg.norm(v, axis=-1)
+    small = s < 1e-8
+    # angle / sin(angle / 2) = 2 atan2(s, w) / s, whose limit for s -> 0 is 2 / w.
+    factor = np.where(small, 2.0 / np.maximum(w, 1e-300), 2.0 * np.arctan2(s, w) / np.where(small, 1.0, s))
+    return v * factor[..., None]
+
+
+def quaternion_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) of rotation vectors (..., 3)."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    theta = np.linalg.norm(rotvec, axis=-1)
+    small = theta < 1e-6
+    # sin(theta / 2) / theta, with its Taylor series near 0.
+    sinc = np.where(small, 0.5 - theta ** 2 / 48.0, np.sin(0.5 * theta) / np.where(small, 1.0, theta))
+    return np.concatenate([np.cos(0.5 * theta)[..., None], rotvec * sinc[..., None]], axis=-1)
+
+
+def rotation_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
+    return matrix_from_quaternion(quaternion_exp(rotvec))
+
+
+def rotation_log(r: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3)."""
+    return quaternion_log(quaternion_from_matrix(r))
+
+
+def _cofactor(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cofactor matrices (``det(X) X^-T``) and determinants of (..., 3, 3) matrices."""
+    r0, r1, r2 = x[..., 0, :], x[..., 1, :], x[..., 2, :]
+    cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-2)
+    det = np.sum(r0 * cof[..., 0, :], axis=-1)
+    return cof, det
+
+
+def polar_decomposition(u: np.ndarray, tol: float = 1e-14, max_iter: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Polar decomposition ``U = R S`` of (..., 3, 3) matrices with det(U) != 0.
+
+    Scaled Newton iteration (Higham 1986): ``X <- (g X + X^-T / g) / 2`` with
+    ``g = |det X|^(-1/3)``, all matrices at once. It converges quadratically to the orthogonal
+    polar factor and costs a few elementwise passes, where a batched SVD of 26,756 3x3 matrices
+    takes ~50 ms. R has the sign of det(U) as determinant; S = R^T U is symmetric.
+    """
+    x = np.array(u, dtype=float)
+    for _ in range(max_iter):
+        cof, det = _cofactor(x)
+        g = np.abs(det) ** (-1.0 / 3.0)
+        new = 0.5 * (g[..., None, None] * x + cof / (g * det)[..., None, None])
+        change = np.abs(new - x).max() if x.size else 0.0
+        x = new
+        if change < tol:
+            break
+    s = np.swapaxes(x, -1, -2) @ u
+    return x, 0.5 * (s + np.swapaxes(s, -1, -2))
+
+
+def project_to_rotations(x: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrices (..., 3, 3) to ``x`` in the Frobenius norm.
+
+    The polar factor where det(x) > 0; where the least-squares solution came out with
+    det <= 0 (a grossly inconsistent code), the SVD with the smallest singular vector flipped.
+    """
+    x = np.asarray(x, dtype=float)
+    _, det = _cofactor(x)
+    good = det > 1e-12 * np.abs(x).max(axis=(-1, -2)) ** 3
+    out = np.empty_like(x)
+    out[good] = polar_decomposition(x[good])[0]
+    if (~good).any():
+        u, _, vt = np.linalg.svd(x[~good])
+        d = np.sign(np.linalg.det(u @ vt))
+        u[..., :, 2] *= np.where(d == 0, 1.0, d)[..., None]
+        out[~good] = u @ vt
+    return out
+
+
+def pack_stretch(s: np.ndarray) -> np.ndarray:
+    """Upper triangle (..., 6) of symmetric (..., 3, 3): S00, S01, S02, S11, S12, S22."""
+    return s[..., _STRETCH_ROWS, _STRETCH_COLS]
+
+
+def unpack_stretch(p: np.ndarray) -> np.ndarray:
+    """Symmetric (..., 3, 3) from (..., 6) (``pack_stretch`` order)."""
+    s = np.empty(p.shape[:-1] + (3, 3))
+    s[..., _STRETCH_ROWS, _STRETCH_COLS] = p
+    s[..., _STRETCH_COLS, _STRETCH_ROWS] = p
+    return s
+
+
+# ---------------------------------------------------------------------------- Eq. 9 solvers
+
+def tree_rotations(relative: np.ndarray, parent: np.ndarray, parent_slot: np.ndarray,
+                   levels: list[np.ndarray]) -> np.ndarray:
+    """Rotations (N, F, 3, 3) chained from the roots (identity) along a spanning forest.
+
+    ``R_c = R_cp R_p`` from Eq. 8, one vectorized step per tree level. Exact for a consistent
+    code; for a modified one, the inconsistencies accumulate along the tree paths.
+
+    Args:
+        relative: (N, F, 3, 3, 3) ``R_ij`` per face i and edge slot.
+        parent, parent_slot, levels: from ``topology.spanning_forest``.
+    """
+    n, nf = relative.shape[:2]
+    t = np.empty((n, nf, 3, 3))
+    t[:, levels[0]] = np.eye(3)
+    for level in levels[1:]:
+        t[:, level] = relative[:, level, parent_slot[level]] @ t[:, parent[level]]
+    return t
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-system inner products (N, 3): each column c of the (N, F, 3, 3) fields is a system."""
+    return np.einsum("nfac,nfac->nc", a, b)
+
+
+def solve_rotations_pcg(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
+                        forest, preconditioner: FactorizedSolver, tol: float = 1e-9,
+                        max_iter: int = 300) -> tuple[np.ndarray, int]:
+    """Least-squares rotations of Eq. 9 by tree-conjugated, Laplacian-preconditioned CG.
+
+    Unknowns ``R_i = T_i Y_i`` with T the tree rotations (``tree_rotations``). Multiplying each
+    residual ``R_ij R_j - R_i`` by the orthogonal ``T_i^T`` turns Eq. 9 into
+    ``E_ij Y_j - Y_i = 0`` with ``E_ij = T_i^T R_ij T_j``, identity on tree edges and wherever
+    the code is consistent. The normal matrix is then ``2 deg_i I`` on the diagonal and
+    ``-(E_ij + E_ji^T)`` off it, i.e. twice the dual-graph Laplacian when E = I. Its three
+    matrix columns are independent systems (the blocks act from the left), solved together.
+
+    Args:
+        relative: (N, F, 3, 3, 3) relative rotations per face and edge slot (boundary slots
+            are ignored).
+        neighbors, back: (F, 3) from ``topology.face_adjacency``.
+        forest: ``topology.spanning_forest``, roots = anchors (rotation fixed to identity).
+        preconditioner: factorization of ``2 L`` with identity rows/columns at the roots.
+        tol: stop when the preconditioned residual (an estimate of the remaining correction
+            to the rotation entries) is below this everywhere.
+    Returns:
+        ``(R (N, F, 3, 3), iterations)``; R is not yet projected onto rotations.
+    """
+    n, nf = relative.shape[:2]
+    valid = neighbors >= 0
+    nbr = np.where(valid, neighbors, np.arange(nf)[:, None])
+    bk = np.where(valid, back, 0)
+    roots = forest.levels[0]
+    t = tree_rotations(relative, forest.parent, forest.parent_slot, forest.levels)
+    # E_ij = T_i^T R_ij T_j for every slot, then the symmetric off-diagonal blocks.
+    e = np.swapaxes(t, -1, -2)[:, :, None] @ relative @ t[:, nbr]
+    b = e + np.swapaxes(e[:, nbr, bk], -1, -2)
+    b[:, ~valid] = 0.0
+    del e
+    deg2 = 2.0 * valid.sum(axis=1)[None, :, None, None]
+
+    def apply(y):
+        out = deg2 * y - np.einsum("nfkab,nfkbc->nfac", b, y[:, nbr], optimize=True)
+        out[:, roots] = 0.0
+        return out
+
+    def precondition(r):
+        flat = np.ascontiguousarray(r.transpose(1, 0, 2, 3)).reshape(nf, n * 9)
+        return preconditioner.solve(flat).reshape(nf, n, 3, 3).transpose(1, 0, 2, 3)
+
+    # Start from Y = I (the tree rotations); the residual of the roots' rows is zero (Dirichlet).
+    r = b.sum(axis=2) - deg2 * np.eye(3)
+    r[:, roots] = 0.0
+    y = np.broadcast_to(np.eye(3), (n, nf, 3, 3)).copy()
+    # A consistent code leaves only round-off: skip the solves when even the worst case
+    # |P^-1 r| <= |P^-1|_inf |r|_inf (|P^-1|_inf is known per template) is below tol.
+    if np.abs(r).max() * preconditioner.inverse_norm_inf < tol:
+        return t @ y, 0
+    z = precondition(r)
+    p = z.copy()
+    rz = _dot(r, z)
+    it = 0
+    for it in range(1, max_iter + 1):
+        if np.abs(z).max() < tol:
+            break
+        ap = apply(p)
+        pap = _dot(p, ap)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap > 0)[:, None, None, :]
+        y += alpha * p
+        r -= alpha * ap
+        z = precondition(r)
+        rz_new = _dot(r, z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0)[:, None, None, :]
+        rz = rz_new
+        p = z + beta * p
+    else:
+        warnings.warn(f"rotation solve stopped after {max_iter} iterations with correction "
+                      f"{np.abs(z).max():.2e} > tol {tol:.1e}", RuntimeWarning, stacklevel=3)
+    return t @ y, it
+
+
+def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
+                           roots: np.ndarray) -> np.ndarray:
+    """Least-squares rotations of Eq. 9 by assembling and factoring the system for each body.
+
+    The obvious method, kept as the reference the benchmark and tests compare against: the
+    (3F, 3F) normal matrix, root rows replaced by the identity, ``splu`` per body.
+    """
+    n, nf = relative.shape[:2]
+    valid = neighbors >= 0
+    nbr = np.where(valid, neighbors, 0)
+    bk = np.where(valid, back, 0)
+    is_root = np.zeros(nf, dtype=bool)
+    is_root[roots] = True
+    i_idx = np.broadcast_to(np.arange(nf)[:, None], (nf, 3))
+    keep = valid & ~is_root[:, None]
+    out = np.empty((n, nf, 3, 3))
+    a3 = np.arange(3)
+    for m in range(n):
+        off = -(relative[m] + np.swapaxes(relative[m][nbr, bk], -1, -2))  # (F, 3, 3, 3)
+        rows_off = 3 * i_idx[keep][:, None, None] + a3[None, :, None]
+        cols_off = 3 * nbr[keep][:, None, None] + a3[None, None, :]
+        diag = np.where(is_root, 1.0, 2.0 * valid.sum(axis=1))
+        rows_d = 3 * np.arange(nf)[:, None] + a3
+        rows = np.concatenate([np.broadcast_to(rows_off, off[keep].shape).ravel(), rows_d.ravel()])
+        cols = np.concatenate([np.broadcast_to(cols_off, off[keep].shape).ravel(), rows_d.ravel()])
+        vals = np.concatenate([off[keep].ravel(), np.repeat(diag, 3)])
+        a = sp.csc_matrix((vals, (rows, cols)), shape=(3 * nf, 3 * nf))
+        rhs = np.zeros((nf, 3, 3))
+        rhs[roots] = np.eye(3)
+        out[m] = sla.splu(a).solve(rhs.reshape(3 * nf, 3)).reshape(nf, 3, 3)
+    return out
+
+
+# ---------------------------------------------------------------------------- the encoder
+
+def _central_face(graph: sp.csr_matrix, start: int) -> int:
+    """A face near the middle of its component's dual graph (double-sweep BFS): rooting the
+    spanning tree there roughly halves its depth."""
+    order, pred = breadth_first_order(graph, start, directed=False, return_predecessors=True)
+    far = order[-1]
+    order, pred = breadth_first_order(graph, far, directed=False, return_predecessors=True)
+    path = [order[-1]]
+    while pred[path[-1]] >= 0:
+        path.append(pred[path[-1]])
+    return int(path[len(path) // 2])
+
+
+class RelativeRotationEncoder:
+    """Relative rotation encoding of meshes registered to a template (Hasler et al. 2009).
+
+    Works for any manifold, consistently oriented triangle topology; boundary edges and several
+    connected parts are handled (see the module docstring for the code layout and placement).
+
+    Args:
+        template_vertices: (V, 3) the rest mesh whose triangles the deformations are relative to.
+        faces: (F, 3) int, shared by every scan.
+        rotation_solver: "pcg" (tree-conjugated, Laplacian-preconditioned conjugate gradients
+            with a factorization made once per template) or "direct" (assemble and factor the
+            Eq. 9 system for every body; slow, for reference).
+        tol: PCG stopping threshold on the estimated correction of rotation entries.
+        max_iter: PCG iteration cap.
+        on_flipped: what ``encode``/``fit`` do with a triangle turned over against all its edge
+            neighbours (a fold-over the template does not have): "raise" (MeshError), "warn" or
+            "ignore". Such triangles still round-trip exactly, but their relative rotations sit
+            near 180 degrees, where rotation vectors wrap, so interpolation and PCA misbehave
+            there. Some MakeHuman targets at full weight fold two thumb triangles this way.
+
+    Attributes (after ``fit``):
+        mean_rotvecs_: (F, 3, 3) mean rotation vector per face and edge slot.
+        mean_stretch_: (F, 6) mean stretch per face.
+        mean_vertices_: (V, 3) the mean model's mesh (decoded zero code), placed on the template.
+        n_features_: D = 15 F (available before fit).
+        slot_mask_: (F, 3) bool, True where the edge slot has a neighbour.
+        last_iterations_: PCG iterations of the last decoded chunk.
+    """
+
+    def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "pcg",
+                 tol: float = 1e-9, max_iter: int = 300, on_flipped: str = "raise"):
+        check_mesh(template_vertices, faces, name="template")
+        tv = np.asarray(template_vertices, dtype=float)
+        if tv.ndim != 2:
+            raise MeshError(f"template: vertices have shape {tv.shape}, expected (V, 3)")
+        if rotation_solver not in ("pcg", "direct"):
+            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'pcg' or 'direct'")
+        self.template_vertices = tv
+        self.faces = np.asarray(faces, dtype=np.int64)
+        if on_flipped not in ("raise", "warn", "ignore"):
+            raise ValueError(f"on_flipped={on_flipped!r}, expected 'raise', 'warn' or 'ignore'")
+        self.rotation_solver = rotation_solver
+        self.on_flipped = on_flipped
+        self.tol = tol
+        self.max_iter = max_iter
+        self.n_vertices, self.n_faces = len(tv), len(self.faces)
+        self.n_features_ = FEATURES_PER_FACE * self.n_faces
+
+        adjacency = check_topology(self.faces, self.n_vertices)
+        self.neighbors, self.back = adjacency.neighbors, adjacency.back
+        self.slot_mask_ = self.neighbors >= 0
+        frames = triangle_frames(tv, self.faces)
+        dbl_area = np.linalg.norm(np.cross(frames[..., 0], frames[..., 1]), axis=-1)
+        bad = np.flatnonzero(dbl_area <= 1e-12 * dbl_area.mean())
+        if len(bad):
+            raise MeshError(f"template: faces {bad[:5].tolist()} are degenerate (zero area); expected "
+                            "non-degenerate triangles")
+        self._rest_frames_inv = np.linalg.inv(frames)
+        self._rest_double_area = dbl_area
+        self._rest_fold = _max_neighbor_agreement(frames[None, ..., 2], self.neighbors)[0]
+        self._loops = boundary_loops(self.faces)
+        self._rest_volume = float(capped_volume(tv, self.faces, self._loops))
+        if abs(self._rest_volume) < 1e-12 * np.ptp(tv, axis=0).max() ** 3:
+            raise MeshError("template: encloses no volume (flat); expected a surface with an inside")
+
+        # One anchor (root) face per edge-connected part, near its middle.
+        n_parts, labels = face_components(self.neighbors)
+        graph = dual_graph(self.neighbors)
+        self.anchor_faces = np.array([_central_face(graph, int(np.flatnonzero(labels == c)[0]))
+                                      for c in range(n_parts)])
+        self._forest = spanning_forest(self.neighbors, self.anchor_faces)
+        lap = dual_laplacian(self.neighbors).tolil()
+        lap[self.anchor_faces, :] = 0.0
+        lap[:, self.anchor_faces] = 0.0
+        lap[self.anchor_faces, self.anchor_faces] = 0.5
+        self._preconditioner = FactorizedSolver(2.0 * lap.tocsr())
+        # |P^-1|_inf = max row sum of P^-1 = max of P^-1 1, since P^-1 >= 0 (P is an M-matrix).
+        self._preconditioner.inverse_norm_inf = float(self._preconditioner.solve(np.ones(self.n_faces)).max())
+
+        self._poisson = PoissonSolver(tv, self.faces)
+        # Placement: vertex components (one per edge-connected part, checked above).
+        n_comp, self._vertex_part = vertex_components(self.faces, self.n_vertices)
+        self._part_vertices = [np.flatnonzero(self._vertex_part == c) for c in range(n_comp)]
+        self._face_part = self._vertex_part[self.faces[:, 0]]
+        self.last_iterations_ = 0
+
+    # ------------------------------------------------------------------ validation
+    def _require_fit(self):
+        if not hasattr(self, "mean_vertices_"):
+            raise MeshError(f"{type(self).__name__} is not fitted; call fit(scans) first "
+                            "(fit(template[None]) makes the template the mean model)")
+
+    def _check_codes(self, codes) -> np.ndarray:
+        return check_codes(codes, self.n_features_, "relative rotation encoding",
+                           f"15 numbers x {self.n_faces} triangles")
+
+    def _deformation(self, x: np.ndarray, name: str) -> np.ndarray:
+        """Deformation gradients (N, F, 3, 3) of validated meshes (N, V, 3); rejects degenerate
+        and flipped triangles."""
+        frames = triangle_frames(x, self.faces)
+        dbl = np.linalg.norm(np.cross(frames[..., 0], frames[..., 1]), axis=-1)
+        ratio = dbl / self._rest_double_area
+        if (ratio < DEGENERATE_AREA_RATIO).any():
+            m, f = np.argwhere(ratio < DEGENERATE_AREA_RATIO)[0]
+            count = int((ratio[m] < DEGENERATE_AREA_RATIO).sum())
+            raise MeshError(f"{name}: mesh {m} has {count} degenerate triangle(s), first face {f} with area "
+                            f"{0.5 * dbl[m, f]:.3g} m^2 (template {0.5 * self._rest_double_area[f]:.3g} m^2); "
+                            "expected triangles of non-zero area")
+        volume = capped_volume(x, self.faces, self._loops)
+        inverted = np.sign(volume) != np.sign(self._rest_volume)
+        if inverted.any():
+            m = np.flatnonzero(inverted)[0]
+            raise MeshError(f"{name}: mesh {m} is inside out (enclosed volume {volume[m]:.3g} m^3, the template's "
+                            f"{self._rest_volume:.3g} m^3): mirrored, or every face flipped; expected the "
+                            "template's orientation")
+        if self.on_flipped != "ignore":
+            fold = _max_neighbor_agreement(frames[..., 2], self.neighbors)
+            flipped = (fold < 0) & (self._rest_fold >= 0)
+            if flipped.any():
+                m, f = np.argwhere(flipped)[0]
+                msg = (f"{name}: mesh {m} has {int(flipped[m].sum())} flipped triangle(s), first face {f}: "
+                       "turned over by more than 90 degrees against every edge neighbour, which the template's "
+                       "is not; expected an orientation-preserving registration (on_flipped='warn' accepts it)")
+                if self.on_flipped == "raise":
+                    raise MeshError(msg)
+                warnings.warn(msg, RuntimeWarning, stacklevel=4)
+        return frames @ self._rest_frames_inv
+
+    # ------------------------------------------------------------------ raw components
+    def _raw(self, x: np.ndarray, name: str):
+        """Quaternions of the relative rotations (N, F, 3, 4) and stretches (N, F, 6)."""
+        u = self._deformation(x, name)
+        rot, stretch = polar_decomposition(u)
+        q = quaternion_from_matrix(rot)  # (N, F, 4)
+        nbr = np.where(self.slot_mask_, self.neighbors, 0)
+        q_rel = quaternion_multiply(q[:, :, None, :], quaternion_conjugate(q[:, nbr]))
+        return q_rel, pack_stretch(stretch)
+
+    # ------------------------------------------------------------------ API
+    def fit(self, scans: np.ndarray, faces: np.ndarray | None = None) -> "RelativeRotationEncoder":
+        """Compute the mean model: the average of every code component over ``scans`` (N, V, 3).
+
+        ``fit(template_vertices[None])`` makes the template itself the mean model.
+        """
+        x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
+        sum_rot = np.zeros((self.n_faces, 3, 3))
+        sum_str = np.zeros((self.n_faces, 6))
+        for s in range(0, len(x), ENCODE_CHUNK):
+            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="scans")
+            sum_rot += quaternion_log(q_rel).sum(axis=0)
+            sum_str += stretch.sum(axis=0)
+        self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], sum_rot / len(x), 0.0)
+        self.mean_stretch_ = sum_str / len(x)
+        self._mean_q = quaternion_exp(self.mean_rotvecs_)  # (F, 3, 4)
+        self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0]
+        return self
+
+    def encode(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
+        """Codes (N, 15 F) of meshes (V, 3) or (N, V, 3) registered to the template.
+
+        ``faces``, if given, must equal the template's (checked). Raises MeshError for wrong
+        shapes, NaN, degenerate or flipped triangles.
+        """
+        self._require_fit()
+        x = check_scans(vertices, self.n_vertices, self.faces, faces)
+        out = np.empty((len(x), self.n_faces, FEATURES_PER_FACE))
+        conj_mean = quaternion_conjugate(self._mean_q)
+        for s in range(0, len(x), ENCODE_CHUNK):
+            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="vertices")
+            rot = quaternion_log(quaternion_multiply(q_rel, conj_mean))
+            rot[:, ~self.slot_mask_] = 0.0
+            out[s:s + ENCODE_CHUNK, :, :9] = rot.reshape(len(rot), self.n_faces, 9)
+            out[s:s + ENCODE_CHUNK, :, 9:] = stretch - self.mean_stretch_
+        return out.reshape(len(x), self.n_features_)
+
+    def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
+        """Meshes (N, V, 3) from codes (N, 15 F) or (15 F,), placed on the mean model.
+
+        With ``constraints`` (``mesh.solver.PositionConstraints``) the Poisson step also pulls
+        the chosen vertices softly to the given positions; the body keeps the orientation the
+        unconstrained placement gives it, and its position follows the constraints.
+        """
+        self._require_fit()
+        c = self._check_codes(codes)
+        out = np.empty((len(c), self.n_vertices, 3))
+        for s in range(0, len(c), DECODE_CHUNK):
+            chunk_constraints = constraints
+            if constraints is not None and np.ndim(constraints.positions) == 3:
+                chunk_constraints = PositionConstraints(constraints.indices,
+                                                        np.asarray(constraints.positions)[s:s + DECODE_CHUNK],
+                                                        constraints.weight)
+            out[s:s + DECODE_CHUNK] = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints, self.mean_vertices_)
+        return out
+
+    def relative_rotations(self, codes: np.ndarray) -> np.ndarray:
+        """Relative rotation matrices R_ij (N, F, 3, 3, 3) per face and edge slot of codes (N, D)."""
+        c = np.asarray(codes).reshape(len(codes), self.n_faces, FEATURES_PER_FACE)
+        q = quaternion_multiply(quaternion_exp(c[..., :9].reshape(len(c), self.n_faces, 3, 3)), self._mean_q)
+        rel = matrix_from_quaternion(q)
+        rel[:, ~self.slot_mask_] = np.eye(3)
+        return rel
+
+    def solve_rotations(self, relative: np.ndarray, solver: str | None = None) -> np.ndarray:
+        """Per-face rotations (N, F, 3, 3) from relative rotations (Eq. 9), projected on SO(3)."""
+        solver = solver or self.rotation_solver
+        if solver == "direct":
+            rot = solve_rotations_direct(relative, self.neighbors, self.back, self.anchor_faces)
+            self.last_iterations_ = 0
+        else:
+            rot, self.last_iterations_ = solve_rotations_pcg(relative, self.neighbors, self.back, self._forest,
+                                                             self._preconditioner, self.tol, self.max_iter)
+        return project_to_rotations(rot)
+
+    def _decode(self, c: np.ndarray, constraints, reference: np.ndarray) -> np.ndarray:
+        n = len(c)
+        c = c.reshape(n, self.n_faces, FEATURES_PER_FACE)
+        rot = self.solve_rotations(self.relative_rotations(c))
+        u = rot @ unpack_stretch(c[..., 9:] + self.mean_stretch_)
+        x = self._poisson.solve(u)
+        placed, part_rot = self._place(x, reference)
+        if constraints is None:
+            return placed
+        # Keep the placed orientation: rotate each part's gradients as the placement rotated it.
+        u = part_rot[:, self._face_part] @ u
+        return self._poisson.solve(u, constraints, pinned_positions=placed)
+
+    def _place(self, x: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rigidly align each connected part of ``x`` (N, V, 3) onto ``reference`` (V, 3)."""
+        placed = np.empty_like(x)
+        rots = np.empty((len(x), len(self._part_vertices), 3, 3))
+        for k, idx in enumerate(self._part_vertices):
+            placed[:, idx], rots[:, k], _ = rigid_procrustes(x[:, idx], reference[idx])
+        return placed, rots
+
+
+def _max_neighbor_agreement(normals: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
+    """``max_j cos(n_i, n_j)`` over the edge neighbours j of each face, (N, F): negative when a
+    face is turned over against all of them. Faces without neighbours get +1."""
+    n = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-300)
+    nbr = np.where(neighbors >= 0, neighbors, np.arange(len(neighbors))[:, None])
+    return np.einsum("nfi,nfki->nfk", n, n[:, nbr]).max(axis=-1)

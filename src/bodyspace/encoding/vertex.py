@@ -1,0 +1,171 @@
+"""The plain vertex encoding (Rupprecht et al., Eq. 1), after rigid Procrustes alignment.
+
+A body is the flattened offset of its aligned vertices from the mean mesh:
+``code = (align(x) - mean).ravel()`` (D = 3V), and ``x = mean + code`` back. Alignment is
+rigid (rotation and translation, no scale: body size is shape, not pose), by the Kabsch
+algorithm, onto the mean mesh; the mean itself comes from generalized Procrustes analysis of
+the fitted scans, kept in the template's frame.
+
+Same interface as ``RelativeRotationEncoder``, so the shape space works with either.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bodyspace.errors import MeshError
+from bodyspace.mesh.geometry import check_mesh
+from bodyspace.mesh.solver import PoissonSolver, PositionConstraints
+from bodyspace.mesh.operators import deformation_gradients, triangle_frames
+from bodyspace.mesh.topology import check_same_topology, check_topology
+
+# Generalized Procrustes stops when the mean moves less than this (metres) between rounds.
+GPA_TOL = 1e-9
+GPA_MAX_ROUNDS = 20
+
+
+def rigid_procrustes(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
+    """Best rigid motion of ``source`` onto ``target`` in the least-squares sense (Kabsch).
+
+    Args:
+        source: (V, 3) or (N, V, 3).
+        target: (V, 3) or (N, V, 3).
+        weights: (V,) non-negative vertex weights, or None for uniform.
+    Returns:
+        ``(aligned, rotation, translation)``: aligned (..., V, 3) = source @ rotation^T +
+        translation, rotation (..., 3, 3) proper (det +1), translation (..., 3).
+    """
+    src = np.asarray(source, dtype=float)
+    tgt = np.asarray(target, dtype=float)
+    w = np.ones(src.shape[-2]) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mu_s = np.einsum("v,...vi->...i", w, src)
+    mu_t = np.einsum("v,...vi->...i", w, tgt)
+    # Cross-covariance H = sum_v w_v (t_v - mu_t)(s_v - mu_s)^T; R maximizes tr(R^T H).
+    h = np.einsum("v,...vi,...vj->...ij", w, tgt - mu_t[..., None, :], src - mu_s[..., None, :])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(u @ vt))
+    d = np.where(d == 0, 1.0, d)
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]  # no reflections
+    rot = u @ vt
+    trans = mu_t - np.einsum("...ij,...j->...i", rot, mu_s)
+    aligned = np.einsum("...ij,...vj->...vi", rot, src) + trans[..., None, :]
+    return aligned, rot, trans
+
+
+class VertexEncoder:
+    """Vertex-position encoding of registered meshes, rigidly aligned to the mean mesh.
+
+    Args:
+        template_vertices: (V, 3) the template (rest) mesh, metres.
+        faces: (F, 3) int, the shared topology.
+
+    Attributes (after ``fit``):
+        mean_vertices_: (V, 3) the generalized-Procrustes mean, aligned to the template.
+        n_features_: D = 3V.
+    """
+
+    def __init__(self, template_vertices: np.ndarray, faces: np.ndarray):
+        check_mesh(template_vertices, faces, name="template")
+        self.template_vertices = np.asarray(template_vertices, dtype=float)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        if self.template_vertices.ndim != 2:
+            raise MeshError(f"template: vertices have shape {self.template_vertices.shape}, expected (V, 3)")
+        check_topology(self.faces, len(self.template_vertices))
+        self.n_vertices = len(self.template_vertices)
+        self.n_features_ = 3 * self.n_vertices
+        self._poisson = None  # built on the first constrained decode
+
+    # ------------------------------------------------------------------ validation
+    def _check_vertices(self, vertices, faces=None, name="vertices") -> np.ndarray:
+        return check_scans(vertices, self.n_vertices, self.faces, faces, name)
+
+    def _check_codes(self, codes) -> np.ndarray:
+        return check_codes(codes, self.n_features_, "vertex encoding", f"3 x {self.n_vertices} vertices")
+
+    def _require_fit(self):
+        if not hasattr(self, "mean_vertices_"):
+            raise MeshError(f"{type(self).__name__} is not fitted; call fit(scans) first "
+                            "(fit(template[None]) makes the template the mean)")
+
+    # ------------------------------------------------------------------ API
+    def fit(self, scans: np.ndarray, faces: np.ndarray | None = None) -> "VertexEncoder":
+        """Compute the mean mesh of ``scans`` (N, V, 3) by generalized Procrustes analysis."""
+        x = self._check_vertices(scans, faces, name="scans")
+        mean = self.template_vertices
+        for _ in range(GPA_MAX_ROUNDS):
+            aligned, _, _ = rigid_procrustes(x, mean)
+            new = rigid_procrustes(aligned.mean(axis=0), self.template_vertices)[0]
+            moved = np.abs(new - mean).max()
+            mean = new
+            if moved < GPA_TOL:
+                break
+        self.mean_vertices_ = mean
+        return self
+
+    def encode(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
+        """Codes (N, 3V) of meshes (V, 3) or (N, V, 3): aligned vertices minus the mean."""
+        self._require_fit()
+        x = self._check_vertices(vertices, faces)
+        aligned, _, _ = rigid_procrustes(x, self.mean_vertices_)
+        return (aligned - self.mean_vertices_).reshape(len(x), -1)
+
+    def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
+        """Meshes (N, V, 3) from codes (N, 3V) or (3V,), in the mean mesh's frame.
+
+        With ``constraints`` the decoded mesh is deformed by the same Poisson step as the
+        relative rotation encoding uses: its own deformation gradients are kept as targets while
+        the chosen vertices are pulled softly to the given positions.
+        """
+        self._require_fit()
+        c = self._check_codes(codes)
+        x = self.mean_vertices_ + c.reshape(len(c), self.n_vertices, 3)
+        if constraints is None:
+            return x
+        if self._poisson is None:
+            self._poisson = PoissonSolver(self.template_vertices, self.faces)
+            self._rest_frames_inv = np.linalg.inv(triangle_frames(self.template_vertices, self.faces))
+        u = deformation_gradients(self._rest_frames_inv, x, self.faces)
+        return self._poisson.solve(u, constraints, pinned_positions=x)
+
+
+def check_scans(vertices, n_vertices: int, template_faces: np.ndarray, faces=None, name="vertices") -> np.ndarray:
+    """Validate registered meshes and return them as float (N, V, 3)."""
+    x = np.asarray(vertices)
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[-1] != 3:
+        raise MeshError(f"{name}: shape {np.shape(vertices)}, expected (V, 3) or (N, V, 3) with V = {n_vertices}")
+    if x.shape[1] != n_vertices:
+        raise MeshError(f"{name}: {x.shape[1]} vertices per mesh, the template has {n_vertices}; expected meshes "
+                        "registered to the template (same vertex count and order)")
+    if not np.issubdtype(x.dtype, np.number):
+        raise MeshError(f"{name}: dtype {x.dtype}, expected floating-point coordinates")
+    if faces is not None:
+        check_same_topology(faces, template_faces, name=name)
+    x = x.astype(float, copy=False)
+    bad = ~np.isfinite(x).all(axis=(1, 2))
+    if bad.any():
+        n = np.flatnonzero(bad)[0]
+        v = np.flatnonzero(~np.isfinite(x[n]).all(axis=1))
+        raise MeshError(f"{name}: mesh {n} has NaN or infinite coordinates at vertices {v[:5].tolist()}"
+                        f"{' ...' if len(v) > 5 else ''}; expected finite values")
+    return x
+
+
+def check_codes(codes, n_features: int, what: str, layout: str) -> np.ndarray:
+    """Validate codes and return them as float (N, D)."""
+    c = np.asarray(codes)
+    if c.ndim == 1:
+        c = c[None]
+    if c.ndim != 2 or c.shape[1] != n_features:
+        raise MeshError(f"codes: shape {np.shape(codes)}, expected ({n_features},) or (N, {n_features}) for the "
+                        f"{what} of this template ({layout})")
+    if not np.issubdtype(c.dtype, np.number):
+        raise MeshError(f"codes: dtype {c.dtype}, expected floating-point numbers")
+    c = c.astype(float, copy=False)
+    if not np.isfinite(c).all():
+        n, j = np.argwhere(~np.isfinite(c))[0]
+        raise MeshError(f"codes: code {n} has NaN or infinity at entry {j}; expected finite values")
+    return c
