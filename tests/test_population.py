@@ -44,7 +44,7 @@ def test_build_population_folder(template, tmp_path):
     assert mm.dtype == np.float32 and mm.shape == (9, template.n_vertices, 3)
     meta = json.loads((out / "meta.json").read_text())
     assert meta["template"] == template.template_id and meta["format_version"] == 1
-    assert "CC0" in meta["licence"] and "ANSUR" in meta["provenance"]["survey"]
+    assert "CC0" in meta["licence"] and "NATICK/TR-89/044" in meta["provenance"]["survey"]
     # Every scan stands on the ground; rest scans have identity rotations, posed ones do not.
     assert np.abs(mm[..., 1].min(axis=1)).max() < 1e-6
     rest = db.scans["pose"] == "rest"

@@ -243,13 +243,6 @@ def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansu
     return Subjects(phen, male, age, th, tb, h, vol, mass, bmi, bf)
 
 
-def place_on_ground(vertices: np.ndarray) -> np.ndarray:
-    """Translate bodies (N, V, 3) vertically so each one's lowest vertex is at y = 0."""
-    v = np.array(vertices, dtype=float, copy=True)
-    v[..., 1] -= v[..., 1].min(axis=-1, keepdims=True)
-    return v
-
-
 def build_population(template: Template, out, n_subjects: int, n_poses: int, rng=None, rig: str = "default",
                      overwrite: bool = False, progress: Callable[[str, float], None] | None = None):
     """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
@@ -287,9 +280,9 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in range(stop - start)]
         flat = [name for names in chosen for name in names]
         R = np.stack([rotmat[name] for name in flat])
-        posed = pose_bodies(np.repeat(rest, per_subject, axis=0), skeleton, R)
+        posed = pose_bodies(np.repeat(rest, per_subject, axis=0), skeleton, R, on_ground=True)
         rows = slice(start * per_subject, stop * per_subject)
-        vertices[rows] = place_on_ground(posed)
+        vertices[rows] = posed
         rotations[rows] = np.stack([rotvec[name] for name in flat])
         pose_names[rows] = flat
         report(f"posed {stop}/{n_subjects} subjects", 0.1 + 0.8 * stop / n_subjects)

@@ -21,9 +21,10 @@ from bodyspace.mesh.operators import gradient_operator
 from bodyspace.mesh.topology import vertex_components
 
 try:  # threadpoolctl ships with scikit-learn; without it solves are just slower.
-    from threadpoolctl import threadpool_limits as _threadpool_limits
+    from threadpoolctl import ThreadpoolController as _ThreadpoolController
 except ImportError:  # pragma: no cover - depends on the environment
-    _threadpool_limits = None
+    _ThreadpoolController = None
+_controller = None
 
 # SuperLU's triangular solves call BLAS on small dense supernodes; a multi-threaded BLAS spends
 # more time waking threads than computing there (measured: 9 right-hand sides on the 26,756-face
@@ -35,9 +36,12 @@ SOLVE_BLOCK = 24
 
 def single_threaded_blas():
     """Context in which BLAS runs on one thread (a no-op without threadpoolctl)."""
-    if _threadpool_limits is None:
+    global _controller
+    if _ThreadpoolController is None:
         return contextlib.nullcontext()
-    return _threadpool_limits(limits=1, user_api="blas")
+    if _controller is None:  # inspecting the loaded libraries costs ~1 ms: do it once
+        _controller = _ThreadpoolController()
+    return _controller.limit(limits=1, user_api="blas")
 
 
 class FactorizedSolver:

@@ -47,7 +47,8 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: rotation vectors (..., 3) (axis * angle, radians) → matrices (..., 3, 3).
 
     ``R = I + a K + b K^2`` with ``K = skew(rotvec)``, ``a = sin(t)/t``, ``b = (1 - cos t)/t^2``,
-    ``t = |rotvec|``; the coefficients switch to their Taylor series near ``t = 0``.
+    ``t = |rotvec|``; ``b`` is evaluated as ``2 sin^2(t/2) / t^2`` (no cancellation for small
+    t) and both switch to their Taylor series near ``t = 0``.
     """
     r = np.asarray(rotvec, dtype=float)
     if r.shape[-1:] != (3,):
@@ -57,7 +58,7 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     small = t < _SMALL_ANGLE
     ts = np.where(small, 1.0, t)
     a = np.where(small, 1.0 - t2 / 6.0, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / (ts * ts))
+    b = np.where(small, 0.5 - t2 / 24.0, 2.0 * (np.sin(0.5 * ts) / ts) ** 2)
     K = _skew(r)
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
@@ -185,6 +186,11 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     ``weights @ transforms`` (V, B) x (B, 12*N) → (V, 12*N), laid out (V, column, row, body) so
     that applying them is four broadcast multiply-adds over contiguous (V, 3, N) slabs; no
     (N, V, 4, 4) array is built. Large batches go in chunks to bound memory.
+
+    What is blended is each transform's deviation from the identity, ``G_b - I``, and the
+    result is added to the rest vertex: identical maths when rows sum to one, but the identity
+    pose returns the input bit for bit, and weights that sum to 1 only up to rounding do not
+    scale the rest mesh.
     """
     G = np.asarray(transforms, dtype=float)
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
@@ -202,12 +208,12 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     out = np.empty((N, V, 3))
     chunk = max(1, _LBS_CHUNK_ELEMENTS // (V * 12))
     for s in range(0, N, chunk):
-        g = G[s:s + chunk, :, :3, :]                                    # (n, B, 3, 4)
+        g = G[s:s + chunk, :, :3, :] - np.eye(3, 4)                     # (n, B, 3, 4), G - I
         n = g.shape[0]
         M = np.ascontiguousarray(g.transpose(1, 3, 2, 0)).reshape(B, 12 * n)  # (B, 4*3*n)
         A = np.asarray(W @ M).reshape(V, 4, 3, n)                       # blended, (V, col, row, n)
         x = v[s:s + n].transpose(1, 2, 0)                               # (V, 3, n)
-        posed = A[:, 3] + A[:, 0] * x[:, 0:1] + A[:, 1] * x[:, 1:2] + A[:, 2] * x[:, 2:3]
+        posed = x + (A[:, 3] + A[:, 0] * x[:, 0:1] + A[:, 1] * x[:, 1:2] + A[:, 2] * x[:, 2:3])
         out[s:s + n] = posed.transpose(2, 0, 1)
     return out
 

@@ -50,6 +50,7 @@ class Pose:
     name: str
     description: str
     rotvecs_deg: Mapping[str, tuple[float, float, float]]
+    mirror: str | None = None  # the left/right mirror-image pose (itself if symmetric), if any
 
 
 class PoseLibrary:
@@ -90,6 +91,10 @@ class PoseLibrary:
 
     def description(self, name: str) -> str:
         return self.pose(name).description
+
+    def mirror(self, name: str) -> str | None:
+        """Name of the left/right mirror image of pose ``name`` (itself if symmetric), or None."""
+        return self.pose(name).mirror
 
     def rotvecs(self, name: str, rig: Rig) -> np.ndarray:
         """Rotation vectors (B, 3) in radians for ``rig``'s bones; bones not named are zero."""
@@ -137,7 +142,14 @@ def _parse_library(data: object, source: str) -> PoseLibrary:
                 raise ParameterError(f"{source}: pose {name!r} bone {bone!r} rotation is {v!r}; "
                                      "expected [x, y, z], a finite rotation vector in degrees")
             rv[bone] = tuple(float(a) for a in arr)
-        poses.append(Pose(name, str(p.get("description", "")), rv))
+        mirror = p.get("mirror")
+        if mirror is not None and not isinstance(mirror, str):
+            raise ParameterError(f"{source}: pose {name!r} \"mirror\" is {mirror!r}; expected a pose name or null")
+        poses.append(Pose(name, str(p.get("description", "")), rv, mirror))
+    names = {p.name for p in poses}
+    for p in poses:
+        if p.mirror is not None and p.mirror not in names:
+            raise ParameterError(f"{source}: pose {p.name!r} names mirror pose {p.mirror!r}, which is not in the library")
     return PoseLibrary(poses, rig_name=str(data.get("rig", "default")), source=source)
 
 
