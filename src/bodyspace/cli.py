@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -36,8 +37,9 @@ def _progress(description: str):
         yield callback
 
 
-def _fail(exc: BodyspaceError) -> None:
-    console.print(f"[red]error:[/red] {exc}")
+def _fail(exc: Exception) -> None:
+    # soft_wrap: never break a file path across lines.
+    console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True, highlight=False)
     raise typer.Exit(code=2)
 
 
@@ -80,11 +82,8 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
         template = load_template(assets)
         with _progress("population") as cb:
             db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb)
-    except BodyspaceError as exc:
+    except (BodyspaceError, FileExistsError) as exc:
         _fail(exc)
-    except FileExistsError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(code=2)
     console.print(f"wrote {db!r} to {out}")
 
 

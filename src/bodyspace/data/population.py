@@ -12,6 +12,7 @@ Details and the checks against the survey are in docs/population.md.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from dataclasses import dataclass
 from importlib import resources
 from typing import Callable
@@ -23,7 +24,7 @@ from bodyspace.data.composition import mass_from_volume
 from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 from bodyspace.data.template import Template
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
-from bodyspace.errors import ParameterError
+from bodyspace.errors import DatabaseError, ParameterError
 
 REST_POSE = "rest"
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
@@ -256,6 +257,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
 
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
+    if Path(out).exists() and not overwrite:
+        raise DatabaseError(f"{out}: already exists; pass overwrite=True (CLI: --force) to replace it")
     rng = np.random.default_rng(rng)
     report = progress or (lambda msg, frac: None)
     model = PhenotypeModel(template)

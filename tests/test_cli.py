@@ -1,0 +1,46 @@
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from bodyspace.cli import app
+from bodyspace.data.database import ScanDatabase
+
+runner = CliRunner()
+
+
+def test_assets_command_reports_verified(template):
+    result = runner.invoke(app, ["assets"])
+    assert result.exit_code == 0, result.output
+    assert "verified" in result.output and "yes" in result.output
+
+
+def test_assets_command_on_incomplete_folder(tmp_path):
+    result = runner.invoke(app, ["assets", "--assets", str(tmp_path)])
+    assert result.exit_code == 1
+    assert "missing" in result.output
+
+
+def test_population_command(template, tmp_path):
+    out = tmp_path / "db"
+    result = runner.invoke(app, ["population", "--subjects", "2", "--poses", "1", "--seed", "3", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(out)
+    assert db.n_scans == 4 and set(db.subjects["sex"]) == {"female", "male"}
+    again = runner.invoke(app, ["population", "--subjects", "2", "--poses", "1", "--out", str(out)])
+    assert again.exit_code == 2 and "already exists" in again.output and "--force" in again.output
+    assert "writing the database" not in again.output, "refused before doing the work"
+
+
+def test_demo_command_writes_pictures_and_summary(template, tmp_path):
+    out = tmp_path / "demo"
+    result = runner.invoke(app, ["demo", "--out", str(out), "--subjects", "4", "--poses", "1"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    for png in summary["pictures"]:
+        data = (out / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert summary["database"]["scans"] == 8
+    female = summary["population"]["female"]
+    assert female["subjects"] == 2
+    assert np.isfinite(female["bmi_kg_m2"]["mean"])
