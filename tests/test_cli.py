@@ -44,3 +44,28 @@ def test_demo_command_writes_pictures_and_summary(template, tmp_path):
     female = summary["population"]["female"]
     assert female["subjects"] == 2
     assert np.isfinite(female["bmi_kg_m2"]["mean"])
+
+
+def test_measure_command_json_csv_png(phenotype_model, template, tmp_path):
+    from bodyspace.mesh.io import save_mesh
+    mesh = tmp_path / "body.obj"
+    save_mesh(mesh, phenotype_model.vertices({"gender": 1.0})[0], template.faces)
+    result = runner.invoke(app, ["measure", str(mesh), "--json", "--png", str(tmp_path / "m.png")])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["stature"]["unit"] == "cm" and 160 < data["stature"]["value"] < 190
+    assert data["mass"]["unit"] == "kg" and data["volume"]["unit"] == "m^3"
+    assert (tmp_path / "m.png").read_bytes()[:4] == b"\x89PNG"
+    csv_out = runner.invoke(app, ["measure", str(mesh), "--csv"])
+    assert csv_out.exit_code == 0 and csv_out.stdout.splitlines()[0] == "mesh,name,value,unit"
+
+
+def test_measure_command_rejects_wrong_topology(tmp_path):
+    import trimesh
+    from bodyspace.mesh.io import save_mesh
+    sphere = trimesh.creation.icosphere(2)
+    path = tmp_path / "sphere.obj"
+    save_mesh(path, sphere.vertices, sphere.faces)
+    result = runner.invoke(app, ["measure", str(path)])
+    assert result.exit_code == 2
+    assert "vertices" in result.output

@@ -13,6 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from bodyspace.cli_measure import measure
 from bodyspace.errors import BodyspaceError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -111,6 +112,9 @@ def demo(out: Path = typer.Option(Path("bodyspace-demo"), "--out", help="Output 
     Console().print(table)
     Console().print(f"wrote {summary['output']}: " + ", ".join(summary["pictures"] + ["summary.json", "population/"]))
     Console().print(f"timings (s): {json.dumps(summary['timings_s'])}")
+
+
+app.command("measure")(measure)
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -23,3 +23,7 @@ class DatabaseError(BodyspaceError):
 
 class ParameterError(BodyspaceError):
     """A phenotype or pose parameter is unknown or out of range."""
+
+
+class MeasurementError(BodyspaceError):
+    """A measurement set, a landmark file, or a measurement on a given mesh is invalid."""

@@ -1,0 +1,309 @@
+"""Measurement sets are data: named landmarks plus a method per measurement, one JSON per template.
+
+File layout (``bodyspace/data/measurements/hm08.json`` is the default; docs/measurements.md):
+
+```
+{"format": "bodyspace-measurements", "template": "hm08", "n_vertices": 13380,
+ "landmarks": {"crotch": 4372,                                     # a vertex id, or
+               "p": {"vertices": [1, 2, 3], "weights": [0.2, 0.3, 0.5]}},  # a barycentric point
+ "conditions": {"upright": {"axes": [[A, B], ...], "max_angle_deg": 12}},
+ "measurements": [{"name": ..., "method": ..., ...}, ...]}
+```
+
+A *point* in a measurement is a landmark name or a list of names (their mean: the mean of a
+front and a back landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a
+pair of points ``[from, to]`` (so it follows a limb or the torso in any pose). Methods:
+
+- ``loop``: ``vertices`` (ordered ring on the mean model, Rupprecht et al. 3.1.2), ``axis``;
+  closed length after projecting onto the plane normal to the axis. Template-only.
+- ``slice``: plane through ``at`` (a point) with normal ``normal`` (an axis); the contour that
+  contains ``pick`` (default ``at``) projected on the plane, else the nearest; girth = its
+  convex-hull perimeter. With ``band`` = {"from", "to", "start", "stop", "steps", "mode"} the
+  plane origin runs from ``start`` to ``stop`` (fractions) of the segment from→to and the
+  girth is the ``mode`` ("max" or "min") over the planes.
+- ``distance``: ``from``, ``to`` (a point or ``"floor"``: the lowest vertex's level), ``axis``
+  (none: straight; else the extent along the axis).
+- ``path``: ``through`` (points); summed straight segments.
+- ``volume``, ``surface_area``; ``mass`` (``stature``: the name of a length measurement,
+  ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
+
+Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails (an axis
+more than ``max_angle_deg`` from vertical) its value is NaN with a note, never silently wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from bodyspace.errors import BodyspaceError, MeasurementError
+
+FORMAT = "bodyspace-measurements"
+DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
+MAX_USER_LANDMARKS = 25
+METHODS = ("loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi")
+# The unit each method's value has inside (SI) and how the CLI/JSON shows it.
+SI_UNIT = {"loop": "m", "slice": "m", "distance": "m", "path": "m", "volume": "m^3",
+           "surface_area": "m^2", "mass": "kg", "bmi": "kg/m^2"}
+# Methods that only need landmarks: they carry over to any topology with a landmark file.
+TOPOLOGY_FREE = ("slice", "distance", "path", "volume", "surface_area", "mass", "bmi")
+
+
+
+@dataclass(frozen=True)
+class MeasurementSet:
+    """Landmarks and measurement definitions of one template.
+
+    landmarks: name → (vertex ids (k,), weights (k,)).
+    measurements: validated definition dicts, in file order.
+    conditions: name → {"axes": [[a, b], ...], "max_angle_deg": float}.
+    n_vertices: vertex count the set was made for (None: any mesh the ids fit).
+    """
+
+    landmarks: dict[str, tuple[np.ndarray, np.ndarray]]
+    measurements: tuple[dict, ...]
+    conditions: dict[str, dict] = field(default_factory=dict)
+    n_vertices: int | None = None
+    template: str = "hm08"
+    source: str = "<memory>"
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(m["name"] for m in self.measurements)
+
+    @property
+    def landmark_names(self) -> tuple[str, ...]:
+        return tuple(self.landmarks)
+
+    def landmark_matrix(self, n_vertices: int) -> sp.csr_matrix:
+        """Sparse (L, V) matrix: ``M @ vertices`` gives the landmark points (L, 3)."""
+        rows, cols, vals = [], [], []
+        for r, (ids, w) in enumerate(self.landmarks.values()):
+            rows += [r] * len(ids)
+            cols += list(ids)
+            vals += list(w)
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(self.landmarks), n_vertices))
+
+    def max_vertex_id(self) -> int:
+        ids = [int(i.max()) for i, _ in self.landmarks.values()]
+        ids += [max(m["vertices"]) for m in self.measurements if m["method"] == "loop"]
+        return max(ids, default=-1)
+
+
+def _fail(where: str, msg: str) -> MeasurementError:
+    return MeasurementError(f"{where}: {msg}")
+
+
+def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarray]:
+    where = f"{src}: landmark {name!r}"
+    if isinstance(val, (int, np.integer)) and not isinstance(val, bool):
+        ids, w = np.array([int(val)]), np.array([1.0])
+    elif isinstance(val, dict) and "vertices" in val:
+        try:
+            ids = np.asarray(val["vertices"], dtype=np.int64).ravel()
+            w = np.asarray(val.get("weights", np.full(len(ids), 1.0 / max(len(ids), 1))), dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise _fail(where, f"got {val!r}, expected integer 'vertices' and numeric 'weights'") from None
+        if len(ids) == 0 or len(ids) != len(w):
+            raise _fail(where, f"{len(ids)} vertices and {len(w)} weights, expected the same non-zero count")
+        if not np.isclose(w.sum(), 1.0) or (w < -1e-9).any():
+            raise _fail(where, f"weights {w.tolist()} are not barycentric (non-negative, summing to 1)")
+    else:
+        raise _fail(where, f"got {val!r}, expected a vertex id or {{'vertices': [...], 'weights': [...]}}")
+    if (ids < 0).any():
+        raise _fail(where, f"vertex id {int(ids.min())} is negative: the landmark is off the mesh")
+    return ids, w
+
+
+def _check_point(where: str, p: Any, landmarks, allow_floor: bool = False) -> None:
+    names = [p] if isinstance(p, str) else p
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise _fail(where, f"got {p!r}, expected a landmark name or a list of names")
+    for n in names:
+        if allow_floor and n == "floor" and isinstance(p, str):
+            continue
+        if n not in landmarks:
+            raise _fail(where, f"unknown landmark {n!r}; known: {', '.join(sorted(landmarks))}")
+
+
+def _check_axis(where: str, a: Any, landmarks, required: bool = True) -> None:
+    if a is None and not required:
+        return
+    if a == "up":
+        return
+    if not (isinstance(a, list) and len(a) == 2):
+        raise _fail(where, f"got {a!r}, expected \"up\" or a pair of points [from, to]")
+    for p in a:
+        _check_point(where, p, landmarks)
+
+
+def _validate_measurement(src: str, i: int, m: Any, landmarks, conditions, seen: set) -> dict:
+    if not isinstance(m, dict) or not isinstance(m.get("name"), str) or not m["name"]:
+        raise _fail(f"{src}: measurements[{i}]", f"got {m!r}, expected an object with a 'name'")
+    name = m["name"]
+    where = f"{src}: measurement {name!r}"
+    if name in seen:
+        raise _fail(where, "defined twice")
+    method = m.get("method")
+    if method not in METHODS:
+        raise _fail(where, f"method {method!r}, expected one of {', '.join(METHODS)}")
+    for c in m.get("requires", []):
+        if c not in conditions:
+            raise _fail(where, f"requires unknown condition {c!r}; defined: {', '.join(conditions) or 'none'}")
+    if method == "loop":
+        ring = m.get("vertices")
+        if not isinstance(ring, list) or len(ring) < 3 or not all(isinstance(k, int) and k >= 0 for k in ring):
+            raise _fail(where, "'vertices' must be a list of at least 3 non-negative vertex ids")
+        _check_axis(where + " field 'axis'", m.get("axis", "up"), landmarks)
+    elif method == "slice":
+        _check_axis(where + " field 'normal'", m.get("normal"), landmarks)
+        band = m.get("band")
+        if band is None:
+            _check_point(where + " field 'at'", m.get("at"), landmarks)
+        else:
+            if not isinstance(band, dict):
+                raise _fail(where + " field 'band'", f"got {band!r}, expected an object")
+            _check_point(where + " field 'band.from'", band.get("from"), landmarks)
+            _check_point(where + " field 'band.to'", band.get("to"), landmarks)
+            if band.get("mode") not in ("max", "min"):
+                raise _fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\" or \"min\"")
+            steps = band.get("steps", 12)
+            if not isinstance(steps, int) or steps < 1:
+                raise _fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")
+        if m.get("pick") is not None:
+            _check_point(where + " field 'pick'", m["pick"], landmarks)
+    elif method == "distance":
+        _check_point(where + " field 'from'", m.get("from"), landmarks)
+        _check_point(where + " field 'to'", m.get("to"), landmarks, allow_floor=True)
+        _check_axis(where + " field 'axis'", m.get("axis"), landmarks, required=False)
+    elif method == "path":
+        pts = m.get("through")
+        if not isinstance(pts, list) or len(pts) < 2:
+            raise _fail(where + " field 'through'", f"got {pts!r}, expected a list of at least 2 points")
+        for p in pts:
+            _check_point(where + " field 'through'", p, landmarks)
+    elif method in ("mass", "bmi"):
+        for key in (("stature",) if method == "mass" else ("mass", "stature")):
+            if m.get(key) not in seen:
+                raise _fail(where + f" field {key!r}", f"got {m.get(key)!r}, expected the name of a measurement "
+                                                       "defined earlier in the file")
+    out = dict(m)
+    out.setdefault("unit", SI_UNIT[method])
+    out.setdefault("requires", [])
+    return out
+
+
+def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSet:
+    """Validate a parsed measurement-set document; errors name the field and measurement."""
+    if not isinstance(d, dict):
+        raise _fail(source, f"top level is {type(d).__name__}, expected an object")
+    if d.get("format", FORMAT) != FORMAT:
+        raise _fail(source, f"format {d.get('format')!r}, expected {FORMAT!r}")
+    raw = d.get("landmarks")
+    if not isinstance(raw, dict):
+        raise _fail(source, "'landmarks' is missing or not an object of name → vertex id")
+    landmarks = {str(k): _parse_landmark(source, k, v) for k, v in raw.items()}
+    conditions = d.get("conditions", {})
+    for cname, c in conditions.items():
+        if not isinstance(c, dict) or not isinstance(c.get("axes"), list):
+            raise _fail(f"{source}: condition {cname!r}", "expected {'axes': [[from, to], ...], 'max_angle_deg': x}")
+        for a in c["axes"]:
+            _check_axis(f"{source}: condition {cname!r} axis", a, landmarks)
+    ms = d.get("measurements")
+    if not isinstance(ms, list):
+        raise _fail(source, "'measurements' is missing or not a list")
+    seen: set = set()
+    out = []
+    for i, m in enumerate(ms):
+        vm = _validate_measurement(source, i, m, landmarks, conditions, seen)
+        seen.add(vm["name"])
+        out.append(vm)
+    n = d.get("n_vertices")
+    return MeasurementSet(landmarks, tuple(out), dict(conditions), None if n is None else int(n),
+                          str(d.get("template", "")), source)
+
+
+def _read_json(path: Path) -> Any:
+    if not path.is_file():
+        raise MeasurementError(f"{path}: file not found")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise MeasurementError(f"{path}: not valid JSON ({exc})") from None
+
+
+def load_measurement_set(path: str | os.PathLike | None = None) -> MeasurementSet:
+    """Read and validate a measurement set (default: the hm08 set shipped with bodyspace)."""
+    path = Path(path) if path is not None else DEFAULT_PATH
+    return measurement_set_from_dict(_read_json(path), str(path))
+
+
+def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], int | None]:
+    """A user's landmark file for another topology: ``{"landmarks": {name: vertex id}, "n_vertices": V?}``.
+
+    At most 25 landmarks (the names of the default set, docs/measurements.md). Returns the
+    landmarks and the declared vertex count (None if not given).
+    """
+    path = Path(path)
+    d = _read_json(path)
+    raw = d.get("landmarks", d) if isinstance(d, dict) else None
+    if not isinstance(raw, dict) or not raw:
+        raise MeasurementError(f"{path}: expected {{\"landmarks\": {{name: vertex id, ...}}}}")
+    if len(raw) > MAX_USER_LANDMARKS:
+        raise MeasurementError(f"{path}: {len(raw)} landmarks, expected at most {MAX_USER_LANDMARKS}")
+    lms = {str(k): _parse_landmark(str(path), k, v) for k, v in raw.items() if k != "n_vertices"}
+    n = d.get("n_vertices") if isinstance(d, dict) else None
+    return lms, (None if n is None else int(n))
+
+
+def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,
+                   source: str = "<landmarks>") -> MeasurementSet:
+    """The topology-free part of ``base`` re-pointed at another topology's ``landmarks``.
+
+    Loops (vertex rings of the template) are dropped; so is every measurement (and condition
+    axis) that needs a landmark the file does not name, and everything derived from a dropped
+    measurement (mass needs stature). Nothing else changes.
+    """
+    kept, have = [], set()
+    for m in base.measurements:
+        if m["method"] not in TOPOLOGY_FREE:
+            continue
+        if not _uses_only(m, landmarks) or any(m.get(k) not in have for k in ("stature", "mass") if k in m):
+            continue
+        kept.append(m)
+        have.add(m["name"])
+    conditions = {}
+    for cname, c in base.conditions.items():
+        if all(_point_names(p) <= set(landmarks) for a in c["axes"] if a != "up" for p in a):
+            conditions[cname] = c
+    kept = [m for m in kept if all(r in conditions for r in m["requires"])]
+    if not any(m["method"] not in ("volume", "surface_area") for m in kept):
+        raise MeasurementError(f"{source}: none of the landmark names {sorted(landmarks)} is used by the "
+                               f"measurement set {base.source}; expected names from {sorted(base.landmarks)}")
+    return replace(base, landmarks=dict(landmarks), measurements=tuple(kept), conditions=conditions,
+                   n_vertices=n_vertices, source=source)
+
+
+def _point_names(p) -> set:
+    return {p} if isinstance(p, str) else set(p)
+
+
+def _uses_only(m: dict, landmarks) -> bool:
+    pts = []
+    for key in ("at", "pick", "from", "to"):
+        if m.get(key) is not None:
+            pts.append(m[key])
+    for key in ("normal", "axis"):
+        if isinstance(m.get(key), list):
+            pts += m[key]
+    if m.get("band"):
+        pts += [m["band"]["from"], m["band"]["to"]]
+    pts += m.get("through", [])
+    names = set().union(*(_point_names(p) for p in pts)) - {"floor"} if pts else set()
+    return names <= set(landmarks)
