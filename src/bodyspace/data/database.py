@@ -291,6 +291,28 @@ def check_rotations(rotations: np.ndarray | None, joints, n_scans: int, source: 
 # Writer
 # ----------------------------------------------------------------------------------------------
 
+def validate_database(vertices, faces, subjects: Mapping, scans: Mapping, meta: Mapping | None,
+                      rotations: np.ndarray | None, joints: list[str] | None = None):
+    """Check in-memory database parts together; return them normalized.
+
+    Returns (vertices, faces, subject table, scan table, meta with counts, rotations). A memmap
+    ``vertices`` stays a view of its file.
+    """
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces)
+    check_vertices(vertices, "vertices")
+    check_faces(faces, vertices.shape[1], "faces")
+    subjects = subject_table(subjects, "subjects")
+    scans = scan_table(scans, len(vertices), "scans")
+    check_tables(subjects, scans, len(vertices), "subjects", "scans")
+    rotations = None if rotations is None else np.asarray(rotations)
+    meta = dict(meta or {})
+    joints = list(joints) if joints is not None else meta.get("joints")
+    check_rotations(rotations, joints, len(vertices), "rotations")
+    meta = build_meta(meta, vertices.shape, len(faces), joints)
+    return vertices, faces, subjects, scans, meta, rotations
+
+
 def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, subjects: Mapping,
                    scans: Mapping, meta: Mapping | None = None, rotations: np.ndarray | None = None,
                    joints: list[str] | None = None, overwrite: bool = False) -> Path:
@@ -305,19 +327,8 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     folder = Path(folder)
     if folder.exists() and not overwrite:
         raise DatabaseError(f"{folder}: already exists; pass overwrite=True to replace it")
-    vertices = np.asarray(vertices)  # a memmap stays a view of its file
-    faces = np.asarray(faces)
-    check_vertices(vertices, "vertices")
-    check_faces(faces, vertices.shape[1], "faces")
-    subjects = subject_table(subjects, "subjects")
-    scans = scan_table(scans, len(vertices), "scans")
-    check_tables(subjects, scans, len(vertices), "subjects", "scans")
-    if rotations is not None:
-        rotations = np.asarray(rotations)
-    meta = dict(meta or {})
-    joints = list(joints) if joints is not None else meta.get("joints")
-    check_rotations(rotations, joints, len(vertices), "rotations")
-    meta = build_meta(meta, vertices.shape, len(faces), joints)
+    vertices, faces, subjects, scans, meta, rotations = validate_database(
+        vertices, faces, subjects, scans, meta, rotations, joints)
     if meta["units"].get("length") != "m":
         raise DatabaseError(f"meta: units {meta['units']!r}, expected length in 'm' (convert the vertices to metres)")
     try:
@@ -557,17 +568,8 @@ class ScanDatabase:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, subjects: Mapping, scans: Mapping,
                  meta: Mapping | None = None, rotations: np.ndarray | None = None, *, _checked: bool = False):
         if not _checked:
-            vertices = np.asarray(vertices)
-            faces = np.asarray(faces)
-            check_vertices(vertices, "vertices")
-            check_faces(faces, vertices.shape[1], "faces")
-            subjects = subject_table(subjects, "subjects")
-            scans = scan_table(scans, len(vertices), "scans")
-            check_tables(subjects, scans, len(vertices), "subjects", "scans")
-            meta = dict(meta or {})
-            rotations = None if rotations is None else np.asarray(rotations)
-            check_rotations(rotations, meta.get("joints"), len(vertices), "rotations")
-            meta = build_meta(meta, vertices.shape, len(faces), meta.get("joints"))
+            vertices, faces, subjects, scans, meta, rotations = validate_database(
+                vertices, faces, subjects, scans, meta, rotations)
             faces = faces.astype(np.int64)
         self.vertices = vertices
         self.faces = faces
