@@ -1,0 +1,26 @@
+"""Semantic control of a body model (Hasler et al. 2009, §4, §4.1, §5.1), on arrays.
+
+- ``regressors``: label = f(body): simple linear (Eq. 10), filtered linear (PCA, rejection in
+  ascending order of contribution, cross-validated), non-linear (RBF kernel ridge / SVR), all with
+  ``predict`` and ``gradient`` (the morphing direction).
+- ``morph``: minimum-norm multi-constraint steps (Eq. 11), iterated walks for non-linear
+  regressors, directions from pairwise comparisons (§5.1).
+- ``basis``: the semantic model basis (§4.1): Gram-Schmidt of the semantic directions + PCA of
+  the rest.
+- ``evaluation``: Table 1 (cross-validated RMSE) and Table 2 (angles between morphing directions).
+"""
+
+from bodyspace.semantics.basis import SemanticBasis, gram_schmidt
+from bodyspace.semantics.evaluation import (RegressionTable, cross_validated_rmse, default_regressors,
+                                            direction_angles, format_angle_table, format_rmse_table)
+from bodyspace.semantics.morph import ComparisonRegressor, comparison_direction, morph, morph_directions
+from bodyspace.semantics.regressors import (FilteredLinearRegressor, KernelRegressor, SimpleLinearRegressor,
+                                            kfold_indices)
+
+__all__ = [
+    "SimpleLinearRegressor", "FilteredLinearRegressor", "KernelRegressor", "ComparisonRegressor", "kfold_indices",
+    "morph_directions", "morph", "comparison_direction",
+    "SemanticBasis", "gram_schmidt",
+    "RegressionTable", "cross_validated_rmse", "default_regressors", "direction_angles",
+    "format_rmse_table", "format_angle_table",
+]

@@ -1,0 +1,176 @@
+"""Accuracy of the semantic regressors: Hasler et al. (2009) Table 1 and Table 2.
+
+Table 1: RMSE from 10-fold cross-validation, for each label and each regressor, on a model
+that contains every subject exactly once (``cross_validated_rmse``; pass one row per subject,
+or ``groups`` = subject ids so that no subject is split between training and test folds).
+
+Table 2: mean and SD of the angles between the morphing directions (gradients) of the
+non-linear model taken at every subject (``direction_angles``). Small angles mean the gradient
+hardly depends on where in shape space it is taken, i.e. a linear function is admissible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from bodyspace.errors import ParameterError
+from bodyspace.semantics.regressors import (FilteredLinearRegressor, KernelRegressor, SimpleLinearRegressor,
+                                            _as_matrix, kfold_indices)
+
+__all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
+           "format_rmse_table", "format_angle_table"]
+
+
+def default_regressors(rng=None) -> dict[str, Callable]:
+    """The three rows of Table 1: name -> factory of an unfitted regressor."""
+    return {
+        "simple linear": SimpleLinearRegressor,
+        "filtered linear": lambda: FilteredLinearRegressor(rng=rng),
+        "non-linear": KernelRegressor,
+    }
+
+
+@dataclass
+class RegressionTable:
+    """Table 1: ``rmse[r, l]`` of regressor ``regressors[r]`` on label ``labels[l]``;
+    ``n_samples[l]`` rows with that label were used (rows with NaN labels are left out)."""
+
+    regressors: list[str]
+    labels: list[str]
+    rmse: np.ndarray
+    n_samples: np.ndarray
+    folds: int
+
+    def __str__(self) -> str:
+        return format_rmse_table(self)
+
+    def to_markdown(self) -> str:
+        return format_rmse_table(self, markdown=True)
+
+
+def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, folds: int = 10,
+                         rng=None, groups=None) -> RegressionTable:
+    """Table 1: pooled held-out RMSE of k-fold cross-validation, per regressor and label.
+
+    Args:
+        X: (N, D) bodies (encodings or PCA coefficients), one per subject.
+        labels: name -> (N,) label values; NaN marks a missing label (that row is left out for
+            that label).
+        regressors: name -> factory (a class or a zero-argument callable) of an unfitted
+            regressor; None: ``default_regressors(rng)``.
+        folds: k (capped at the number of rows/groups).
+        rng: numpy Generator, seed or None: the shuffle (the same folds for every regressor and
+            label, so the rows of the table are paired comparisons).
+        groups: optional (N,) subject ids; a subject's rows stay in one fold.
+
+    Returns:
+        RegressionTable; RMSE is ``sqrt(mean over all held-out rows of (prediction - label)^2)``.
+    """
+    x = _as_matrix(X, "X", min_rows=2)
+    n = x.shape[0]
+    if not isinstance(labels, Mapping) or not labels:
+        raise ParameterError(f"labels: got {type(labels).__name__}, expected a non-empty dict name -> (N,) values")
+    gen = np.random.default_rng(rng)
+    if regressors is None:
+        regressors = default_regressors(gen)
+    if not isinstance(regressors, Mapping) or not regressors:
+        raise ParameterError(f"regressors: got {type(regressors).__name__}, expected a non-empty dict name -> factory")
+    for name, factory in regressors.items():
+        if not callable(factory):
+            raise ParameterError(f"regressors[{name!r}]: {factory!r} is not callable, expected a class or factory")
+    values = {}
+    for name, y in labels.items():
+        v = np.asarray(y, dtype=float)
+        if v.shape != (n,):
+            raise ParameterError(f"labels[{name!r}]: shape {v.shape}, expected ({n},) (one value per row of X)")
+        if np.isinf(v).any():
+            raise ParameterError(f"labels[{name!r}]: contains infinity, expected finite values or NaN for missing")
+        if np.isfinite(v).sum() < 3:
+            raise ParameterError(f"labels[{name!r}]: {int(np.isfinite(v).sum())} known value(s), expected at least 3")
+        values[name] = v
+    tests = kfold_indices(n, folds, gen, groups)
+    rmse = np.empty((len(regressors), len(values)))
+    counts = np.empty(len(values), dtype=int)
+    for li, (lname, v) in enumerate(values.items()):
+        known = np.isfinite(v)
+        counts[li] = known.sum()
+        for ri, (rname, factory) in enumerate(regressors.items()):
+            sq = []
+            for test in tests:
+                te = test[known[test]]
+                tr = np.setdiff1d(np.flatnonzero(known), te)
+                if te.size == 0:
+                    continue
+                model = factory().fit(x[tr], v[tr])
+                sq.append((model.predict(x[te]) - v[te]) ** 2)
+            rmse[ri, li] = np.sqrt(np.mean(np.concatenate(sq)))
+    return RegressionTable(list(regressors), list(values), rmse, counts, len(tests))
+
+
+def direction_angles(regressor, X, reference="mean") -> tuple[float, float]:
+    """Table 2: mean and SD (degrees) of the angles between the morphing directions
+    ``regressor.gradient(x_i)`` taken at every body ``x_i`` of ``X`` (N, D).
+
+    The paper does not say which pairs of directions it compares; ``reference`` chooses:
+    ``"mean"`` (default) the angle of every direction to the mean of the normalized
+    directions; ``"pairwise"`` every pair ``i < j``; or a (D,) vector (e.g. the filtered linear
+    gradient). SD is the population SD (``ddof=0``).
+    """
+    x = _as_matrix(X, "X", min_rows=2)
+    g = np.asarray(regressor.gradient(x), dtype=float)
+    if g.shape != x.shape:
+        raise ParameterError(f"regressor.gradient: shape {g.shape}, expected {x.shape}")
+    norms = np.linalg.norm(g, axis=1)
+    if (norms == 0).any():
+        raise ParameterError(f"regressor.gradient: zero at rows {np.flatnonzero(norms == 0)[:10].tolist()}, "
+                             "expected a defined direction at every body")
+    u = g / norms[:, None]
+    if isinstance(reference, str) and reference == "pairwise":
+        cos = (u @ u.T)[np.triu_indices(len(u), 1)]
+    else:
+        if isinstance(reference, str):
+            if reference != "mean":
+                raise ParameterError(f"reference={reference!r}, expected 'mean', 'pairwise' or a (D,) vector")
+            ref = u.mean(axis=0)
+        else:
+            ref = np.asarray(reference, dtype=float)
+            if ref.shape != (x.shape[1],) or not np.isfinite(ref).all():
+                raise ParameterError(f"reference: shape {ref.shape}, expected ({x.shape[1]},) finite")
+        rn = np.linalg.norm(ref)
+        if rn == 0:
+            raise ParameterError("reference: zero vector, expected a direction")
+        cos = u @ (ref / rn)
+    ang = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return float(ang.mean()), float(ang.std())
+
+
+# ---------------------------------------------------------------------------- formatting
+def _render(header: list[str], rows: list[list[str]], markdown: bool) -> str:
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+    fmt = lambda r: "  ".join(c.ljust(widths[0]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(r))  # noqa: E731
+    return "\n".join(fmt(r).rstrip() for r in [header] + rows)
+
+
+def format_rmse_table(table: RegressionTable, markdown: bool = False, digits: int = 3) -> str:
+    """Table 1 layout: one row per regressor, one column per label (``digits`` significant)."""
+    header = ["Regressor"] + list(table.labels)
+    rows = [[name] + [f"{v:.{digits}g}" for v in table.rmse[i]] for i, name in enumerate(table.regressors)]
+    return _render(header, rows, markdown)
+
+
+def format_angle_table(angles: Mapping, markdown: bool = False, digits: int = 3) -> str:
+    """Table 2 layout: one column per label, rows μ (mean) and σ (SD) in degrees, from a dict
+    label -> ``(mean_deg, sd_deg)`` (``direction_angles`` per label)."""
+    if not isinstance(angles, Mapping) or not angles:
+        raise ParameterError(f"angles: got {type(angles).__name__}, expected a non-empty dict label -> (mean, sd)")
+    header = [""] + list(angles)
+    rows = [["μ"] + [f"{m:.{digits}g}" for m, _ in angles.values()],
+            ["σ"] + [f"{s:.{digits}g}" for _, s in angles.values()]]
+    return _render(header, rows, markdown)
