@@ -16,7 +16,8 @@ from bodyspace.errors import BodyspaceError
 
 def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up."),
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
-                                                     "(JSON {\"landmarks\": {name: vertex id}}, docs/measurements.md)."),
+                                                     "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
+                                                     "at most 25 names; docs/measurements.md)."),
             json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit}."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit."),
             png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to a PNG.")):

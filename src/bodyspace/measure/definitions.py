@@ -4,11 +4,20 @@ File layout (``bodyspace/data/measurements/hm08.json`` is the default; docs/meas
 
 ```
 {"format": "bodyspace-measurements", "template": "hm08", "n_vertices": 13380,
- "landmarks": {"crotch": 4372,                                     # a vertex id, or
-               "p": {"vertices": [1, 2, 3], "weights": [0.2, 0.3, 0.5]}},  # a barycentric point
- "conditions": {"upright": {"axes": [[A, B], ...], "max_angle_deg": 12}},
+ "landmarks": {"crotch": 4372,                                          # a vertex id, or
+               "knee_joint_l": {"vertices": [1, 2, 3], "weights": [0.2, 0.3, 0.5]}},  # a weighted set
+ "conditions": {"upright": {"axes": [[A, B], ...], "max_angle_deg": 12},
+                "head_up": {"axes": [[A, B]], "relative_to": [C, D], "max_angle_deg": 20}},
  "measurements": [{"name": ..., "method": ..., ...}, ...]}
 ```
+
+Landmarks come in two kinds. A *surface* landmark is one vertex id (head top, acromion). A
+*weighted* landmark is a convex combination of vertices (``weights`` non-negative, summing to
+1; omitted: equal weights): a barycentric point on a face, or a point inside the body such as a
+joint centre (``shoulder_joint_l``: the skinning-consistent joint regressor of
+``data/measurements/make_hm08.py``, which follows the joint through posing). Either kind may
+be given for any name, so a user landmark file can put a plain vertex id where the default set
+has a joint centre (a cruder but valid choice; docs/measurements.md).
 
 A *point* in a measurement is a landmark name or a list of names (their mean: the mean of a
 front and a back landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a
@@ -27,8 +36,10 @@ pair of points ``[from, to]`` (so it follows a limb or the torso in any pose). M
 - ``volume``, ``surface_area``; ``mass`` (``stature``: the name of a length measurement,
   ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
 
-Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails (an axis
-more than ``max_angle_deg`` from vertical) its value is NaN with a note, never silently wrong.
+Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
+is NaN with a note, never silently wrong. A condition holds when every axis in ``axes`` is
+within ``max_angle_deg`` of ``relative_to`` (an axis; default ``"up"``, world vertical), as
+lines (direction does not matter).
 """
 
 from __future__ import annotations
@@ -101,21 +112,43 @@ def _fail(where: str, msg: str) -> MeasurementError:
 
 
 def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarray]:
+    """A landmark value → (vertex ids (k,), convex weights (k,)); errors name the landmark."""
     where = f"{src}: landmark {name!r}"
+    expected = "expected a vertex id or {\"vertices\": [ids], \"weights\": [w]} (non-negative, summing to 1)"
     if isinstance(val, (int, np.integer)) and not isinstance(val, bool):
         ids, w = np.array([int(val)]), np.array([1.0])
     elif isinstance(val, dict) and "vertices" in val:
-        try:
-            ids = np.asarray(val["vertices"], dtype=np.int64).ravel()
-            w = np.asarray(val.get("weights", np.full(len(ids), 1.0 / max(len(ids), 1))), dtype=float).ravel()
-        except (TypeError, ValueError):
-            raise _fail(where, f"got {val!r}, expected integer 'vertices' and numeric 'weights'") from None
-        if len(ids) == 0 or len(ids) != len(w):
-            raise _fail(where, f"{len(ids)} vertices and {len(w)} weights, expected the same non-zero count")
-        if not np.isclose(w.sum(), 1.0) or (w < -1e-9).any():
-            raise _fail(where, f"weights {w.tolist()} are not barycentric (non-negative, summing to 1)")
+        extra = set(val) - {"vertices", "weights"}
+        if extra:
+            raise _fail(where, f"unknown field(s) {sorted(extra)}; {expected}")
+        raw_ids, raw_w = val["vertices"], val.get("weights")
+        if not isinstance(raw_ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in raw_ids):
+            raise _fail(where, f"'vertices' is {raw_ids!r}, expected a list of integer vertex ids")
+        ids = np.asarray(raw_ids, dtype=np.int64).ravel()
+        if len(ids) == 0:
+            raise _fail(where, "'vertices' is empty, expected at least one vertex id")
+        if raw_w is None:
+            w = np.full(len(ids), 1.0 / len(ids))
+        else:
+            if not isinstance(raw_w, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                      for x in raw_w):
+                raise _fail(where, f"'weights' is {raw_w!r}, expected a list of numbers")
+            w = np.asarray(raw_w, dtype=float).ravel()
+        if len(ids) != len(w):
+            raise _fail(where, f"{len(ids)} vertices and {len(w)} weights, expected one weight per vertex")
+        if not np.isfinite(w).all() or (w < 0).any():
+            bad = w[~np.isfinite(w) | (w < 0)][0]
+            raise _fail(where, f"weight {bad} is negative or not finite; expected convex weights "
+                               "(non-negative, summing to 1)")
+        if not np.isclose(w.sum(), 1.0, rtol=0, atol=1e-6):
+            raise _fail(where, f"weights sum to {w.sum():.6g}; expected convex weights (non-negative, "
+                               "summing to 1)")
+        uniq, count = np.unique(ids, return_counts=True)
+        if (count > 1).any():
+            dup = int(uniq[count > 1][0])
+            raise _fail(where, f"vertex {dup} is listed twice, expected each vertex once (add its weights)")
     else:
-        raise _fail(where, f"got {val!r}, expected a vertex id or {{'vertices': [...], 'weights': [...]}}")
+        raise _fail(where, f"got {val!r}, {expected}")
     if (ids < 0).any():
         raise _fail(where, f"vertex id {int(ids.min())} is negative: the landmark is off the mesh")
     return ids, w
@@ -210,11 +243,18 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
         raise _fail(source, "'landmarks' is missing or not an object of name → vertex id")
     landmarks = {str(k): _parse_landmark(source, k, v) for k, v in raw.items()}
     conditions = d.get("conditions", {})
+    if not isinstance(conditions, dict):
+        raise _fail(source, "'conditions' is not an object of name → {'axes': ..., 'max_angle_deg': ...}")
     for cname, c in conditions.items():
-        if not isinstance(c, dict) or not isinstance(c.get("axes"), list):
-            raise _fail(f"{source}: condition {cname!r}", "expected {'axes': [[from, to], ...], 'max_angle_deg': x}")
+        where = f"{source}: condition {cname!r}"
+        if not isinstance(c, dict) or not isinstance(c.get("axes"), list) or not c["axes"]:
+            raise _fail(where, "expected {'axes': [[from, to], ...], 'max_angle_deg': x, 'relative_to': axis?}")
         for a in c["axes"]:
-            _check_axis(f"{source}: condition {cname!r} axis", a, landmarks)
+            _check_axis(where + " axis", a, landmarks)
+        _check_axis(where + " field 'relative_to'", c.get("relative_to", "up"), landmarks)
+        lim = c.get("max_angle_deg", 12)
+        if not isinstance(lim, (int, float)) or isinstance(lim, bool) or not 0 < lim <= 90:
+            raise _fail(where + " field 'max_angle_deg'", f"got {lim!r}, expected a number of degrees in (0, 90]")
     ms = d.get("measurements")
     if not isinstance(ms, list):
         raise _fail(source, "'measurements' is missing or not a list")
@@ -245,16 +285,18 @@ def load_measurement_set(path: str | os.PathLike | None = None) -> MeasurementSe
 
 
 def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], int | None]:
-    """A user's landmark file for another topology: ``{"landmarks": {name: vertex id}, "n_vertices": V?}``.
+    """A user's landmark file for another topology: ``{"landmarks": {name: value}, "n_vertices": V?}``.
 
-    At most 25 landmarks (the names of the default set, docs/measurements.md). Returns the
-    landmarks and the declared vertex count (None if not given).
+    A value is a vertex id or a weighted vertex set ``{"vertices": [...], "weights": [...]}``
+    (convex weights). At most 25 landmarks (the names of the default set, docs/measurements.md).
+    Returns the landmarks and the declared vertex count (None if not given).
     """
     path = Path(path)
     d = _read_json(path)
     raw = d.get("landmarks", d) if isinstance(d, dict) else None
     if not isinstance(raw, dict) or not raw:
-        raise MeasurementError(f"{path}: expected {{\"landmarks\": {{name: vertex id, ...}}}}")
+        raise MeasurementError(f"{path}: expected {{\"landmarks\": {{name: vertex id or "
+                               "{\"vertices\": [...], \"weights\": [...]}, ...}}}}")
     if len(raw) > MAX_USER_LANDMARKS:
         raise MeasurementError(f"{path}: {len(raw)} landmarks, expected at most {MAX_USER_LANDMARKS}")
     lms = {str(k): _parse_landmark(str(path), k, v) for k, v in raw.items() if k != "n_vertices"}
@@ -266,23 +308,30 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
                    source: str = "<landmarks>") -> MeasurementSet:
     """The topology-free part of ``base`` re-pointed at another topology's ``landmarks``.
 
-    Loops (vertex rings of the template) are dropped; so is every measurement (and condition
-    axis) that needs a landmark the file does not name, and everything derived from a dropped
-    measurement (mass needs stature). Nothing else changes.
+    Loops (vertex rings of the template) are dropped; so is every measurement (and condition)
+    that needs a landmark the file does not name, and everything derived from a dropped
+    measurement (mass needs stature). Nothing else changes. A name the set does not know is an
+    error (a typo would otherwise silently drop measurements).
     """
-    kept, have = [], set()
-    for m in base.measurements:
-        if m["method"] not in TOPOLOGY_FREE:
-            continue
-        if not _uses_only(m, landmarks) or any(m.get(k) not in have for k in ("stature", "mass") if k in m):
-            continue
-        kept.append(m)
-        have.add(m["name"])
+    unknown = sorted(set(landmarks) - set(base.landmarks))
+    if unknown:
+        raise MeasurementError(f"{source}: landmark name(s) {unknown} are not used by the measurement set "
+                               f"{base.source}; expected names from {sorted(base.landmarks)}")
     conditions = {}
     for cname, c in base.conditions.items():
-        if all(_point_names(p) <= set(landmarks) for a in c["axes"] if a != "up" for p in a):
+        axes = c["axes"] + [c.get("relative_to", "up")]
+        if all(_point_names(p) <= set(landmarks) for a in axes if a != "up" for p in a):
             conditions[cname] = c
-    kept = [m for m in kept if all(r in conditions for r in m["requires"])]
+    kept, have = [], set()
+    for m in base.measurements:
+        if m["method"] not in TOPOLOGY_FREE or not _uses_only(m, landmarks):
+            continue
+        if any(r not in conditions for r in m["requires"]):
+            continue
+        if any(m.get(k) not in have for k in ("stature", "mass") if k in m):
+            continue                       # derived from a dropped measurement
+        kept.append(m)
+        have.add(m["name"])
     if not any(m["method"] not in ("volume", "surface_area") for m in kept):
         raise MeasurementError(f"{source}: none of the landmark names {sorted(landmarks)} is used by the "
                                f"measurement set {base.source}; expected names from {sorted(base.landmarks)}")

@@ -119,19 +119,27 @@ def _axis(spec, lm: dict, n: int) -> np.ndarray:
     return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
 
 
+def _fmt_point(p) -> str:
+    return p if isinstance(p, str) else "+".join(p)
+
+
 def _conditions(mset: MeasurementSet, lm: dict, n: int) -> dict[str, list]:
     """Per condition, per body: None if it holds, else the reason it fails."""
     out = {}
     for cname, c in mset.conditions.items():
         lim = float(c.get("max_angle_deg", 12.0))
+        rel = c.get("relative_to", "up")
+        ref = _axis(rel, lm, n)
+        ref_name = "vertical" if rel == "up" else f"axis {_fmt_point(rel[0])}→{_fmt_point(rel[1])}"
         notes: list = [None] * n
         for a in c["axes"]:
             # An axis is a line: its direction (up or down the body) does not matter.
-            ang = np.degrees(np.arccos(np.clip(np.abs(_axis(a, lm, n) @ UP), 0, 1)))
+            cos = np.abs(np.sum(_axis(a, lm, n) * ref, axis=-1))
+            ang = np.degrees(np.arccos(np.clip(cos, 0, 1)))
             for i in np.flatnonzero(ang > lim):
                 if notes[i] is None:
-                    notes[i] = (f"not {cname}: axis {a[0]}→{a[1]} is {ang[i]:.0f}° from vertical "
-                                f"(at most {lim:.0f}°)")
+                    notes[i] = (f"not {cname}: axis {_fmt_point(a[0])}→{_fmt_point(a[1])} is {ang[i]:.0f}° "
+                                f"from {ref_name} (at most {lim:.0f}°)")
         out[cname] = notes
     return out
 
