@@ -5,23 +5,26 @@ Encoding, per triangle i of a mesh registered to the template:
 1. deformation gradient ``U_i`` from the template triangle to the scan triangle (Sumner and
    Popovic's frame with a scaled normal, so ``U_i`` is a full 3x3 map);
 2. polar decomposition ``U_i = R_i S_i``: rotation R_i, symmetric stretch S_i;
-3. relative rotations to the edge neighbours, ``R_ij = R_i R_j^-1`` (Eq. 8), one per edge slot;
+3. relative rotations to the edge neighbours (Eq. 8), one per edge slot. Eq. 8 is written for
+   the rotations ``Q_i = R_i^T`` that take each scan triangle back to its rest frame:
+   ``Q_ij = Q_i Q_j^-1 = R_i^T R_j``. That order is the one a global turn of the body
+   (``R_i -> G R_i``) leaves unchanged; ``R_i R_j^-1`` would change with it;
 4. everything relative to the *mean model*, the average of all components of all fitted scans:
-   ``r_ij = log(R_ij M_ij^-1)`` with ``M_ij = exp(mean of log R_ij)`` and ``s_i = S_i - mean S_i``.
+   ``r_ij = log(Q_ij M_ij^-1)`` with ``M_ij = exp(mean of log Q_ij)`` and ``s_i = S_i - mean S_i``.
 
 Code layout, 15 numbers per triangle, triangle-major (``code.reshape(F, 15)``):
-``[r_i0 (3), r_i1 (3), r_i2 (3), S_00, S_01, S_02, S_11, S_12, S_22]``, where slot k is the
+``[r_i0 (3), r_i1 (3), r_i2 (3), s_00, s_01, s_02, s_11, s_12, s_22]``, where slot k is the
 triangle's edge ``(faces[i, k], faces[i, (k+1) % 3])`` and ``r`` are rotation vectors (axis times
 angle, radians). A boundary edge has no neighbour: its three numbers are zero in every code and
 ignored by ``decode`` (``slot_mask_`` says which), so every code has the same length, 15 F.
 
 Decoding, two sparse solves (Sec. 3):
 
-1. rotations R_i from the relative rotations by least squares on Eq. 9, ``R_ij R_j - R_i = 0``
-   for every stored pair (both directions), with the rotation of one *anchor* triangle per
-   connected part fixed to the identity (the "global rotation fixed");
-2. projection of each R_i back onto SO(3) (polar factor), since a modified code gives
-   matrices with scale or shear;
+1. rotations from the relative rotations by least squares on Eq. 9, ``Q_ij Q_j - Q_i = 0`` for
+   every stored pair (both directions), with one *anchor* triangle per connected part fixed to
+   the identity (the "global rotation fixed");
+2. projection onto SO(3) (the polar factor, i.e. the SVD projection, computed by a Newton
+   iteration), since a modified code gives matrices with scale or shear;
 3. ``U_i = R_i S_i`` and Poisson reconstruction of the vertices (``mesh.solver.PoissonSolver``),
    with optional soft positional constraints;
 4. placement: each connected part is moved rigidly (Kabsch: rotation and translation, no
@@ -30,24 +33,26 @@ Decoding, two sparse solves (Sec. 3):
    trip ``decode(encode(x))`` returns ``x`` rigidly aligned to the mean model. The mean
    model's own vertices ``mean_vertices_`` are placed the same way onto the template.
 
-How step 1 avoids a factorization per body (the system matrix changes with every code): the
-normal matrix of Eq. 9 is a *connection Laplacian*: diagonal blocks ``2 deg_i I`` (relative
-rotations are orthogonal), off-diagonal blocks ``-(R_ij + R_ji^T)``. Conjugated by the
-rotations ``T_i`` obtained by chaining the relative rotations along a breadth-first spanning
-tree from the anchor (``R_c = R_cp R_p``), it becomes ``2 L (x) I`` plus a perturbation that
-vanishes wherever the code is consistent, with L the uniform Laplacian of the dual graph,
-which is fixed per template. So we factor ``2 L`` once (with the anchors as Dirichlet rows)
-and solve the conjugated system by conjugate gradients preconditioned with it. For an
-unmodified code (a round trip) the tree rotations already solve Eq. 9 exactly and no
-iteration runs; a modified code (interpolation, PCA sample) converges in a few iterations.
-The answer is the least-squares solution of Eq. 9 whatever the tree: only the number of
-iterations depends on it. ``rotation_solver="direct"`` assembles and factors the full system for
-every body instead (the baseline the benchmark compares against).
+How step 1 avoids a factorization per body (its matrix changes with every code): the normal
+matrix of Eq. 9 is a *connection Laplacian*, diagonal blocks ``2 deg_i I`` (relative rotations
+are orthogonal) and off-diagonal blocks ``-(Q_ij + Q_ji^T)``. In the gauge of the rotations
+``T_i`` chained from the anchor along a breadth-first spanning tree, it becomes ``2 L (x) I``
+(L: the dual graph's uniform Laplacian, fixed per template) plus a perturbation that vanishes
+wherever the code is consistent. So ``2 L`` is factored once per template, and each body is
+solved by block conjugate gradients preconditioned with it. An unmodified code (a round trip)
+is consistent: the tree rotations solve it exactly and no step runs. A modified code
+(interpolation between nearby bodies) converges in a few steps; a strongly inconsistent one
+(the mean model, PCA samples of a mixed-pose population), for which the first steps predict
+more than ``max_iter`` steps, is solved directly. ``rotation_solver="direct"`` assembles
+and factors the full system for every body (the baseline the benchmark compares against).
+See docs/encoding.md for the measurements behind these choices.
 """
 
 from __future__ import annotations
 
+import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,8 +61,8 @@ import scipy.sparse.linalg as sla
 from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
 from bodyspace.errors import MeshError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
-from bodyspace.mesh.operators import deformation_gradients, dual_laplacian, triangle_frames
-from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints
+from bodyspace.mesh.operators import dual_laplacian, triangle_frames
+from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints, single_threaded_blas
 from bodyspace.mesh.topology import (check_topology, dual_graph, face_components, spanning_forest,
                                      vertex_components)
 from scipy.sparse.csgraph import breadth_first_order
@@ -66,10 +71,18 @@ FEATURES_PER_FACE = 15
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:
 # its deformation gradient is (nearly) singular and has no meaningful polar decomposition.
 DEGENERATE_AREA_RATIO = 1e-8
-# Bodies decoded together: arrays per body are ~30 MB on the 26,756-face template, so larger
-# batches run in chunks of this size.
-DECODE_CHUNK = 8
-ENCODE_CHUNK = 16
+# Bodies decoded per task. Arrays are ~6 MB per body on the 26,756-face template; several
+# bodies at once fall out of cache and were slower per body (measured: 29 ms at 1, 47 at 8), so
+# batches gain from threads (``n_jobs``), not from wider arrays.
+DECODE_CHUNK = 1
+# Block-CG steps before the convergence rate is judged, and the fraction of edge slots whose
+# tree-gauge mismatch |E - I| exceeds 0.1 beyond which a code goes straight to the direct
+# solve (see solve_rotations_pcg).
+PROBE_STEPS = 4
+DIRECT_FRACTION = 0.01
+# Encoding works on one body at a time: its arrays (~0.2 MB each) stay in cache, which made
+# encoding 2x faster per body than 16 at once (measured).
+ENCODE_CHUNK = 1
 _STRETCH_ROWS = np.array([0, 0, 0, 1, 1, 2])
 _STRETCH_COLS = np.array([0, 1, 2, 1, 2, 2])
 
@@ -136,18 +149,25 @@ def _qfrom_matrix(m):
     """Component-first unit quaternions (4, ...), w >= 0, of row-major rotations (9, ...).
 
     Shepperd (1978): the largest of 4w^2, 4x^2, 4y^2, 4z^2 is the pivot, so no branch divides
-    by a small number.
+    by a small number. Most rotations here are far from 180 degrees, so the w pivot is taken
+    for all and the full selection made only where ``1 + trace`` is small.
     """
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
     tr = m00 + m11 + m22
-    cand = np.stack([
-        np.stack([1 + tr, m21 - m12, m02 - m20, m10 - m01]),
-        np.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20]),
-        np.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21]),
-        np.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22]),
-    ])  # (pivot, component, ...): row k is 4 q_k q
-    k = np.argmax(np.stack([tr, m00, m11, m22]), axis=0)
-    q = np.take_along_axis(cand, k[None, None], axis=0)[0]
+    q = np.stack([1 + tr, m21 - m12, m02 - m20, m10 - m01])
+    hard = 1 + tr < 0.5  # rotation angle above ~138 degrees
+    if hard.any():
+        h = [c[hard] for c in m]
+        h00, h01, h02, h10, h11, h12, h20, h21, h22 = h
+        htr = h00 + h11 + h22
+        cand = np.stack([
+            np.stack([1 + htr, h21 - h12, h02 - h20, h10 - h01]),
+            np.stack([h21 - h12, 1 + h00 - h11 - h22, h01 + h10, h02 + h20]),
+            np.stack([h02 - h20, h01 + h10, 1 - h00 + h11 - h22, h12 + h21]),
+            np.stack([h10 - h01, h02 + h20, h12 + h21, 1 - h00 - h11 + h22]),
+        ])  # (pivot, component, k): row p is 4 q_p q
+        k = np.argmax(np.stack([htr, h00, h11, h22]), axis=0)
+        q[:, hard] = np.take_along_axis(cand, k[None, None], axis=0)[0]
     q = q / np.sqrt((q * q).sum(axis=0))
     return q * np.where(q[0] < 0, -1.0, 1.0)
 
@@ -167,14 +187,19 @@ def _polar9(x, tol: float = 1e-14, max_iter: int = 60):
     Scaled Newton iteration (Higham 1986): ``X <- (g X + X^-T / g) / 2``, ``g = |det X|^(-1/3)``.
     Quadratic convergence; a batched SVD of 26,756 3x3 matrices costs ~50 ms, this ~5 ms.
     """
+    finishing = False
     for _ in range(max_iter):
         c, det = _cofactor9(x)
         g = np.abs(det) ** (-1.0 / 3.0)
         new = 0.5 * (g * x + c / (g * det))
+        if finishing:
+            return new
         change = np.abs(new - x).max() if x.size else 0.0
         x = new
         if change < tol:
             break
+        # Quadratic convergence: one more step after a change of 1e-7 reaches round-off.
+        finishing = change < 1e-7
     return x
 
 
@@ -272,11 +297,11 @@ def tree_rotations(relative: np.ndarray, parent: np.ndarray, parent_slot: np.nda
                    levels: list[np.ndarray]) -> np.ndarray:
     """Rotations (N, F, 3, 3) chained from the roots (identity) along a spanning forest.
 
-    ``R_c = R_cp R_p`` from Eq. 8, one vectorized step per tree level. Exact for a consistent
+    ``Q_c = Q_cp Q_p`` from Eq. 8, one vectorized step per tree level. Exact for a consistent
     code; for a modified one, the inconsistencies accumulate along the tree paths.
 
     Args:
-        relative: (N, F, 3, 3, 3) ``R_ij`` per face i and edge slot.
+        relative: (N, F, 3, 3, 3) ``Q_ij`` per face i and edge slot.
         parent, parent_slot, levels: from ``topology.spanning_forest``.
     """
     n, nf = relative.shape[:2]
@@ -287,85 +312,158 @@ def tree_rotations(relative: np.ndarray, parent: np.ndarray, parent_slot: np.nda
     return t
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-system inner products (N, 3): each column c of the (N, F, 3, 3) fields is a system."""
-    return np.einsum("nfac,nfac->nc", a, b)
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-body Gram matrices (N, 3, 3) of block vectors (N, F, 3, 3): ``a_n^T b_n`` with each
+    body's field flattened to (3F, 3)."""
+    n = a.shape[0]
+    return np.swapaxes(a.reshape(n, -1, 3), 1, 2) @ b.reshape(n, -1, 3)  # BLAS, not einsum
 
 
-def solve_rotations_pcg(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
-                        forest, preconditioner: FactorizedSolver, tol: float = 1e-9,
-                        max_iter: int = 300) -> tuple[np.ndarray, int]:
-    """Least-squares rotations of Eq. 9 by tree-conjugated, Laplacian-preconditioned CG.
+def _times(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Block vectors (N, F, 3, 3) times per-body (N, 3, 3) matrices from the right."""
+    return (a.reshape(a.shape[0], -1, 3) @ m).reshape(a.shape)
 
-    Unknowns ``R_i = T_i Y_i`` with T the tree rotations (``tree_rotations``). Multiplying each
-    residual ``R_ij R_j - R_i`` by the orthogonal ``T_i^T`` turns Eq. 9 into
-    ``E_ij Y_j - Y_i = 0`` with ``E_ij = T_i^T R_ij T_j``, identity on tree edges and wherever
-    the code is consistent. The normal matrix is then ``2 deg_i I`` on the diagonal and
-    ``-(E_ij + E_ji^T)`` off it, i.e. twice the dual-graph Laplacian when E = I. Its three
-    matrix columns are independent systems (the blocks act from the left), solved together.
+
+class _GaugedRotationSystem:
+    """The normal equations of Eq. 9 in the gauge ``Q_i = T_i Y_i`` (T orthogonal per face).
+
+    Multiplying each residual ``Q_ij Q_j - Q_i`` by the orthogonal ``T_i^T`` turns Eq. 9 into
+    ``E_ij Y_j - Y_i = 0`` with ``E_ij = T_i^T Q_ij T_j``. The normal matrix has diagonal blocks
+    ``2 deg_i I`` and off-diagonal blocks ``-(E_ij + E_ji^T)``: exactly twice the dual-graph
+    Laplacian wherever T agrees with the code (E = I). Root faces are Dirichlet rows (Y = I).
+    """
+
+    def __init__(self, relative_gauged, gauge, nbr, bk, valid, roots):
+        """``relative_gauged`` (N, F, slot, 3, 3) is ``Q_ij T_j`` per face i and slot."""
+        self.gauge, self.roots = gauge, roots
+        n, nf = gauge.shape[:2]
+        e = np.swapaxes(gauge, -1, -2)[:, :, None] @ relative_gauged
+        self.blocks = e + np.swapaxes(e[:, nbr, bk], -1, -2)  # (N, F, slot, 3, 3)
+        self.blocks[:, ~valid] = 0.0
+        self.deg2 = 2.0 * valid.sum(axis=1)[None, :, None, None]
+        # The off-diagonal part as one block-diagonal CSR matrix over all bodies: row (n, i, a)
+        # holds -blocks[n, i, k, a, b] at column (n, nbr[i, k], b). A sparse product is ~5x
+        # faster than an einsum over gathered neighbours.
+        cols = (3 * nbr[:, None, :, None] + np.arange(3)[None, None, None, :]).repeat(3, axis=1)  # (F, a, k, b)
+        cols = (cols.reshape(1, -1) + 3 * nf * np.arange(n)[:, None]).ravel()
+        data = -np.ascontiguousarray(self.blocks.transpose(0, 1, 3, 2, 4)).ravel()
+        self.offdiag = sp.csr_matrix((data, cols, np.arange(0, len(data) + 1, 9)), shape=(3 * nf * n,) * 2)
+
+    def apply(self, y):
+        out = self.deg2 * y + (self.offdiag @ y.reshape(-1, 3)).reshape(y.shape)
+        out[:, self.roots] = 0.0
+        return out
+
+    def residual_at_identity(self):
+        """``-A Y`` for Y = I everywhere (the gauge rotations themselves)."""
+        r = self.blocks.sum(axis=2) - self.deg2 * np.eye(3)
+        r[:, self.roots] = 0.0
+        return r
+
+
+def _block_pcg(system, precondition, y, r, tol, budget, state=None):
+    """Up to ``budget`` steps of block preconditioned CG (O'Leary 1980) from (y, r).
+
+    The three columns of the unknown rotation field are three right-hand sides of one matrix;
+    block CG shares one Krylov space among them (step sizes are 3x3 matrices), so the slow
+    directions, common to all three, are removed together: measured ~1.5x fewer steps than
+    three scalar CGs. Returns (y, r, state, steps, converged).
+    """
+    if state is None:
+        z = precondition(r)
+        state = (z, z.copy(), _gram(z, r))
+    z, p, zr = state
+    for step in range(budget):
+        if np.abs(z).max() < tol:
+            return y, r, (z, p, zr), step, True
+        q = system.apply(p)
+        # pinv: once a body's columns have (nearly) converged its Gram matrices lose rank.
+        alpha = np.linalg.pinv(_gram(p, q), rcond=1e-13) @ zr
+        y += _times(p, alpha)
+        r -= _times(q, alpha)
+        z = precondition(r)
+        zr_new = _gram(z, r)
+        beta = np.linalg.pinv(zr, rcond=1e-13) @ zr_new
+        zr = zr_new
+        p = z + _times(p, beta)
+    return y, r, (z, p, zr), budget, bool(np.abs(z).max() < tol)
+
+
+def solve_rotations_pcg(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray, forest,
+                        preconditioner: FactorizedSolver, inverse_norm: float, tol: float = 3e-6,
+                        max_iter: int = 25) -> tuple[np.ndarray, int, np.ndarray]:
+    """Least-squares rotations of Eq. 9 by tree-gauged, Laplacian-preconditioned block CG.
+
+    The gauge is the tree rotations (``tree_rotations``): they solve a consistent code exactly,
+    so an unmodified code (a round trip) needs no CG step at all. A modified code (an
+    interpolation, a PCA sample) leaves its inconsistency on the edges that close loops of the
+    tree; CG removes it in a few steps when the code is nearly consistent (interpolation between
+    nearby bodies). Strongly inconsistent codes converge slowly: a code mismatched on more than
+    ``DIRECT_FRACTION`` of its edge slots is returned at once, and otherwise after
+    ``PROBE_STEPS`` steps the contraction rate predicts the total; if it exceeds ``max_iter``
+    the function returns early. Either way ``converged`` is False for those bodies, so that the
+    caller solves them directly. Any gauge gives the same least-squares solution; it only
+    changes the number of steps.
 
     Args:
         relative: (N, F, 3, 3, 3) relative rotations per face and edge slot (boundary slots
             are ignored).
         neighbors, back: (F, 3) from ``topology.face_adjacency``.
-        forest: ``topology.spanning_forest``, roots = anchors (rotation fixed to identity).
-        preconditioner: factorization of ``2 L`` with identity rows/columns at the roots.
-        tol: stop when the preconditioned residual (an estimate of the remaining correction
-            to the rotation entries) is below this everywhere.
+        forest: ``topology.spanning_forest``; its roots are the anchors (Y fixed to I).
+        preconditioner: factorization of ``2 L`` (dual-graph Laplacian) with identity rows and
+            columns at the roots.
+        inverse_norm: ``|preconditioner^-1|_inf``, to skip the solves when the starting
+            residual is round-off.
+        tol: stop when the preconditioned residual, an estimate of the remaining correction of
+            the rotation entries, is below this everywhere.
+        max_iter: block-CG step budget.
     Returns:
-        ``(R (N, F, 3, 3), iterations)``; R is not yet projected onto rotations.
+        ``(R (N, F, 3, 3), steps, converged (N,) bool)``; R is not yet projected onto rotations.
     """
     n, nf = relative.shape[:2]
     valid = neighbors >= 0
     nbr = np.where(valid, neighbors, np.arange(nf)[:, None])
     bk = np.where(valid, back, 0)
     roots = forest.levels[0]
-    t = tree_rotations(relative, forest.parent, forest.parent_slot, forest.levels)
-    # E_ij = T_i^T R_ij T_j for every slot, then the symmetric off-diagonal blocks.
-    e = np.swapaxes(t, -1, -2)[:, :, None] @ relative @ t[:, nbr]
-    b = e + np.swapaxes(e[:, nbr, bk], -1, -2)
-    b[:, ~valid] = 0.0
-    del e
-    deg2 = 2.0 * valid.sum(axis=1)[None, :, None, None]
-
-    def apply(y):
-        out = deg2 * y - np.einsum("nfkab,nfkbc->nfac", b, y[:, nbr], optimize=True)
-        out[:, roots] = 0.0
-        return out
 
     def precondition(r):
         flat = np.ascontiguousarray(r.transpose(1, 0, 2, 3)).reshape(nf, n * 9)
         return preconditioner.solve(flat).reshape(nf, n, 3, 3).transpose(1, 0, 2, 3)
 
-    # Start from Y = I (the tree rotations); the residual of the roots' rows is zero (Dirichlet).
-    r = b.sum(axis=2) - deg2 * np.eye(3)
-    r[:, roots] = 0.0
+    gauge = tree_rotations(relative, forest.parent, forest.parent_slot, forest.levels)
+    rt = relative @ gauge[:, nbr]  # Q_ij T_j
+    # Eq. 9 residuals of the tree rotations, |Q_ij T_j - T_i| = |E_ij - I|. The starting CG
+    # residual has entries <= 6 max|E - I| (two terms per slot, three slots): if even
+    # |P^-1|_inf times that is below tol, the code is consistent up to round-off and the tree
+    # rotations are the answer.
+    mismatch = np.sqrt(((rt - gauge[:, :, None]) ** 2).sum(axis=(-1, -2)))
+    mismatch[:, ~valid] = 0.0
+    if 6.0 * mismatch.max() * inverse_norm < tol:
+        return gauge, 0, np.ones(n, dtype=bool)
+    # Codes mismatched on many edges (measured: PCA samples of a mixed-pose population, 5-10%
+    # of the slots above 0.1) never converged within the budget: do not even start.
+    if ((mismatch > 0.1).sum(axis=(1, 2)) > DIRECT_FRACTION * valid.sum()).all():
+        return gauge, 0, np.zeros(n, dtype=bool)
+    system = _GaugedRotationSystem(rt, gauge, nbr, bk, valid, roots)
+    r = system.residual_at_identity()
     y = np.broadcast_to(np.eye(3), (n, nf, 3, 3)).copy()
-    # A consistent code leaves only round-off: skip the solves when even the worst case
-    # |P^-1 r| <= |P^-1|_inf |r|_inf (|P^-1|_inf is known per template) is below tol.
-    if np.abs(r).max() * preconditioner.inverse_norm_inf < tol:
-        return t @ y, 0
     z = precondition(r)
-    p = z.copy()
-    rz = _dot(r, z)
-    it = 0
-    for it in range(1, max_iter + 1):
-        if np.abs(z).max() < tol:
-            break
-        ap = apply(p)
-        pap = _dot(p, ap)
-        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap > 0)[:, None, None, :]
-        y += alpha * p
-        r -= alpha * ap
-        z = precondition(r)
-        rz_new = _dot(r, z)
-        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0)[:, None, None, :]
-        rz = rz_new
-        p = z + beta * p
-    else:
-        warnings.warn(f"rotation solve stopped after {max_iter} iterations with correction "
-                      f"{np.abs(z).max():.2e} > tol {tol:.1e}", RuntimeWarning, stacklevel=3)
-    return t @ y, it
+    state = (z, z.copy(), _gram(z, r))
+    history = [np.abs(z).max()]
+    steps, done = 0, False
+    while not done and steps < max_iter:
+        y, r, state, more, done = _block_pcg(system, precondition, y, r, tol, 1, state)
+        steps += more
+        history.append(np.abs(state[0]).max())
+        if not done and steps >= PROBE_STEPS:
+            # The contraction over the last three steps predicts the steps still needed; when
+            # they would exceed the budget, stop and let the caller solve directly.
+            rate = (history[-1] / history[-4]) ** (1.0 / 3.0)
+            needed = np.log(tol / history[-1]) / np.log(rate) if rate < 1.0 else np.inf
+            if steps + needed > max_iter:
+                break
+    converged = np.abs(state[0]).max(axis=(1, 2, 3)) < tol
+    return system.gauge @ y, steps, converged
 
 
 def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
@@ -427,13 +525,21 @@ class RelativeRotationEncoder:
         rotation_solver: "pcg" (tree-conjugated, Laplacian-preconditioned conjugate gradients
             with a factorization made once per template) or "direct" (assemble and factor the
             Eq. 9 system for every body; slow, for reference).
-        tol: PCG stopping threshold on the estimated correction of rotation entries.
-        max_iter: PCG iteration cap.
-        on_flipped: what ``encode``/``fit`` do with a triangle turned over against all its edge
-            neighbours (a fold-over the template does not have): "raise" (MeshError), "warn" or
-            "ignore". Such triangles still round-trip exactly, but their relative rotations sit
-            near 180 degrees, where rotation vectors wrap, so interpolation and PCA misbehave
-            there. Some MakeHuman targets at full weight fold two thumb triangles this way.
+        tol: CG stops when the estimated remaining correction of every rotation entry is below
+            this. The default leaves decoded vertices within ~3e-7 m of the exact least-squares
+            decode on the 1.7 m template (measured, docs/encoding.md), well inside the
+            1e-6 x height round-trip tolerance.
+        max_iter: block-CG step budget, about the cost of one direct solve (~11 ms a step,
+            ~300 ms a factorization on the template). After a few steps the contraction rate
+            predicts the steps needed; a code that would exceed the budget (a strongly
+            inconsistent one, such as the mean model or a PCA sample of a mixed-pose
+            population) is solved directly at once.
+        on_flipped: what ``encode``/``fit`` do with a flipped triangle, one whose normal points
+            against the vertex normals of its corners while the template's does not (a
+            fold-over): "raise" (MeshError), "warn" or "ignore". Such triangles round-trip
+            exactly, but their relative rotations sit near 180 degrees, where rotation vectors
+            wrap, so interpolation and PCA misbehave there. Note: 89 of the 576 MakeHuman
+            targets, applied at full weight, fold 2-20 small triangles this way.
 
     Attributes (after ``fit``):
         mean_rotvecs_: (F, 3, 3) mean rotation vector per face and edge slot.
@@ -441,11 +547,12 @@ class RelativeRotationEncoder:
         mean_vertices_: (V, 3) the mean model's mesh (decoded zero code), placed on the template.
         n_features_: D = 15 F (available before fit).
         slot_mask_: (F, 3) bool, True where the edge slot has a neighbour.
-        last_iterations_: PCG iterations of the last decoded chunk.
+        last_iterations_: most block-CG steps any body of the last decode call took (0 for
+            consistent codes).
     """
 
     def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "pcg",
-                 tol: float = 1e-9, max_iter: int = 300, on_flipped: str = "raise"):
+                 tol: float = 3e-6, max_iter: int = 25, on_flipped: str = "raise", n_jobs: int | None = None):
         check_mesh(template_vertices, faces, name="template")
         tv = np.asarray(template_vertices, dtype=float)
         if tv.ndim != 2:
@@ -460,6 +567,7 @@ class RelativeRotationEncoder:
         self.on_flipped = on_flipped
         self.tol = tol
         self.max_iter = max_iter
+        self.n_jobs = n_jobs
         self.n_vertices, self.n_faces = len(tv), len(self.faces)
         self.n_features_ = FEATURES_PER_FACE * self.n_faces
 
@@ -474,7 +582,10 @@ class RelativeRotationEncoder:
                             "non-degenerate triangles")
         self._rest_frames_inv = np.linalg.inv(frames)
         self._rest_double_area = dbl_area
-        self._rest_fold = _max_neighbor_agreement(frames[None, ..., 2], self.neighbors)[0]
+        nf = len(self.faces)
+        self._incidence = sp.csr_matrix((np.ones(3 * nf), (self.faces.ravel(), np.repeat(np.arange(nf), 3))),
+                                        shape=(self.n_vertices, nf))
+        self._rest_fold = _normal_agreement(frames[None, ..., 2], self.faces, self._incidence)[0]
         self._loops = boundary_loops(self.faces)
         self._rest_volume = float(capped_volume(tv, self.faces, self._loops))
         if abs(self._rest_volume) < 1e-12 * np.ptp(tv, axis=0).max() ** 3:
@@ -490,9 +601,11 @@ class RelativeRotationEncoder:
         lap[self.anchor_faces, :] = 0.0
         lap[:, self.anchor_faces] = 0.0
         lap[self.anchor_faces, self.anchor_faces] = 0.5
-        self._preconditioner = FactorizedSolver(2.0 * lap.tocsr())
+        # Single precision: it only preconditions (CG residuals stay in double), and its
+        # triangular solves move half the memory (measured ~25% faster for 9 columns).
+        self._preconditioner = FactorizedSolver(2.0 * lap.tocsr(), dtype=np.float32)
         # |P^-1|_inf = max row sum of P^-1 = max of P^-1 1, since P^-1 >= 0 (P is an M-matrix).
-        self._preconditioner.inverse_norm_inf = float(self._preconditioner.solve(np.ones(self.n_faces)).max())
+        self._inverse_norm = float(FactorizedSolver(2.0 * lap.tocsr()).solve(np.ones(self.n_faces)).max())
 
         self._poisson = PoissonSolver(tv, self.faces)
         # Placement: vertex components (one per edge-connected part, checked above).
@@ -511,7 +624,7 @@ class RelativeRotationEncoder:
         return check_codes(codes, self.n_features_, "relative rotation encoding",
                            f"15 numbers x {self.n_faces} triangles")
 
-    def _deformation(self, x: np.ndarray, name: str) -> np.ndarray:
+    def _deformation(self, x: np.ndarray, name: str, first: int = 0) -> np.ndarray:
         """Deformation gradients (N, F, 3, 3) of validated meshes (N, V, 3); rejects degenerate
         and flipped triangles."""
         frames = triangle_frames(x, self.faces)
@@ -520,33 +633,35 @@ class RelativeRotationEncoder:
         if (ratio < DEGENERATE_AREA_RATIO).any():
             m, f = np.argwhere(ratio < DEGENERATE_AREA_RATIO)[0]
             count = int((ratio[m] < DEGENERATE_AREA_RATIO).sum())
-            raise MeshError(f"{name}: mesh {m} has {count} degenerate triangle(s), first face {f} with area "
+            raise MeshError(f"{name}: mesh {first + m} has {count} degenerate triangle(s), first face {f} with area "
                             f"{0.5 * dbl[m, f]:.3g} m^2 (template {0.5 * self._rest_double_area[f]:.3g} m^2); "
                             "expected triangles of non-zero area")
         volume = capped_volume(x, self.faces, self._loops)
         inverted = np.sign(volume) != np.sign(self._rest_volume)
         if inverted.any():
             m = np.flatnonzero(inverted)[0]
-            raise MeshError(f"{name}: mesh {m} is inside out (enclosed volume {volume[m]:.3g} m^3, the template's "
-                            f"{self._rest_volume:.3g} m^3): mirrored, or every face flipped; expected the "
-                            "template's orientation")
+            raise MeshError(f"{name}: mesh {first + m} is inside out (enclosed volume {volume[m]:.3g} m^3, "
+                            f"the template's {self._rest_volume:.3g} m^3): mirrored, or every face flipped; "
+                            "expected the template's orientation")
         if self.on_flipped != "ignore":
-            fold = _max_neighbor_agreement(frames[..., 2], self.neighbors)
+            fold = _normal_agreement(frames[..., 2], self.faces, self._incidence)
             flipped = (fold < 0) & (self._rest_fold >= 0)
             if flipped.any():
                 m, f = np.argwhere(flipped)[0]
-                msg = (f"{name}: mesh {m} has {int(flipped[m].sum())} flipped triangle(s), first face {f}: "
-                       "turned over by more than 90 degrees against every edge neighbour, which the template's "
-                       "is not; expected an orientation-preserving registration (on_flipped='warn' accepts it)")
+                msg = (f"{name}: mesh {first + m} has {int(flipped[m].sum())} flipped triangle(s), first face {f}: "
+                       "its normal points against the surface around it (the vertex normals of its corners), "
+                       "the template's does not; expected an orientation-preserving registration "
+                       "(on_flipped='warn' or 'ignore' accepts it)")
                 if self.on_flipped == "raise":
                     raise MeshError(msg)
                 warnings.warn(msg, RuntimeWarning, stacklevel=4)
         return frames @ self._rest_frames_inv
 
     # ------------------------------------------------------------------ raw components
-    def _raw(self, x: np.ndarray, name: str):
-        """Relative rotations as component-first quaternions (4, N, F, 3) and stretches (N, F, 6)."""
-        u = self._deformation(x, name)
+    def _raw(self, x: np.ndarray, name: str, first: int = 0):
+        """Relative rotations as component-first quaternions (4, N, F, 3) and stretches (N, F, 6);
+        ``first`` is the index of x[0] in the caller's batch (for error messages)."""
+        u = self._deformation(x, name, first)
         n = len(x)
         u9 = _planar(u.reshape(n, self.n_faces, 9), 9)
         r9 = _polar9(u9)
@@ -557,7 +672,8 @@ class RelativeRotationEncoder:
                             s_entry(1, 1), 0.5 * (s_entry(1, 2) + s_entry(2, 1)), s_entry(2, 2)], axis=-1)
         q = _qfrom_matrix(r9)  # (4, N, F)
         nbr = np.where(self.slot_mask_, self.neighbors, 0)
-        # R_ij = R_i^T R_j: unchanged when the whole body turns (R -> G R); see the module docstring.
+        # Q_ij = Q_i Q_j^-1 = R_i^T R_j: unchanged when the whole body turns (R -> G R); see the
+        # module docstring.
         q_rel = _qmul(_qconj(q)[:, :, :, None], q[:, :, nbr])
         return q_rel, stretch
 
@@ -568,16 +684,19 @@ class RelativeRotationEncoder:
         ``fit(template_vertices[None])`` makes the template itself the mean model.
         """
         x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
-        sum_rot = np.zeros((3, self.n_faces, 3))
-        sum_str = np.zeros((self.n_faces, 6))
-        for s in range(0, len(x), ENCODE_CHUNK):
-            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="scans")
-            sum_rot += _qlog(q_rel).sum(axis=1)
-            sum_str += stretch.sum(axis=0)
+        sums = []
+
+        def work(s):
+            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="scans", first=s)
+            sums.append((_qlog(q_rel).sum(axis=1), stretch.sum(axis=0)))
+
+        self._run(work, range(0, len(x), ENCODE_CHUNK))
+        sum_rot = sum(r for r, _ in sums)
+        sum_str = sum(st for _, st in sums)
         self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], np.moveaxis(sum_rot, 0, -1) / len(x), 0.0)
         self.mean_stretch_ = sum_str / len(x)
         self._mean_q = _qexp(_planar(self.mean_rotvecs_, 3))  # (4, F, 3)
-        self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0]
+        self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0][0]
         return self
 
     def encode(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
@@ -590,12 +709,15 @@ class RelativeRotationEncoder:
         x = check_scans(vertices, self.n_vertices, self.faces, faces)
         out = np.empty((len(x), self.n_faces, FEATURES_PER_FACE))
         conj_mean = _qconj(self._mean_q)
-        for s in range(0, len(x), ENCODE_CHUNK):
-            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="vertices")
+
+        def work(s):
+            q_rel, stretch = self._raw(x[s:s + ENCODE_CHUNK], name="vertices", first=s)
             rot = _qlog(_qmul(q_rel, conj_mean))  # (3, n, F, 3): component, body, face, slot
             rot[:, :, ~self.slot_mask_] = 0.0
             out[s:s + ENCODE_CHUNK, :, :9] = rot.transpose(1, 2, 3, 0).reshape(-1, self.n_faces, 9)
             out[s:s + ENCODE_CHUNK, :, 9:] = stretch - self.mean_stretch_
+
+        self._run(work, range(0, len(x), ENCODE_CHUNK))
         return out.reshape(len(x), self.n_features_)
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
@@ -608,46 +730,77 @@ class RelativeRotationEncoder:
         self._require_fit()
         c = self._check_codes(codes)
         out = np.empty((len(c), self.n_vertices, 3))
-        for s in range(0, len(c), DECODE_CHUNK):
+        steps = []
+
+        def work(s):
             chunk_constraints = constraints
             if constraints is not None and np.ndim(constraints.positions) == 3:
                 chunk_constraints = PositionConstraints(constraints.indices,
                                                         np.asarray(constraints.positions)[s:s + DECODE_CHUNK],
                                                         constraints.weight)
-            out[s:s + DECODE_CHUNK] = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints, self.mean_vertices_)
+            out[s:s + DECODE_CHUNK], n_steps = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints,
+                                                             self.mean_vertices_)
+            steps.append(n_steps)
+
+        self._run(work, range(0, len(c), DECODE_CHUNK))
+        self.last_iterations_ = max(steps)
         return out
 
+    def _run(self, work, starts) -> None:
+        """Call ``work(start)`` for every chunk start, on ``n_jobs`` threads when there are
+        several chunks. numpy and the sparse products release the GIL, so two threads decode
+        ~1.7x and encode ~1.5x as many bodies per second on two cores (measured)."""
+        starts = list(starts)
+        jobs = self.n_jobs or os.cpu_count() or 1
+        if jobs <= 1 or len(starts) <= 1:
+            for s in starts:
+                work(s)
+            return
+        # One BLAS thread per worker, set once here rather than racing inside the threads.
+        with single_threaded_blas(), ThreadPoolExecutor(min(jobs, len(starts))) as pool:
+            for future in [pool.submit(work, s) for s in starts]:
+                future.result()
+
     def relative_rotations(self, codes: np.ndarray) -> np.ndarray:
-        """Relative rotation matrices R_ij (N, F, 3, 3, 3) per face and edge slot of codes (N, D)."""
+        """Relative rotation matrices Q_ij (N, F, 3, 3, 3) per face and edge slot of codes (N, D)."""
         c = np.asarray(codes).reshape(len(codes), self.n_faces, FEATURES_PER_FACE)
         r = _planar(c[..., :9].reshape(len(c), self.n_faces, 3, 3), 3)  # (3, N, F, slot)
         m9 = _qmatrix(_qmul(_qexp(r), self._mean_q))  # (9, N, F, slot)
         return np.moveaxis(m9, 0, -1).reshape(len(c), self.n_faces, 3, 3, 3)
 
     def solve_rotations(self, relative: np.ndarray, solver: str | None = None) -> np.ndarray:
-        """Per-face rotations (N, F, 3, 3) from relative rotations (Eq. 9), projected on SO(3)."""
-        solver = solver or self.rotation_solver
+        """Per-face rotations R_i (N, F, 3, 3) from relative rotations (N, F, 3, 3, 3) by Eq. 9,
+        projected onto SO(3). ``solver``: "pcg" or "direct" (default: ``rotation_solver``)."""
+        rot, self.last_iterations_ = self._solve_rotations(relative, solver or self.rotation_solver)
+        return rot
+
+    def _solve_rotations(self, relative: np.ndarray, solver: str) -> tuple[np.ndarray, int]:
+        steps = 0
         if solver == "direct":
             rot = solve_rotations_direct(relative, self.neighbors, self.back, self.anchor_faces)
-            self.last_iterations_ = 0
         else:
-            rot, self.last_iterations_ = solve_rotations_pcg(relative, self.neighbors, self.back, self._forest,
-                                                             self._preconditioner, self.tol, self.max_iter)
+            rot, steps, converged = solve_rotations_pcg(relative, self.neighbors, self.back, self._forest,
+                                                        self._preconditioner, self._inverse_norm, self.tol,
+                                                        self.max_iter)
+            if not converged.all():
+                # Strongly inconsistent codes: CG would not pay off, solve them directly.
+                rot[~converged] = solve_rotations_direct(relative[~converged], self.neighbors, self.back,
+                                                         self.anchor_faces)
         # Eq. 9 solves for Q_i = R_i^T; return the rotations R_i of U_i = R_i S_i.
-        return np.swapaxes(project_to_rotations(rot), -1, -2)
+        return np.swapaxes(project_to_rotations(rot), -1, -2), steps
 
     def _decode(self, c: np.ndarray, constraints, reference: np.ndarray) -> np.ndarray:
         n = len(c)
         c = c.reshape(n, self.n_faces, FEATURES_PER_FACE)
-        rot = self.solve_rotations(self.relative_rotations(c))
+        rot, steps = self._solve_rotations(self.relative_rotations(c), self.rotation_solver)
         u = rot @ unpack_stretch(c[..., 9:] + self.mean_stretch_)
         x = self._poisson.solve(u)
         placed, part_rot = self._place(x, reference)
         if constraints is None:
-            return placed
+            return placed, steps
         # Keep the placed orientation: rotate each part's gradients as the placement rotated it.
         u = part_rot[:, self._face_part] @ u
-        return self._poisson.solve(u, constraints, pinned_positions=placed)
+        return self._poisson.solve(u, constraints, pinned_positions=placed), steps
 
     def _place(self, x: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rigidly align each connected part of ``x`` (N, V, 3) onto ``reference`` (V, 3)."""
@@ -658,9 +811,13 @@ class RelativeRotationEncoder:
         return placed, rots
 
 
-def _max_neighbor_agreement(normals: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
-    """``max_j cos(n_i, n_j)`` over the edge neighbours j of each face, (N, F): negative when a
-    face is turned over against all of them. Faces without neighbours get +1."""
+def _normal_agreement(normals: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix) -> np.ndarray:
+    """``n_f . (m_a + m_b + m_c)`` (N, F): each face's unit normal against the vertex normals
+    (sums of incident unit face normals) of its corners. Negative when a face is turned over
+    against the surface around it; unlike a test against the edge neighbours alone, it also
+    catches two flipped faces side by side."""
     n = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-300)
-    nbr = np.where(neighbors >= 0, neighbors, np.arange(len(neighbors))[:, None])
-    return np.einsum("nfi,nfki->nfk", n, n[:, nbr]).max(axis=-1)
+    nb, nf = n.shape[:2]
+    vn = (incidence @ np.ascontiguousarray(n.transpose(1, 0, 2)).reshape(nf, nb * 3)).reshape(-1, nb, 3)
+    corner_sum = vn[faces].sum(axis=1).transpose(1, 0, 2)  # (N, F, 3)
+    return np.einsum("nfi,nfi->nf", n, corner_sum)

@@ -49,7 +49,8 @@ def _check_faces_array(faces, n_vertices: int | None = None, name: str = "faces"
         raise MeshError(f"{name}: negative vertex index {int(faces.min())}, expected indices >= 0")
     if n_vertices is not None and faces.max() >= n_vertices:
         raise MeshError(f"{name}: index {int(faces.max())} found, but the mesh has only {n_vertices} vertices")
-    repeated = np.flatnonzero((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0]))
+    repeated = np.flatnonzero((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
+                              | (faces[:, 2] == faces[:, 0]))
     if len(repeated):
         raise MeshError(f"{name}: faces {_listed(repeated)} repeat a vertex index (degenerate triangles); "
                         "expected three distinct vertices per face")

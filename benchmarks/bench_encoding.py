@@ -1,0 +1,141 @@
+"""Benchmark of the relative rotation encoding on the 13,380-vertex template.
+
+Prints, in one run:
+- decode ms per body with the prefactored method (tree gauge + Laplacian-preconditioned block
+  CG, direct fallback) and with the baseline that assembles and factors the rotation system for
+  every body, and their ratio, for three kinds of code: a round trip (encoded scan), halfway
+  between two poses of one subject, and a PCA sample;
+- encode bodies/s;
+- batch decode: 100 bodies at once vs one at a time, ms per body;
+- the halfway-pose distortion (edge length, volume) of both encodings.
+
+Data: a synthetic population (``bodyspace.data.population``) built in a temporary folder.
+Usage: ``python benchmarks/bench_encoding.py [--subjects 25] [--poses 3] [--repeat 5]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+try:
+    import bodyspace  # noqa: F401
+except ImportError:  # run from a source checkout without installing
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+
+import numpy as np
+
+from bodyspace.data.population import build_population
+from bodyspace.data.template import load_template
+from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
+from bodyspace.shape import ShapeSpace, interpolation_distortion
+
+
+def timed(fn, repeat: int) -> tuple[float, object]:
+    """Median wall time (s) of ``fn()`` over ``repeat`` runs after one warm-up, and its result."""
+    out = fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subjects", type=int, default=25)
+    ap.add_argument("--poses", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args()
+
+    t = load_template()
+    print(f"template: {t.n_vertices} vertices, {len(t.faces)} triangles")
+    with tempfile.TemporaryDirectory() as tmp:
+        db = build_population(t, Path(tmp) / "population", args.subjects, args.poses, rng=0)
+        scans = np.asarray(db.vertices, dtype=float)
+        subject = np.asarray(db.scans["subject"]).astype(str)
+        pose = np.asarray(db.scans["pose"]).astype(str)
+    print(f"population: {len(scans)} scans ({args.subjects} subjects x rest + {args.poses} poses)")
+
+    t0 = time.perf_counter()
+    # The synthetic population is posed by linear blend skinning, which folds a few triangles in
+    # some poses (armpits): accept them here (on_flipped="ignore"); see docs/encoding.md.
+    enc = RelativeRotationEncoder(t.vertices, t.faces, on_flipped="ignore")
+    setup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    enc.fit(scans)
+    fit = time.perf_counter() - t0
+    print(f"encoder setup (adjacency, tree, factorizations) {setup * 1e3:.0f} ms; fit (mean model) {fit * 1e3:.0f} ms")
+
+    # --- encode
+    t0 = time.perf_counter()
+    codes = enc.encode(scans)
+    enc_s = (time.perf_counter() - t0) / len(scans)
+    print(f"encode: {1 / enc_s:.0f} bodies/s ({enc_s * 1e3:.1f} ms per body, {len(scans)} bodies)")
+
+    # --- decode one body: fast vs refactorize-every-body, three kinds of code
+    space = ShapeSpace(enc, n_components=min(30, len(scans) - 1)).fit(codes)
+    rest = np.flatnonzero((pose == "rest") & (subject == subject[0]))[0]
+    posed = np.flatnonzero((pose != "rest") & (subject == subject[0]))[0]
+    cases = {
+        "round trip (encoded scan)": codes[posed],
+        f"halfway rest -> {pose[posed]} (one subject)": 0.5 * (codes[rest] + codes[posed]),
+        "PCA sample (2 sigma, all components)": space.inverse_transform(
+            space.sample_coefficients(1, sigma_range=2.0, rng=0))[0],
+    }
+    print("\ndecode one body (median of %d):" % args.repeat)
+    print(f"  {'code':48s} {'fast ms':>8s} {'CG steps':>8s} {'refactorize ms':>15s} {'ratio':>6s} "
+          f"{'max |diff| m':>13s}")
+    for name, code in cases.items():
+        enc.rotation_solver = "pcg"
+        fast, a = timed(lambda: enc.decode(code), args.repeat)
+        steps = enc.last_iterations_
+        enc.rotation_solver = "direct"
+        slow, b = timed(lambda: enc.decode(code), max(1, args.repeat // 2))
+        enc.rotation_solver = "pcg"
+        print(f"  {name:48s} {fast * 1e3:8.1f} {steps:8d} {slow * 1e3:15.1f} {slow / fast:6.1f} "
+              f"{np.abs(a - b).max():13.1e}")
+
+    # --- batch decode
+    def per_body(fn, items, runs=2):
+        best = np.inf
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            fn(items)
+            best = min(best, (time.perf_counter() - t0) / len(items))
+        return best
+
+    batch = codes[np.arange(100) % len(codes)]
+    single = per_body(lambda cs: [enc.decode(c) for c in cs], batch[:20])
+    many = per_body(enc.decode, batch)
+    print(f"\nbatch decode (round-trip codes, best of 2): one at a time {single * 1e3:.1f} ms/body, "
+          f"100 at once {many * 1e3:.1f} ms/body ({single / many:.2f}x)")
+    rest_rows = np.flatnonzero(pose == "rest")
+    mixed = np.stack([0.5 * (codes[i] + codes[i + 1]) for i in rest_rows[:10]])
+    single = per_body(lambda cs: [enc.decode(c) for c in cs], mixed, runs=1)
+    many = per_body(enc.decode, mixed, runs=1)
+    print(f"batch decode (halfway codes, {len(mixed)}): one at a time {single * 1e3:.1f} ms/body, "
+          f"all at once {many * 1e3:.1f} ms/body ({single / many:.2f}x)")
+    t0 = time.perf_counter()
+    for x in scans[:20]:
+        enc.encode(x)
+    one = (time.perf_counter() - t0) / 20
+    print(f"encode one at a time: {1 / one:.0f} bodies/s ({one * 1e3:.1f} ms per body)")
+
+    # --- interpolation: RRE vs vertex encoding
+    venc = VertexEncoder(t.vertices, t.faces).fit(scans)
+    print("\nhalfway between rest and a pose of one subject (mean relative edge-length change, volume change):")
+    for p in np.flatnonzero(subject == subject[0])[1:]:
+        r = interpolation_distortion(enc, scans[rest], scans[p])
+        v = interpolation_distortion(venc, scans[rest], scans[p])
+        print(f"  {pose[p]:22s} RRE edge {r['edge_change']:.2%} volume {r['volume_change']:+.2%}   "
+              f"vertex edge {v['edge_change']:.2%} volume {v['volume_change']:+.2%}")
+
+
+if __name__ == "__main__":
+    main()

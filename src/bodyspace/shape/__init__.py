@@ -1,0 +1,9 @@
+"""Shape spaces over encoded bodies: PCA (``pca``) and measures of how intact a body is
+(``compare``)."""
+
+from bodyspace.shape.compare import (edge_lengths, interpolate, interpolation_distortion,
+                                     mean_relative_edge_change, relative_volume_change)
+from bodyspace.shape.pca import ShapeSpace
+
+__all__ = ["ShapeSpace", "edge_lengths", "interpolate", "interpolation_distortion",
+           "mean_relative_edge_change", "relative_volume_change"]

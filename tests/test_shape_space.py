@@ -1,0 +1,117 @@
+"""PCA shape space over encoded bodies, sampling, projection, and the comparison metrics."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder, rigid_procrustes
+from bodyspace.errors import ParameterError
+from bodyspace.shape import ShapeSpace, mean_relative_edge_change, relative_volume_change
+
+
+@pytest.fixture(scope="module")
+def population():
+    """A small closed-mesh population: an ellipsoid family with two shape parameters and a
+    random pose (rigid motion) each."""
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    rng = np.random.default_rng(3)
+    params = rng.normal(size=(12, 2)) * [0.15, 0.1]
+    scans = []
+    for k, (a, b) in enumerate(params):
+        x = v * [1 + a, 1.7 + b, 1 - a]
+        x = x + 0.02 * np.sin(3 * v[:, [1, 2, 0]]) * (k % 3)
+        scans.append(x @ Rotation.random(random_state=k).as_matrix().T + rng.normal(size=3))
+    return v * [1, 1.7, 1], f, np.stack(scans)
+
+
+@pytest.fixture(scope="module")
+def rre(population):
+    v, f, scans = population
+    enc = RelativeRotationEncoder(v, f).fit(scans)
+    return enc, enc.encode(scans)
+
+
+def test_pca_attributes_and_round_trip(rre):
+    enc, codes = rre
+    space = ShapeSpace(enc).fit(codes)
+    k = space.n_components_
+    assert k == len(codes) - 1
+    assert space.components_.shape == (k, codes.shape[1])
+    np.testing.assert_allclose(space.components_ @ space.components_.T, np.eye(k), atol=1e-10)
+    r = space.explained_variance_ratio_
+    assert np.all(np.diff(space.explained_variance_) <= 1e-12) and abs(r.sum() - 1) < 1e-10
+    z = space.transform(codes)
+    np.testing.assert_allclose(space.inverse_transform(z), codes, atol=1e-10)
+    np.testing.assert_allclose(z.mean(0), 0, atol=1e-10)
+    np.testing.assert_allclose(z.var(0, ddof=1), space.explained_variance_, rtol=1e-8)
+
+
+def test_matches_sklearn(rre):
+    sk = pytest.importorskip("sklearn.decomposition")
+    _, codes = rre
+    ours = ShapeSpace(n_components=4).fit(codes)
+    ref = sk.PCA(n_components=4, svd_solver="full").fit(codes)
+    np.testing.assert_allclose(ours.explained_variance_ratio_, ref.explained_variance_ratio_, rtol=1e-8)
+    np.testing.assert_allclose(ours.transform(codes), ref.transform(codes), atol=1e-8)
+
+
+def test_n_components_and_selection(rre):
+    _, codes = rre
+    space = ShapeSpace(n_components=0.9).fit(codes)
+    assert space.explained_variance_ratio_.sum() >= 0.9
+    assert space.explained_variance_ratio_[:-1].sum() < 0.9
+    sub = ShapeSpace(n_components=2).fit(codes, select=np.arange(12) < 6)
+    assert sub.n_samples_ == 6 and sub.n_components_ == 2
+    np.testing.assert_allclose(sub.mean_, codes[:6].mean(0))
+    with pytest.raises(ParameterError, match="n_components"):
+        ShapeSpace(n_components=50).fit(codes)
+    with pytest.raises(ParameterError, match="expected"):
+        sub.transform(codes[:, :-1])
+    with pytest.raises(ParameterError, match="not fitted"):
+        ShapeSpace().transform(codes)
+
+
+def test_sampling(rre):
+    enc, codes = rre
+    space = ShapeSpace(enc).fit(codes)
+    z1 = space.sample_coefficients(500, n_components=3, sigma_range=2.0, rng=5)
+    z2 = space.sample_coefficients(500, n_components=3, sigma_range=2.0, rng=np.random.default_rng(5))
+    np.testing.assert_array_equal(z1, z2)
+    sd = np.sqrt(space.explained_variance_)
+    assert np.all(np.abs(z1[:, :3]) <= 2.0 * sd[:3] + 1e-12)
+    assert np.all(z1[:, 3:] == 0)
+    assert np.all(np.abs(z1[:, 0]).max() > 1.5 * sd[0])  # the range is used, not just the middle
+    lo = space.sample_coefficients(200, sigma_range=(1.0, 2.0), rng=1)
+    assert np.all(lo[:, 0] >= sd[0] - 1e-12)
+    bodies = space.sample(3, n_components=2, rng=0)
+    assert bodies.shape == (3, enc.n_vertices, 3) and np.isfinite(bodies).all()
+    with pytest.raises(ParameterError, match="sigma_range"):
+        space.sample_coefficients(2, sigma_range=(1.0, -1.0))
+
+
+@pytest.mark.parametrize("encoder_cls", [RelativeRotationEncoder, VertexEncoder])
+def test_project_and_reconstruct(population, encoder_cls):
+    v, f, scans = population
+    enc = encoder_cls(v, f).fit(scans)
+    space = ShapeSpace(enc).fit(scans)  # meshes are encoded on the way in
+    z = space.project(scans[:3])
+    assert z.shape == (3, space.n_components_)
+    back = space.reconstruct(z)
+    target = rigid_procrustes(scans[:3], enc.mean_vertices_)[0]
+    assert np.abs(back - target).max() < 1e-6 * np.ptp(scans[..., 1])
+    # The mean body (zero coefficients) is intact: close to the population average.
+    mean_body = space.reconstruct(np.zeros(1))[0]
+    assert abs(relative_volume_change(enc.mean_vertices_, mean_body, f)) < 0.05
+
+
+def test_metrics_on_known_deformations():
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    assert mean_relative_edge_change(v, v, f) == 0
+    np.testing.assert_allclose(mean_relative_edge_change(v, 1.1 * v, f), 0.1)
+    np.testing.assert_allclose(relative_volume_change(v, 1.1 * v, f), 1.1 ** 3 - 1)
+    r = Rotation.random(random_state=0).as_matrix()
+    np.testing.assert_allclose(mean_relative_edge_change(v, v @ r.T + 2, f), 0, atol=1e-12)
+    assert mean_relative_edge_change(v, np.stack([v, 2 * v]), f).shape == (2,)
