@@ -114,6 +114,78 @@ def demo(out: Path = typer.Option(Path("bodyspace-demo"), "--out", help="Output 
     Console().print(f"timings (s): {json.dumps(summary['timings_s'])}")
 
 
+@app.command()
+def build(database: Path = typer.Argument(..., help="Scan database folder (bodyspace population, ScanDatabase.save)."),
+          out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),
+          encoding: str = typer.Option("rre", "--encoding", help="rre (relative rotations) or vertex."),
+          selection: str = typer.Option("rest", "--selection",
+                                        help="rest: rest-pose scans (shape only); all: pose and shape."),
+          components: Optional[int] = typer.Option(None, "--components", min=1,
+                                                   help="PCA components (default: all with variance, at most 100)."),
+          on_flipped: str = typer.Option("warn", "--on-flipped",
+                                         help="Folded triangles in scans: raise, warn (counted) or ignore."),
+          force: bool = typer.Option(False, "--force", help="Replace an existing model file.")):
+    """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
+    import warnings
+
+    from bodyspace.data.database import ScanDatabase
+    from bodyspace.model import BodyModel
+    if out.exists() and not force:
+        _fail(FileExistsError(f"{out}: already exists; pass --force to replace it"))
+    try:
+        db = ScanDatabase.load(database)
+        with _progress("build") as cb, warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
+        model.save(out)
+    except BodyspaceError as exc:
+        _fail(exc)
+    folded = [w for w in caught if "flipped triangle" in str(w.message)]
+    if folded:
+        console.print(f"{len(folded)} scan(s) had flipped (folded) triangles; encoded anyway (--on-flipped warn)")
+    ratio = float(model.space.explained_variance_ratio_.sum())
+    t = model.provenance["timings_s"]
+    Console().print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "
+                    f"encode {t['encode_s']:.1f} s, PCA {t['pca_s']:.1f} s, total {t['total_s']:.1f} s")
+
+
+@app.command()
+def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+           n: int = typer.Option(10, "-n", "--number", min=1, help="Number of bodies."),
+           out: Path = typer.Option(..., "--out", help="Output folder."),
+           components: Optional[int] = typer.Option(None, "--components", min=1,
+                                                    help="Leading components that vary (default all)."),
+           sigma: float = typer.Option(2.0, "--sigma", min=0.01,
+                                       help="Truncation of each coefficient, in standard deviations."),
+           fmt: str = typer.Option("obj", "--format", help="Mesh format: obj, ply or glb (metres)."),
+           seed: int = typer.Option(0, "--seed", help="Random seed."),
+           png: bool = typer.Option(True, "--png/--no-png", help="Also write a contact sheet samples.png.")):
+    """Sample random bodies from a model: meshes (metres) and a PNG contact sheet."""
+    from bodyspace.mesh.io import save_mesh
+    from bodyspace.model import BodyModel
+    from bodyspace.report.render import contact_sheet
+    if fmt.lower() not in ("obj", "ply", "glb"):
+        _fail(BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb"))
+    try:
+        model = BodyModel.load(model_file)
+        with _progress("sample") as cb:
+            cb(f"decoding {n} bodies", 0.05)
+            bodies = model.sample(n, n_components=components, sigma_range=sigma, rng=seed)
+            names = []
+            for i, body in enumerate(bodies):
+                names.append(f"body_{i:03d}.{fmt.lower()}")
+                save_mesh(out / names[-1], body, model.faces)
+                cb(f"wrote {names[-1]}", 0.7 + 0.2 * (i + 1) / n)
+            if png:
+                cb("rendering samples.png", 0.9)
+                contact_sheet(bodies, model.faces, out / "samples.png", labels=names,
+                              title=f"{n} samples, {components or model.n_components} components, within {sigma:g} SD")
+            cb("done", 1.0)
+    except BodyspaceError as exc:
+        _fail(exc)
+    Console().print(f"wrote {n} bodies to {out}" + (" and samples.png" if png else ""))
+
+
 app.command("measure")(measure)
 
 

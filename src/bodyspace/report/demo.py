@@ -16,7 +16,20 @@ from bodyspace.atomic import write_json
 from bodyspace.data import assets
 from bodyspace.data.population import build_population, load_survey
 from bodyspace.data.template import load_template
+from bodyspace.encoding import VertexEncoder
+from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet, histogram_figure
+from bodyspace.report.shape_report import (generalization_study, interpolation_study, write_generalization_report,
+                                           write_interpolation_report)
+
+# Shape-space part of the demo: components of the pose+shape model, bodies sampled, subjects in
+# the interpolation study and held-out subjects in the generalization study (cost: ~0.3 s per
+# RRE decode on 2 cores; see report/shape_report.py).
+POSE_SHAPE_COMPONENTS = 30
+SAMPLES = 8
+INTERPOLATION_SUBJECTS = 2
+GENERALIZATION_FOLDS = 5
+GENERALIZATION_COMPONENTS = (1, 4, 16)
 
 
 def population_summary(db, survey: dict) -> dict:
@@ -90,6 +103,9 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
                      title=f"Population vs. survey targets ({survey['id']})")
     timings["render_s"] = time.perf_counter() - t
 
+    shape_summary = shape_space_demo(db, template, out, seed, timings,
+                                     lambda m, f: report(m, 0.75 + 0.24 * f))
+
     summary = {
         "output": str(out.resolve()),
         "assets": str(root),
@@ -98,10 +114,68 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
                      "vertices": db.n_vertices, "poses": sorted(set(db.scans["pose"].tolist()))},
         "survey": survey["citation"],
         "population": summary_pop,
-        "pictures": ["lineup.png", "poses.png", "scans.png", "histograms.png"],
+        "pictures": ["lineup.png", "poses.png", "scans.png", "histograms.png"] + shape_summary.pop("pictures"),
+        **shape_summary,
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
-        "units": {"stature": "cm", "mass": "kg", "bmi": "kg/m^2"},
+        "units": {"stature": "cm", "mass": "kg", "bmi": "kg/m^2", "interpolation": "fraction",
+                  "generalization_error": "mm"},
     }
     write_json(out / "summary.json", summary)
     report("done", 1.0)
     return summary
+
+
+def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) -> dict:
+    """Fit the shape-only (rest scans) and pose+shape (all scans) RRE models, save the
+    shape-only one as ``model.npz``, sample bodies, and run the interpolation and
+    leave-one-subject-out studies; returns the summary entries (and ``pictures``)."""
+    t = time.perf_counter()
+    report("fitting the shape-only model (rest scans)", 0.0)
+    shape = BodyModel.fit(db, "rre", "rest", template=template, on_flipped="ignore")
+    shape.save(out / "model.npz")
+    timings["model_shape_fit_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report("fitting the pose+shape model (all scans)", 0.15)
+    k = min(POSE_SHAPE_COMPONENTS, db.n_scans - 1)
+    posed = BodyModel.fit(db, "rre", "all", n_components=k, template=template, on_flipped="ignore")
+    timings["model_pose_shape_fit_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report("sampling bodies", 0.35)
+    kc = min(10, shape.n_components)
+    bodies = shape.sample(SAMPLES, n_components=kc, sigma_range=2.0, rng=seed)
+    contact_sheet(bodies, shape.faces, out / "samples.png", labels=[f"sample {i + 1}" for i in range(SAMPLES)],
+                  title=f"random bodies of the shape-only model ({kc} components, within 2 SD)")
+    timings["samples_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    vertex_all = VertexEncoder(template.vertices, template.faces).fit(np.asarray(db.vertices, dtype=float))
+    interp = interpolation_study(db, {"rre": posed.encoder, "vertex": vertex_all}, n_subjects=INTERPOLATION_SUBJECTS,
+                                 progress=lambda m, f: report(m, 0.45 + 0.25 * f))
+    interp_files = write_interpolation_report(interp, db.faces, out)
+    timings["interpolation_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    rest = db.rest_pose()
+    vertex_rest = VertexEncoder(template.vertices, template.faces).fit(np.asarray(rest.vertices, dtype=float))
+    general = generalization_study(db, {"rre": shape.encoder, "vertex": vertex_rest}, selection="rest",
+                                   n_folds=GENERALIZATION_FOLDS,
+                                   components=GENERALIZATION_COMPONENTS, progress=lambda m, f: report(m, 0.7 + 0.3 * f))
+    general_files = write_generalization_report(general, out)
+    timings["generalization_s"] = time.perf_counter() - t
+
+    def model_entry(m):
+        return {"encoding": m.encoding, "selection": m.selection, "scans": int(len(m.fitted_scans)),
+                "components": m.n_components,
+                "explained_variance": round(float(m.space.explained_variance_ratio_.sum()), 4)}
+
+    return {
+        "models": {"shape": {**model_entry(shape), "file": "model.npz"},
+                   "pose_and_shape": {**model_entry(posed), "file": None}},
+        "interpolation": {"subjects": interp["subjects"], "pairs": interp["pairs"], "summary": interp["summary"],
+                          **interp_files},
+        "generalization": {"selection": "rest", "folds": general["folds"], "components": general["components"],
+                           "error_mm": general["error_mm"], **general_files},
+        "pictures": ["samples.png", interp_files["png"], general_files["png"]],
+    }

@@ -1,0 +1,165 @@
+"""BodyModel: fit, save/load (no pickle, versioned), sampling, projection, CLI build/sample, and
+the shape-space reports on a tiny synthetic population."""
+
+import json
+import pickle
+import zipfile
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bodyspace.cli import app
+from bodyspace.data.population import build_population
+from bodyspace.encoding import VertexEncoder, rigid_procrustes
+from bodyspace.errors import BodyspaceError
+from bodyspace.model import BodyModel, ModelError, pca_full, pca_randomized
+from bodyspace.report.shape_report import (generalization_study, interpolation_study, write_generalization_report,
+                                           write_interpolation_report)
+from bodyspace.shape import ShapeSpace
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def db(template, tmp_path_factory):
+    """4 subjects x (rest + 2 poses) = 12 scans."""
+    return build_population(template, tmp_path_factory.mktemp("pop") / "db", 4, 2, rng=7)
+
+
+@pytest.fixture(scope="module")
+def model(db, template):
+    return BodyModel.fit(db, "rre", "all", template=template, on_flipped="ignore")
+
+
+def test_fit_attributes_and_reconstruction_of_a_training_scan(model, db):
+    assert model.encoding == "rre" and model.selection == "all"
+    assert model.n_components == db.n_scans - 1 and len(model.fitted_scans) == db.n_scans
+    r = model.space.explained_variance_ratio_
+    assert abs(r.sum() - 1) < 1e-6 and np.all(np.diff(model.space.explained_variance_) <= 1e-12)
+    c = model.space.components_
+    np.testing.assert_allclose(c @ c.T, np.eye(len(c)), atol=1e-5)  # float32-rounded components
+    x = db.mesh(5)
+    z = model.project(x)
+    assert z.shape == (1, model.n_components)
+    back = model.reconstruct(z)
+    assert back.shape == (1, db.n_vertices, 3)
+    target = rigid_procrustes(x, model.mean_vertices)[0]  # the documented placement
+    assert np.abs(back[0] - target).max() < 1e-4  # metres; float32 components
+
+
+def test_full_pca_matches_shape_space_and_randomized_finds_the_leading_components(model, db):
+    codes = model.encode(np.asarray(db.vertices, dtype=float))
+    ref = ShapeSpace(n_components=5).fit(codes)
+    s, comps = pca_full(codes.copy(), codes.mean(axis=0))
+    np.testing.assert_allclose(s[:5], ref.singular_values_, rtol=1e-8)
+    np.testing.assert_allclose(np.abs(np.sum(comps[:5] * ref.components_, axis=1)), 1, atol=1e-8)
+    s32, comps32 = pca_randomized(codes.astype(np.float32), codes.mean(axis=0), 3, rng=0)
+    np.testing.assert_allclose(s32, ref.singular_values_[:3], rtol=1e-3)
+    np.testing.assert_allclose(np.abs(np.sum(comps32 * ref.components_[:3], axis=1)), 1, atol=1e-3)
+
+
+def test_save_load_round_trip_is_bit_exact(model, db, tmp_path):
+    path = model.save(tmp_path / "m.npz")
+    assert not list(tmp_path.glob("*.part")), "written atomically"
+    back = BodyModel.load(path)
+    for name, a in model._arrays().items():
+        b = back._arrays()[name]
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), name
+    assert back.encoding == "rre" and back.selection == "all" and back.template_id == model.template_id
+    assert back.encoder.on_flipped == "ignore"
+    x = np.asarray(db.vertices[:3], dtype=float)
+    np.testing.assert_array_equal(back.encode(x), model.encode(x))
+    np.testing.assert_array_equal(back.project(x), model.project(x))
+    z = model.sample_coefficients(2, n_components=3, rng=1)
+    np.testing.assert_allclose(back.reconstruct(z), model.reconstruct(z), atol=1e-9)
+
+
+def test_vertex_model_rest_selection_and_sampling(db, template, tmp_path):
+    m = BodyModel.fit(db, "vertex", "rest", n_components=2, template=template)
+    assert m.selection == "rest" and len(m.fitted_scans) == 4 and m.n_components == 2
+    assert set(db.scans["pose"][m.fitted_scans]) == {"rest"}
+    bodies = m.sample(3, n_components=2, sigma_range=(-1.0, 1.0), rng=0)
+    assert bodies.shape == (3, db.n_vertices, 3) and np.isfinite(bodies).all()
+    back = BodyModel.load(m.save(tmp_path / "v.npz"))
+    np.testing.assert_array_equal(back.sample(3, 2, (-1.0, 1.0), rng=0), bodies)
+    assert isinstance(back.encoder, VertexEncoder)
+
+
+def _rewrite(src, dst, change):
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    change(arrays)
+    with open(dst, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def test_load_refuses_garbage_pickles_versions_and_missing_fields(model, tmp_path):
+    good = model.save(tmp_path / "good.npz")
+    (tmp_path / "garbage.npz").write_bytes(b"not a model at all")
+    with pytest.raises(ModelError, match="garbage.npz.*not a BodyModel file"):
+        BodyModel.load(tmp_path / "garbage.npz")
+    (tmp_path / "p.npz").write_bytes(pickle.dumps({"a": 1}))
+    with pytest.raises(ModelError, match="never pickles"):
+        BodyModel.load(tmp_path / "p.npz")
+    # an .npz whose field holds a pickled object array
+    _rewrite(good, tmp_path / "obj.npz", lambda a: a.__setitem__("pca_mean", np.array([object()], dtype=object)))
+    with pytest.raises(ModelError, match="obj.npz: field 'pca_mean'.*pickle"):
+        BodyModel.load(tmp_path / "obj.npz")
+
+    def bump(a):
+        h = json.loads(a["header"].tobytes())
+        h["format_version"] = 99
+        a["header"] = np.frombuffer(json.dumps(h).encode(), dtype=np.uint8)
+    _rewrite(good, tmp_path / "v99.npz", bump)
+    with pytest.raises(ModelError, match="v99.npz: format_version 99.*reads version 1"):
+        BodyModel.load(tmp_path / "v99.npz")
+    _rewrite(good, tmp_path / "missing.npz", lambda a: a.pop("rre_mean_stretch"))
+    with pytest.raises(ModelError, match="missing.npz: field 'rre_mean_stretch' is missing"):
+        BodyModel.load(tmp_path / "missing.npz")
+    with zipfile.ZipFile(tmp_path / "nohdr.npz", "w") as zf:
+        zf.writestr("x.npy", b"")
+    with pytest.raises(ModelError, match="field 'header' is missing|cannot be read"):
+        BodyModel.load(tmp_path / "nohdr.npz")
+    with pytest.raises(ModelError, match="no such file"):
+        BodyModel.load(tmp_path / "nope.npz")
+    assert issubclass(ModelError, BodyspaceError)
+
+
+def test_cli_build_and_sample(db, tmp_path):
+    out = tmp_path / "m.npz"
+    db_path = str(db.meta.get("path", "")) or None
+    folder = tmp_path / "db"
+    db.save(folder)
+    result = runner.invoke(app, ["build", str(folder), "--out", str(out), "--selection", "rest",
+                                 "--encoding", "vertex"])
+    assert result.exit_code == 0, result.output
+    assert BodyModel.load(out).n_components == 3
+    again = runner.invoke(app, ["build", str(folder), "--out", str(out)])
+    assert again.exit_code == 2 and "--force" in again.output
+    result = runner.invoke(app, ["sample", str(out), "-n", "2", "--out", str(tmp_path / "s"), "--format", "ply",
+                                 "--components", "2"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["body_000.ply", "body_001.ply", "samples.png"]
+    bad = runner.invoke(app, ["sample", str(folder / "faces.npy"), "--out", str(tmp_path / "t")])
+    assert bad.exit_code == 2 and "not a BodyModel file" in bad.output
+    del db_path
+
+
+def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
+    vertex = VertexEncoder(template.vertices, template.faces).fit(np.asarray(db.vertices, dtype=float))
+    res = interpolation_study(db, {"rre": model.encoder, "vertex": vertex}, n_subjects=1)
+    assert res["pairs"] == 3 and len(res["rows"]) == 3
+    s = res["summary"]
+    assert all(np.isfinite(v) for e in s.values() for v in e.values())
+    assert s["rre"]["edge_change_mean"] < s["vertex"]["edge_change_mean"]
+    files = write_interpolation_report(res, db.faces, tmp_path)
+    assert all((tmp_path / f).stat().st_size > 0 for f in files.values())
+    gen = generalization_study(db, {"rre": model.encoder, "vertex": vertex}, selection="all", n_folds=2,
+                               components=(1, 2))
+    assert gen["components"][0] == 1 and gen["components"][-1] == 12 - 3 - 1
+    for name in ("rre", "vertex"):
+        e = np.asarray(gen["error_mm"][name])
+        assert e.shape == (len(gen["components"]),) and np.isfinite(e).all() and (e > 0).all()
+    files = write_generalization_report(gen, tmp_path)
+    assert json.loads((tmp_path / files["json"]).read_text())["units"]["error"] == "mm"
