@@ -1,0 +1,220 @@
+"""The linear semantic mapping of the related work: one affine map ``y = A x + b`` over all data.
+
+Allen et al. (2003), Hasler et al. (2009) and MovieReshape (Jain et al. 2010) map semantic
+measurements to PCA coefficients with a single linear regression over the whole shape space;
+Rupprecht et al. (Sec. 2, Table 2) use it as the baseline their regression forest beats. It is
+also the leaf model of that forest (Eq. 2 and 3), so the least-squares solve lives here, once,
+as the pure function ``fit_affine`` that both estimators call.
+
+Shapes: ``X`` (N, n) measurements, ``Y`` (N, m) coefficients, ``A`` (m, n), ``b`` (m,).
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+from bodyspace.errors import ParameterError
+
+FORMAT_VERSION = 1
+
+
+# ---------------------------------------------------------------------- shared validation
+def check_X(X, n_features: int | None = None, name: str = "X") -> tuple[np.ndarray, bool]:
+    """``X`` as float64 (N, n), and whether it was a single 1-D sample.
+
+    A 1-D ``X`` is one sample only when the estimator is fitted (``n_features`` known); in
+    ``fit`` a 2-D array is required so a column vector is never mistaken for a row.
+    """
+    x = np.asarray(X)
+    single = False
+    if x.ndim == 1 and n_features is not None:
+        x, single = x[None, :], True
+    if x.ndim != 2:
+        expected = f"(N, {n_features})" if n_features is not None else "(N, n_features)"
+        raise ParameterError(f"{name}: shape {x.shape}, expected a 2-D array {expected}")
+    if not (np.issubdtype(x.dtype, np.number) or x.dtype == bool):
+        raise ParameterError(f"{name}: dtype {x.dtype}, expected numbers")
+    if x.shape[1] == 0:
+        raise ParameterError(f"{name}: shape {x.shape}, expected at least one feature column")
+    if n_features is not None and x.shape[1] != n_features:
+        raise ParameterError(f"{name}: {x.shape[1]} features per sample, expected {n_features} "
+                             "(the number the mapping was fitted on)")
+    x = x.astype(np.float64, copy=False)
+    if not np.isfinite(x).all():
+        bad = np.argwhere(~np.isfinite(x))[0]
+        raise ParameterError(f"{name}: contains NaN or infinity (first at row {bad[0]}, column {bad[1]}), "
+                             "expected finite numbers")
+    return x, single
+
+
+def check_Y(Y, n_samples: int, name: str = "Y") -> tuple[np.ndarray, bool]:
+    """``Y`` as float64 (N, m), and whether it was given 1-D (one output; predictions are 1-D too)."""
+    y = np.asarray(Y)
+    one_d = y.ndim == 1
+    if one_d:
+        y = y[:, None]
+    if y.ndim != 2:
+        raise ParameterError(f"{name}: shape {y.shape}, expected (N, n_outputs) or (N,)")
+    if not (np.issubdtype(y.dtype, np.number) or y.dtype == bool):
+        raise ParameterError(f"{name}: dtype {y.dtype}, expected numbers")
+    if y.shape[0] != n_samples:
+        raise ParameterError(f"{name}: {y.shape[0]} rows, expected {n_samples} (one per row of X)")
+    if y.shape[1] < 1:
+        raise ParameterError(f"{name}: shape {y.shape}, expected at least one output column")
+    y = y.astype(np.float64, copy=False)
+    if not np.isfinite(y).all():
+        bad = np.argwhere(~np.isfinite(y))[0]
+        raise ParameterError(f"{name}: contains NaN or infinity (first at row {bad[0]}, column {bad[1]}), "
+                             "expected finite numbers")
+    return y, one_d
+
+
+def check_ridge(ridge) -> float:
+    if isinstance(ridge, bool) or not isinstance(ridge, numbers.Real) or not np.isfinite(ridge) or ridge < 0:
+        raise ParameterError(f"ridge={ridge!r}, expected a finite number >= 0")
+    return float(ridge)
+
+
+def check_arrays(arrays, kind: str, keys: tuple[str, ...]) -> None:
+    """``from_arrays`` input: a mapping holding ``keys``, written by ``kind.to_arrays``."""
+    if "kind" not in arrays or str(np.asarray(arrays["kind"])) != kind:
+        found = str(np.asarray(arrays["kind"])) if "kind" in arrays else "no 'kind' key"
+        raise ParameterError(f"arrays['kind']: {found!r}, expected {kind!r} (the dict written by {kind}.to_arrays())")
+    missing = [k for k in ("format_version", *keys) if k not in arrays]
+    if missing:
+        raise ParameterError(f"arrays: missing {missing}, expected the dict written by {kind}.to_arrays()")
+    version = int(np.asarray(arrays["format_version"]))
+    if version > FORMAT_VERSION:
+        raise ParameterError(f"arrays['format_version']: {version}, expected <= {FORMAT_VERSION} "
+                             "(written by a newer bodyspace)")
+
+
+# ---------------------------------------------------------------------- Eq. 3
+def fit_affine(X: np.ndarray, Y: np.ndarray, ridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares affine map (Rupprecht et al., Eq. 3): ``argmin sum ||A x + b - y||^2``.
+
+    Args:
+        X: (N, n) inputs, Y: (N, m) outputs.
+        ridge: Tikhonov weight on ``A`` (never on ``b``), relative to the mean variance of the
+            inputs after each is scaled to unit variance: the penalty is
+            ``ridge * N * ||A D||_F^2`` with ``D`` the input standard deviations. Being relative,
+            it means the same in cm or m and in a 30-sample leaf or the whole data set; it keeps
+            the normal equations invertible when an input is constant or two are collinear.
+
+    Returns:
+        A (m, n), b (m,), in the units of X and Y.
+
+    The solve is on centred, standardized inputs (so ``b`` is free and cm-scale offsets do not
+    cost digits) through the normal equations: n is small (6 measurements), and the Gram matrix
+    is what the forest's split search accumulates anyway.
+    """
+    x_mean = X.mean(axis=0)
+    y_mean = Y.mean(axis=0)
+    scale = X.std(axis=0)
+    scale[scale == 0] = 1.0               # a constant input gets slope 0 from the ridge, not a NaN
+    xs = (X - x_mean) / scale
+    gram = xs.T @ xs
+    cross = xs.T @ (Y - y_mean)
+    a_std = solve_ridge(gram[None], cross[None], ridge)[0]       # (n, m) in standardized inputs
+    A = (a_std / scale[:, None]).T
+    b = y_mean - A @ x_mean
+    return A, b
+
+
+def solve_ridge(gram: np.ndarray, cross: np.ndarray, ridge: float, return_lambda: bool = False):
+    """Batched ridge normal equations ``(G + lambda I) W = C`` for centred statistics.
+
+    ``gram`` (B, n, n) and ``cross`` (B, n, m) are sums over the samples of centred ``x x^T``
+    and ``x y^T``. ``lambda = (ridge + 1e-12) * trace(G) / n`` (``ridge`` times N times the mean
+    input variance; the 1e-12 floor keeps ``ridge=0`` solvable for collinear inputs, and an
+    all-constant node gets ``lambda = 1``, i.e. slopes 0). Returns W (B, n, m), and lambda (B,)
+    if asked.
+    """
+    n = gram.shape[-1]
+    scale = np.trace(gram, axis1=-2, axis2=-1) / n                       # N * mean variance
+    lam = np.where(scale > 0, (ridge + 1e-12) * scale, 1.0)
+    g = gram + lam[:, None, None] * np.eye(n)
+    try:
+        # inv-then-multiply: 2x faster than batched solve for these 6x6 systems with 25 right-hand
+        # sides (measured), and accurate here since g is symmetric positive definite and regularized.
+        w = np.linalg.inv(g) @ cross
+    except np.linalg.LinAlgError:
+        # Only reachable for degenerate statistics (e.g. overflow): the minimum-norm solution.
+        w = np.stack([np.linalg.lstsq(gi, ci, rcond=None)[0] for gi, ci in zip(g, cross)])
+    return (w, lam) if return_lambda else w
+
+
+# ---------------------------------------------------------------------- estimator
+class LinearMapping:
+    """One affine map ``y = A x + b`` from measurements to shape coefficients, over all data.
+
+    The baseline of Rupprecht et al. (Table 2), after Allen et al. (2003) and Hasler et al.
+    (2009); same interface as ``LinearLeafForest``.
+
+    Args:
+        ridge: Tikhonov weight on ``A`` relative to the inputs' variance (see ``fit_affine``);
+            the small default only guards against collinear measurements.
+
+    Attributes (after ``fit``):
+        coef_: (m, n) the matrix A.
+        intercept_: (m,) the vector b.
+        n_features_in_, n_outputs_: ints.
+    """
+
+    def __init__(self, ridge: float = 1e-6):
+        self.ridge = ridge
+
+    def fit(self, X, Y) -> "LinearMapping":
+        """Fit on measurements X (N, n) and coefficients Y (N, m) or (N,)."""
+        ridge = check_ridge(self.ridge)
+        x, _ = check_X(X)
+        y, one_d = check_Y(Y, x.shape[0])
+        if x.shape[0] < 2:
+            raise ParameterError(f"X: {x.shape[0]} sample(s), expected at least 2 to fit A x + b")
+        self.coef_, self.intercept_ = fit_affine(x, y, ridge)
+        self.n_features_in_, self.n_outputs_ = x.shape[1], y.shape[1]
+        self._y_1d = one_d
+        return self
+
+    def predict(self, X) -> np.ndarray:
+        """Coefficients (N, m) of measurements (N, n); a single sample (n,) gives (m,)."""
+        self._require_fit()
+        x, single = check_X(X, self.n_features_in_)
+        y = x @ self.coef_.T + self.intercept_
+        if self._y_1d:
+            y = y[:, 0]
+        return y[0] if single else y
+
+    def _require_fit(self):
+        if not hasattr(self, "coef_"):
+            raise ParameterError("LinearMapping is not fitted; call fit(X, Y) first")
+
+    # ------------------------------------------------------------------ serialization
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Flat arrays for an ``np.savez`` loadable with ``allow_pickle=False`` (no object arrays)."""
+        self._require_fit()
+        return {
+            "kind": np.array("LinearMapping"),
+            "format_version": np.array(FORMAT_VERSION),
+            "ridge": np.array(float(self.ridge)),
+            "y_1d": np.array(self._y_1d),
+            "coef": self.coef_.copy(),
+            "intercept": self.intercept_.copy(),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "LinearMapping":
+        """Inverse of ``to_arrays`` (accepts the dict or an opened ``NpzFile``)."""
+        check_arrays(arrays, "LinearMapping", ("ridge", "y_1d", "coef", "intercept"))
+        coef = np.asarray(arrays["coef"], dtype=np.float64)
+        intercept = np.asarray(arrays["intercept"], dtype=np.float64)
+        if coef.ndim != 2 or intercept.shape != (coef.shape[0],):
+            raise ParameterError(f"arrays['coef'], ['intercept']: shapes {coef.shape}, {intercept.shape}, "
+                                 "expected (m, n) and (m,)")
+        self = cls(ridge=float(np.asarray(arrays["ridge"])))
+        self.coef_, self.intercept_ = coef, intercept
+        self.n_outputs_, self.n_features_in_ = coef.shape
+        self._y_1d = bool(np.asarray(arrays["y_1d"]))
+        return self
