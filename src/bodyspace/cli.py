@@ -13,7 +13,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from bodyspace.cli_mapping import mapping_evaluate
 from bodyspace.cli_measure import measure
+from bodyspace.cli_semantics import crowd, evaluate, generate, morph
 from bodyspace.errors import BodyspaceError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -187,6 +189,13 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
 
 
 app.command("measure")(measure)
+app.command("evaluate")(evaluate)
+app.command("generate")(generate)
+app.command("morph")(morph)
+app.command("crowd")(crowd)
+mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
+mapping_app.command("evaluate")(mapping_evaluate)
+app.add_typer(mapping_app, name="mapping")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -1,0 +1,275 @@
+"""``bodyspace evaluate | generate | morph | crowd``: semantic control from the command line.
+
+Thin layer over ``bodyspace.semantics.model.SemanticModel``; register with
+``app.command("evaluate")(evaluate)`` etc. Every command takes the model file; the semantic
+regressors live beside it (``MODEL.semantics.npz``) and are fitted on first use from
+``--database`` (the scan database the model was built from).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from bodyspace.errors import BodyspaceError
+
+console = Console(stderr=True)
+out_console = Console()
+
+DatabaseOption = typer.Option(None, "--database", help="Scan database the model was built from: fits the semantic "
+                                                       "regressors (saved beside the model as MODEL.semantics.npz).")
+RefitOption = typer.Option(False, "--refit", help="With --database: fit again even if MODEL.semantics.npz exists.")
+ClampOption = typer.Option(False, "--clamp", help="Clamp requests outside the reachable range (with a warning) "
+                                                  "instead of refusing them.")
+SetOption = typer.Option(None, "--set", help="NAME=VALUE with units, e.g. stature=180cm, mass=80kg, sex=female, "
+                                             "stature=+5cm (morph), stature=155:185cm (a range).")
+RangeOption = typer.Option(None, "--range", help="NAME=LOW:HIGH with units, e.g. stature=155:185cm.")
+
+
+def _fail(exc: Exception) -> None:
+    console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True, highlight=False)
+    raise typer.Exit(code=2)
+
+
+@contextmanager
+def _progress(description: str):
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), TextColumn("{task.fields[message]}"), console=console) as bar:
+        task = bar.add_task(description, total=1.0, message="")
+        yield lambda message, fraction: bar.update(task, completed=fraction, message=message)
+
+
+def _report_warnings(caught) -> None:
+    for w in caught:
+        console.print(f"[yellow]warning:[/yellow] {escape(str(w.message))}", soft_wrap=True, highlight=False)
+
+
+def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
+    from bodyspace.model import BodyModel
+    from bodyspace.semantics.model import SemanticModel, semantics_path
+    model = BodyModel.load(model_file)
+    spath = semantics_path(model_file)
+    mode = "clamp" if clamp else "raise"
+    if database is not None and (refit or not spath.is_file()):
+        from bodyspace.data.database import ScanDatabase
+        db = ScanDatabase.load(database)
+        with _progress("fitting semantic regressors") as cb:
+            cb("measuring the rest scans", 0.1)
+            sm = SemanticModel(model, on_infeasible=mode).fit(db)
+            cb("done", 1.0)
+        sm.save(spath)
+        console.print(f"wrote {spath}")
+        return sm
+    if not spath.is_file():
+        raise BodyspaceError(f"{spath}: no semantic regressors for {model_file}; pass --database DB (the scan "
+                             "database the model was built from) to fit them")
+    return SemanticModel.load(spath, model, on_infeasible=mode)
+
+
+def _targets(sets, ranges, allow_delta: bool) -> dict:
+    from bodyspace.units import UnitError, parse_assignment
+    out = {}
+    for text in list(sets or []) + list(ranges or []):
+        t = parse_assignment(text)
+        if text in (ranges or []) and t.kind != "range":
+            raise UnitError(f"--range {text!r}: expected NAME=LOW:HIGH, e.g. stature=155:185cm")
+        if t.kind == "delta" and not allow_delta:
+            raise UnitError(f"--set {text!r}: a change (+/-) needs a body to change; use a value, e.g. "
+                            f"{t.name}=180cm, or bodyspace morph")
+        out[t.name] = t
+    return out
+
+
+def _result_table(title: str, result) -> Table:
+    from bodyspace.units import format_value
+    table = Table(title=title)
+    for col in ("variable", "asked", "reached", "off by", "tolerance"):
+        table.add_column(col, justify="left" if col == "variable" else "right")
+    from bodyspace.semantics.model import tolerance
+    for name, goal in result.targets.items():
+        got = result.values[name]
+        table.add_row(name, format_value(name, goal), format_value(name, got),
+                      format_value(name, got - goal) if name != "sex" else f"{got - goal:+.3f}",
+                      format_value(name, tolerance(name)) if name != "sex" else "0.001")
+    return table
+
+
+def _save_mesh(path: Path, vertices, faces) -> None:
+    from bodyspace.mesh.io import save_mesh
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_mesh(path, vertices, faces)
+
+
+# ----------------------------------------------------------------------------------- commands
+def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+             database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
+             out: Optional[Path] = typer.Option(None, "--out", help="Markdown file for the tables "
+                                                "(default MODEL.evaluation.md; a .json beside it)."),
+             folds: int = typer.Option(10, "--folds", min=2, help="Cross-validation folds."),
+             seed: int = typer.Option(0, "--seed", help="Fold shuffle seed.")):
+    """Table 1 (10-fold cross-validated RMSE per label and regressor) and Table 2 (angles between
+    the non-linear model's morphing directions at every subject)."""
+    from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+    from bodyspace.units import kind_of
+    try:
+        sm = _load(model_file, database, refit, False)
+        with _progress("evaluate") as cb:
+            cb(f"{folds}-fold cross-validation of {len(sm.labels_)} labels x 3 regressors", 0.05)
+            table1, table2 = sm.evaluate(folds=folds, rng=seed)
+            cb("done", 1.0)
+    except BodyspaceError as exc:
+        _fail(exc)
+    unit = {"length": "cm", "mass": "kg", "age": "years", "percent": "%"}
+    scale = np.array([100.0 if kind_of(n) == "length" else 1.0 for n in table1.labels])
+    names = [f"{n} ({unit.get(kind_of(n), '1')})" for n in table1.labels]
+    shown = RegressionTable(table1.regressors, names, table1.rmse * scale, table1.n_samples, table1.folds)
+    text1, text2 = format_rmse_table(shown), format_angle_table(table2)
+    out_console.print(f"Table 1: RMSE, {table1.folds}-fold cross-validation, {len(sm.X_)} subjects once each\n"
+                      f"{text1}\n\nTable 2: angles between non-linear morphing directions (degrees)\n{text2}",
+                      highlight=False)
+    out = out or model_file.with_name(model_file.name.removesuffix(".npz") + ".evaluation.md")
+    md = (f"# Semantic regressors of {model_file.name}\n\n## Table 1: RMSE ({table1.folds}-fold cross-validation, "
+          f"{len(sm.X_)} subjects, each once)\n\n{format_rmse_table(shown, markdown=True)}\n\n"
+          f"## Table 2: angles between the non-linear model's morphing directions (degrees)\n\n"
+          f"{format_angle_table(table2, markdown=True)}\n")
+    out.write_text(md)
+    payload = {"table1": {"regressors": table1.regressors, "labels": table1.labels, "rmse_si": table1.rmse.tolist(),
+                          "n_samples": table1.n_samples.tolist(), "folds": table1.folds},
+               "table2": {k: {"mean_deg": m, "sd_deg": s} for k, (m, s) in table2.items()}}
+    out.with_suffix(".json").write_text(json.dumps(payload, indent=2))
+    console.print(f"wrote {out} and {out.with_suffix('.json')}")
+
+
+def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+             sets: Optional[List[str]] = SetOption, ranges: Optional[List[str]] = RangeOption,
+             out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
+             seed: int = typer.Option(0, "--seed", help="Random seed for what is not asked."),
+             clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+    """A body that measures what is asked (stature, mass, girths within 4 mm / 0.5 kg / 9 mm); the rest at random."""
+    try:
+        targets = _targets(sets, ranges, allow_delta=False)
+        if not targets:
+            raise BodyspaceError("nothing asked; pass --set NAME=VALUE, e.g. --set stature=180cm")
+        sm = _load(model_file, database, refit, clamp)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            result = sm.generate(targets, rng=seed)
+        _save_mesh(out, result.vertices, sm.body_model.faces)
+    except BodyspaceError as exc:
+        _fail(exc)
+    _report_warnings(caught)
+    out_console.print(_result_table(f"generated {out.name}", result))
+    out_console.print(f"wrote {out}: {result.iterations} correction(s), {result.mahalanobis:.2f} SD from the random "
+                      "start", highlight=False)
+
+
+def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+          mesh: Path = typer.Argument(..., help="A registered body mesh (the model's template topology)."),
+          sets: Optional[List[str]] = SetOption,
+          keep: Optional[List[str]] = typer.Option(None, "--keep", help="Variables to hold, e.g. --keep mass."),
+          mask: Optional[List[str]] = typer.Option(None, "--mask", help="Confine the change to a region: upper_body, "
+                                                   "lower_body, arms, legs, torso, head, left, right (repeatable)."),
+          out: Path = typer.Option(..., "--out", help="Mesh file to write."),
+          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+    """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
+    from bodyspace.mesh.io import load_mesh
+    try:
+        changes = _targets(sets, None, allow_delta=True)
+        if not changes:
+            raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
+        sm = _load(model_file, database, refit, clamp)
+        v, f = load_mesh(mesh)
+        if v.shape != sm.body_model.template_vertices.shape or not np.array_equal(f, sm.body_model.faces):
+            raise BodyspaceError(f"{mesh}: {len(v)} vertices / {len(f)} faces, expected the model's template topology "
+                                 f"({len(sm.body_model.template_vertices)} vertices, {len(sm.body_model.faces)} faces)")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            result = sm.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None)
+        _save_mesh(out, result.vertices, f)
+    except BodyspaceError as exc:
+        _fail(exc)
+    _report_warnings(caught)
+    out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result))
+    moved = np.linalg.norm(result.vertices - v, axis=1)
+    out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm",
+                      highlight=False)
+
+
+def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+          n: int = typer.Option(20, "-n", "--number", min=1, help="Number of bodies."),
+          sets: Optional[List[str]] = SetOption, ranges: Optional[List[str]] = RangeOption,
+          out: Path = typer.Option(..., "--out", help="Output folder: meshes, crowd.csv, lineup.png."),
+          fmt: str = typer.Option("obj", "--format", help="Mesh format: obj, ply or glb."),
+          seed: int = typer.Option(0, "--seed", help="Random seed."),
+          png: bool = typer.Option(True, "--png/--no-png", help="Write the line-up lineup.png."),
+          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+    """A crowd meeting the request (values or ranges), the rest random: meshes, a CSV of measurements, a PNG line-up."""
+    from bodyspace.measure import to_json
+    try:
+        if fmt.lower() not in ("obj", "ply", "glb"):
+            raise BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb")
+        targets = _targets(sets, ranges, allow_delta=False)
+        sm = _load(model_file, database, refit, clamp)
+        with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            # nothing asked: random bodies from the shape-only model
+            results = sm.crowd(n, targets, rng=seed, progress=lambda m, f: cb(m, 0.8 * f)) if targets else []
+            bodies = (np.array([r.vertices for r in results]) if results
+                      else sm.body_model.sample(n, sigma_range=2.0, rng=seed))
+            out.mkdir(parents=True, exist_ok=True)
+            names = [f"body_{i:03d}.{fmt.lower()}" for i in range(n)]
+            rows = []
+            for i, (name, body) in enumerate(zip(names, bodies)):
+                _save_mesh(out / name, body, sm.body_model.faces)
+                meas = to_json(_measure_one(sm, body))
+                row = {"mesh": name}
+                if results:
+                    row["converged"] = results[i].converged
+                    row["iterations"] = results[i].iterations
+                    c = results[i].coefficients
+                else:
+                    c = np.asarray(sm.body_model.project(body)).reshape(-1)
+                for lab in sm.labels_:
+                    if lab not in sm.measured_:
+                        row[f"{lab} (model)"] = round(float(sm.regressors_[lab].predict(c)), 4)
+                row.update({f"{k} ({e['unit']})": e["value"] for k, e in meas.items()})
+                rows.append(row)
+                cb(f"wrote {name}", 0.8 + 0.1 * (i + 1) / n)
+            _write_csv(out / "crowd.csv", rows)
+            if png:
+                from bodyspace.report.render import contact_sheet
+                cb("rendering lineup.png", 0.9)
+                contact_sheet(bodies, sm.body_model.faces, out / "lineup.png", labels=names,
+                              title=f"crowd of {n}: " + (", ".join(sets or []) + " " + ", ".join(ranges or [])).strip())
+            cb("done", 1.0)
+    except BodyspaceError as exc:
+        _fail(exc)
+    _report_warnings(caught)
+    missed = sum(1 for r in (results or []) if not r.converged)
+    out_console.print(f"wrote {n} bodies, crowd.csv" + (" and lineup.png" if png else "") + f" to {out}"
+                      + (f"; {missed} missed a target (see warnings)" if missed else ""), highlight=False)
+
+
+def _measure_one(sm, body):
+    from bodyspace.measure import evaluate as evaluate_measurements
+    return evaluate_measurements(sm.mset, body, sm.body_model.faces)
+
+
+def _write_csv(path: Path, rows: list) -> None:
+    from bodyspace.atomic import atomic_path
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)

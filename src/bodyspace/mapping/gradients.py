@@ -1,0 +1,305 @@
+"""Analytic Jacobians of body measurements, for bodies linear in their shape coefficients.
+
+With the vertex encoding a body is ``v(z) = base + sum_k z_k C_k`` (``base`` (V, 3) the mean
+body, ``C`` (K, V, 3) the principal components reshaped), so ``dv/dz = C`` exactly. The
+measurements of Rupprecht et al. Sec. 3.1.2 and the ISO lengths are piecewise smooth functions of
+a few vertices; their derivatives with respect to those vertices are written out here (pure,
+batched functions), then chained with ``C``:
+
+- **loop** (ordered ring of vertices projected on the plane normal to ``axis``):
+  ``L = sum_i |P (r_{i+1} - r_i)|`` with ``P = I - a a^T``, so
+  ``dL/dr_i = u_{i-1} - u_i``, ``u_i`` the projected unit edge vectors.
+- **distance** (``|b - a|`` or ``|(b - a) . axis|``; ``axis`` fixed or a landmark pair; ``to`` may be
+  the floor, the lowest vertex: its gradient goes to that vertex's y).
+- **path** (sum of segment lengths through landmark points): unit segment vectors.
+
+Landmarks are sparse linear combinations of vertices (``L @ v``), so their gradients go back to
+vertices through ``L^T``. Slices (plane cross-sections, convex-hull girths) are not
+differentiated yet: ``LinearBodyMeasures`` refuses them with a message, and
+``training.make_training_set`` measures them with ``measure.evaluate`` instead.
+Conditions (``requires``: upright etc.) are not checked here: rest-pose shape-space bodies meet them.
+
+Shapes: N bodies, R ring points, K coefficients, M measurements. Values in metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import weakref
+
+import numpy as np
+
+from bodyspace.errors import ParameterError
+from bodyspace.measure.definitions import MeasurementSet
+
+RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length", "shoulder_size")
+UP = np.array([0.0, 1.0, 0.0])
+DIFFERENTIABLE = ("loop", "distance", "path")
+_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+# ---------------------------------------------------------------------- vertex-level Jacobians
+def loop_length_grad(ring: np.ndarray, axis: np.ndarray = UP) -> tuple[np.ndarray, np.ndarray]:
+    """Length of closed rings projected on the plane normal to ``axis``, and its gradient.
+
+    Args:
+        ring: (N, R, 3) ordered ring points; axis: (3,) unit vector.
+    Returns:
+        length (N,), d length / d ring (N, R, 3).
+    """
+    a = np.asarray(axis, dtype=float)
+    flat = ring - (ring @ a)[..., None] * a
+    e = np.roll(flat, -1, axis=1) - flat                       # edge i: r_i -> r_{i+1}
+    n = np.linalg.norm(e, axis=-1)
+    u = e / np.maximum(n, 1e-15)[..., None]
+    return n.sum(axis=1), np.roll(u, 1, axis=1) - u            # u_{i-1} - u_i (already in the plane)
+
+
+def distance_grad(a: np.ndarray, b: np.ndarray, axis: np.ndarray | None = None):
+    """``|b - a|`` (axis None) or ``|(b - a) . axis|``, and gradients w.r.t. a, b and axis.
+
+    a, b: (N, 3); axis: (N, 3) unit vectors or None. Returns value (N,), ga, gb, gaxis (N, 3)
+    (gaxis is zeros without an axis; for a unit axis from a landmark pair chain it with
+    ``unit_vector_grad``).
+    """
+    d = b - a
+    if axis is None:
+        val = np.linalg.norm(d, axis=-1)
+        gd = d / np.maximum(val, 1e-15)[:, None]
+        return val, -gd, gd, np.zeros_like(d)
+    p = np.sum(d * axis, axis=-1)
+    s = np.where(p >= 0, 1.0, -1.0)[:, None]
+    return np.abs(p), -s * axis, s * axis, s * d
+
+
+def unit_vector_grad(p: np.ndarray, q: np.ndarray, g_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chain ``g_axis`` (N, 3) through ``axis = (q - p) / |q - p|``: gradients w.r.t. p and q."""
+    d = q - p
+    n = np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-15)
+    ax = d / n
+    gq = (g_axis - np.sum(g_axis * ax, axis=-1, keepdims=True) * ax) / n
+    return -gq, gq
+
+
+def path_length_grad(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Length of open polylines (N, K, 3) and its gradient (N, K, 3)."""
+    e = np.diff(points, axis=1)
+    n = np.linalg.norm(e, axis=-1)
+    u = e / np.maximum(n, 1e-15)[..., None]
+    g = np.zeros_like(points)
+    g[:, :-1] -= u
+    g[:, 1:] += u
+    return n.sum(axis=1), g
+
+
+# ---------------------------------------------------------------------- measurements of linear bodies
+def subset(mset: MeasurementSet, names) -> MeasurementSet:
+    """The measurement set restricted to ``names`` (in that order; dependencies kept)."""
+    by_name = {m["name"]: m for m in mset.measurements}
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise ParameterError(f"measurement names {missing}: not in {mset.source} (it has {', '.join(by_name)})")
+    need = list(names)
+    for n in names:                                   # mass/bmi need their stature/mass entries
+        for key in ("stature", "mass"):
+            dep = by_name[n].get(key)
+            if isinstance(dep, str) and dep not in need:
+                need.insert(0, dep)
+    return dataclasses.replace(mset, measurements=tuple(by_name[n] for n in need))
+
+
+class LinearBodyMeasures:
+    """Measurements (N, M) and their Jacobians (N, M, K) for bodies ``v = base + z @ C``.
+
+    Only the vertices the measurements touch are reconstructed (the loops' rings and the
+    landmarks' vertices), plus every vertex's height when a distance goes to the floor.
+
+    Args:
+        base: (V, 3) body at z = 0; basis: (K, V, 3) d v / d z_k.
+        mset: measurement set; names: which of its measurements (loop, distance or path).
+    """
+
+    def __init__(self, base: np.ndarray, basis: np.ndarray, mset: MeasurementSet, names=RUPPRECHT_SIX):
+        self.names = tuple(names)
+        by_name = {m["name"]: m for m in mset.measurements}
+        self.defs = []
+        for n in self.names:
+            if n not in by_name:
+                raise ParameterError(f"measurement {n!r}: not in {mset.source} (it has {', '.join(by_name)})")
+            m = by_name[n]
+            if m["method"] not in DIFFERENTIABLE:
+                raise ParameterError(f"measurement {n!r}: method {m['method']!r} has no analytic Jacobian yet "
+                                     f"(expected one of {', '.join(DIFFERENTIABLE)})")
+            if m["method"] == "loop" and m.get("axis", "up") != "up":
+                raise ParameterError(f"measurement {n!r}: loops are differentiated about the fixed 'up' axis only")
+            self.defs.append(m)
+        V = base.shape[0]
+        lm_names = list(mset.landmarks)
+        used = set()
+        for m in self.defs:
+            if m["method"] == "loop":
+                used.update(int(i) for i in m["vertices"])
+        for ids, _ in mset.landmarks.values():
+            used.update(int(i) for i in ids)
+        self.ids = np.array(sorted(used), dtype=np.int64)
+        pos = {v: i for i, v in enumerate(self.ids)}
+        self.lm_index = {n: i for i, n in enumerate(lm_names)}
+        L = np.zeros((len(lm_names), len(self.ids)))
+        for r, (ids, w) in enumerate(mset.landmarks.values()):
+            for i, wi in zip(ids, w):
+                L[r, pos[int(i)]] += wi
+        self.L = L
+        self.loop_pos = {m["name"]: np.array([pos[int(i)] for i in m["vertices"]]) for m in self.defs
+                         if m["method"] == "loop"}
+        base_u, basis_u = base[self.ids], basis[:, self.ids]                # (U, 3), (K, U, 3)
+        self.lm_base = L @ base_u                                             # (Lm, 3)
+        self.lm_basis = np.ascontiguousarray(np.einsum("lu,kud->kld", L, basis_u))   # (K, Lm, 3)
+        self.rings = {name: (base_u[idx], np.ascontiguousarray(basis_u[:, idx]))
+                      for name, idx in self.loop_pos.items()}
+        self.needs_floor = any(m["method"] == "distance" and m["to"] == "floor" for m in self.defs)
+        if self.needs_floor:
+            self.base_y = np.ascontiguousarray(base[:, 1])
+            self.basis_y = np.ascontiguousarray(basis[:, :, 1])           # (K, V)
+        self.n_vertices = V
+        self.n_coefficients = basis.shape[0]
+        self.box = None
+
+    def restrict_floor(self, box: np.ndarray) -> "LinearBodyMeasures":
+        """Speed-up, exact: for coefficients with ``|z_k| <= box[k]`` only vertices that can be
+        the lowest somewhere in that box are searched for the floor (a vertex whose lowest
+        possible height is above another's highest possible one never is). Outside the box all
+        vertices are searched."""
+        if not self.needs_floor:
+            return self
+        box = np.asarray(box, dtype=float)
+        spread = np.abs(self.basis_y).T @ box                                 # (V,)
+        cand = np.flatnonzero(self.base_y - spread <= np.min(self.base_y + spread))
+        self.box, self.floor_ids = box, cand
+        self.floor_base, self.floor_basis = self.base_y[cand], np.ascontiguousarray(self.basis_y[:, cand])
+        return self
+
+    @classmethod
+    def from_model(cls, model, mset: MeasurementSet | None = None, names=RUPPRECHT_SIX, k: int | None = None):
+        """For a vertex-encoding ``BodyModel`` and its first ``k`` components (default all).
+
+        Cached per model (weakly) and arguments: a second call for one request costs nothing.
+        """
+        key = (id(mset), tuple(names), k)
+        try:
+            per_model = _CACHE.setdefault(model, {})
+        except TypeError:
+            per_model = {}
+        hit = per_model.get(key)
+        if hit is not None and hit[0] is mset and hit[1] is model.space.components_:
+            return hit[2]
+        out = cls._from_model(model, mset, names, k)
+        per_model[key] = (mset, model.space.components_, out)
+        return out
+
+    @classmethod
+    def _from_model(cls, model, mset, names, k):
+        if model.encoding != "vertex":
+            raise ParameterError(f"model encoding {model.encoding!r}: exact measurement Jacobians need the 'vertex' "
+                                 "encoding (linear decoding); the RRE decoder is not linearized yet")
+        from bodyspace.measure import load_measurement_set
+        mset = load_measurement_set() if mset is None else mset
+        sp = model.space
+        k = sp.n_components_ if k is None else min(int(k), sp.n_components_)
+        V = model.mean_vertices.shape[0]
+        base = model.mean_vertices + sp.mean_.reshape(V, 3)
+        basis = sp.components_[:k].reshape(k, V, 3)
+        return cls(base, basis, mset, names).restrict_floor(4.0 * np.sqrt(sp.explained_variance_[:k]))
+
+    # ------------------------------------------------------------------ evaluation
+    def _points(self, z, lm, spec):
+        if isinstance(spec, str):
+            return lm[:, self.lm_index[spec]]
+        return np.mean([lm[:, self.lm_index[s]] for s in spec], axis=0)
+
+    def _add_point(self, glm, spec, g):
+        if isinstance(spec, str):
+            glm[:, self.lm_index[spec]] += g
+        else:
+            for s in spec:
+                glm[:, self.lm_index[s]] += g / len(spec)
+
+    def _axis(self, lm, spec, n):
+        if spec is None:
+            return None
+        if spec == "up":
+            return np.broadcast_to(UP, (n, 3))
+        d = self._points(None, lm, spec[1]) - self._points(None, lm, spec[0])
+        return d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-15)
+
+    def __call__(self, z: np.ndarray, jacobian: bool = False):
+        """Measurements (N, M) in metres of coefficients z (N, k) or (k,); with ``jacobian`` also
+        d measurement / d z (N, M, K)."""
+        z = np.asarray(z, dtype=float)
+        single = z.ndim == 1
+        z = np.atleast_2d(z)
+        K = self.n_coefficients
+        if z.shape[1] < K:
+            z = np.pad(z, ((0, 0), (0, K - z.shape[1])))
+        elif z.shape[1] > K:
+            z = z[:, :K]
+        n = len(z)
+        lm = self.lm_base + (z @ self.lm_basis.reshape(K, -1)).reshape(n, -1, 3)   # (N, Lm, 3)
+        if self.needs_floor:
+            if self.box is not None and np.all(np.abs(z) <= self.box):
+                y = self.floor_base + z @ self.floor_basis
+                low = np.argmin(y, axis=1)
+                floor_y = y[np.arange(n), low]
+                low = self.floor_ids[low]
+            else:
+                y = self.base_y + z @ self.basis_y
+                low = np.argmin(y, axis=1)
+                floor_y = y[np.arange(n), low]
+        vals = np.empty((n, len(self.defs)))
+        if jacobian:
+            J = np.empty((n, len(self.defs), K))
+        for j, m in enumerate(self.defs):
+            glm = np.zeros_like(lm) if jacobian else None
+            gfloor = None
+            meth = m["method"]
+            if meth == "loop":
+                rb, rc = self.rings[m["name"]]
+                ring = rb + (z @ rc.reshape(K, -1)).reshape(n, -1, 3)
+                val, g = loop_length_grad(ring, UP)
+                if jacobian:
+                    J[:, j] = g.reshape(n, -1) @ rc.reshape(K, -1).T
+            elif meth == "path":
+                pts = np.stack([self._points(z, lm, p) for p in m["through"]], axis=1)
+                val, g = path_length_grad(pts)
+                if jacobian:
+                    for i, p in enumerate(m["through"]):
+                        self._add_point(glm, p, g[:, i])
+            else:  # distance
+                a = self._points(z, lm, m["from"])
+                if m["to"] == "floor":
+                    b = a.copy()
+                    b[:, 1] = floor_y
+                else:
+                    b = self._points(z, lm, m["to"])
+                ax = self._axis(lm, m.get("axis"), n)
+                val, ga, gb, gax = distance_grad(a, b, ax)
+                if jacobian:
+                    if m["to"] == "floor":      # b = a with y replaced by the floor height
+                        ga = ga + gb * np.array([1.0, 0.0, 1.0])
+                        gfloor = gb[:, 1]
+                    else:
+                        self._add_point(glm, m["to"], gb)
+                    self._add_point(glm, m["from"], ga)
+                    spec = m.get("axis")
+                    if spec not in (None, "up"):
+                        p0, p1 = self._points(z, lm, spec[0]), self._points(z, lm, spec[1])
+                        g0, g1 = unit_vector_grad(p0, p1, gax)
+                        self._add_point(glm, spec[0], g0)
+                        self._add_point(glm, spec[1], g1)
+            vals[:, j] = val
+            if jacobian and meth != "loop":
+                J[:, j] = glm.reshape(n, -1) @ self.lm_basis.reshape(K, -1).T
+                if gfloor is not None:
+                    J[:, j] += gfloor[:, None] * self.basis_y[:, low].T
+        if single:
+            return (vals[0], J[0]) if jacobian else vals[0]
+        return (vals, J) if jacobian else vals

@@ -1,0 +1,108 @@
+"""Training data for the semantic mapping, drawn from the shape space (Rupprecht et al. Sec. 3.1.2, 4.1).
+
+The first ``k`` shape coefficients (25 in the paper) are drawn uniformly within ``±sigma_range``
+standard deviations (the rest are 0), the bodies are reconstructed and measured with the loop
+definitions of Sec. 3.1.2 (``height``, ``breast_size``, ``waist_size``, ``hip_size``,
+``leg_length``, ``shoulder_size``) and, optionally, any other measurements of a set.
+
+With the vertex encoding, loops, distances and paths are computed straight from the
+coefficients on the few vertices they touch (``gradients.LinearBodyMeasures``, the same numbers
+as ``measure.evaluate`` to rounding; conditions such as "upright" are not applied, as in the
+paper); any other measurement (slices, volume, mass), and every measurement with the RRE
+encoding, goes through ``model.reconstruct`` and ``measure.evaluate`` in chunks.
+
+Measurements are returned in **cm** (lengths; other units unchanged), the units of the mapping.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bodyspace.errors import ParameterError
+from bodyspace.mapping.gradients import DIFFERENTIABLE, RUPPRECHT_SIX, LinearBodyMeasures, subset
+
+CHUNK = 256
+
+
+@dataclass
+class TrainingSet:
+    """coefficients (N, K) (the first ``k`` vary), measurements (N, M) in cm for lengths,
+    names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed."""
+
+    coefficients: np.ndarray
+    measurements: np.ndarray
+    names: tuple
+    units: tuple
+    k: int
+    sigma_range: float
+    seed: object = None
+
+    def column(self, name: str) -> np.ndarray:
+        return self.measurements[:, self.names.index(name)]
+
+
+def sample_uniform(model, n: int, k: int = 25, sigma_range: float = 3.0, rng=None) -> np.ndarray:
+    """Coefficients (n, K): the first ``min(k, K)`` uniform in ±sigma_range standard deviations, rest 0."""
+    K = model.n_components
+    k = min(int(k), K)
+    if n < 1 or k < 1:
+        raise ParameterError(f"n={n}, k={k}: expected at least one sample and one coefficient")
+    sd = np.sqrt(model.space.explained_variance_[:k])
+    z = np.zeros((int(n), K))
+    z[:, :k] = np.random.default_rng(rng).uniform(-sigma_range, sigma_range, (int(n), k)) * sd
+    return z
+
+
+def _display(unit: str) -> tuple[str, float]:
+    return ("cm", 100.0) if unit == "m" else (unit, 1.0)
+
+
+def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, measurer=None,
+                         progress=None) -> tuple[np.ndarray, tuple]:
+    """Measurements (N, M) (cm for lengths) and their display units of bodies with coefficients z (N, K)."""
+    from bodyspace.measure import load_measurement_set, measure
+    mset = load_measurement_set() if mset is None else mset
+    names = tuple(names)
+    by_name = {m["name"]: m for m in subset(mset, names).measurements}
+    units = tuple(_display(by_name[n]["unit"])[0] for n in names)
+    scale = np.array([_display(by_name[n]["unit"])[1] for n in names])
+    out = np.empty((len(z), len(names)))
+    fast = [i for i, n in enumerate(names) if model.encoding == "vertex" and by_name[n]["method"] in DIFFERENTIABLE
+            and (by_name[n]["method"] != "loop" or by_name[n].get("axis", "up") == "up")]
+    slow = [i for i in range(len(names)) if i not in fast]
+    report = progress or (lambda msg, frac: None)
+    if fast:
+        if measurer is None:
+            measurer = LinearBodyMeasures.from_model(model, mset, [names[i] for i in fast])
+        for s in range(0, len(z), 4 * CHUNK):
+            out[s:s + 4 * CHUNK, fast] = measurer(z[s:s + 4 * CHUNK, :measurer.n_coefficients])
+            report(f"measured {min(len(z), s + 4 * CHUNK)}/{len(z)} bodies", min(1.0, (s + 4 * CHUNK) / len(z)))
+    if slow:
+        sub = subset(mset, [names[i] for i in slow])
+        for s in range(0, len(z), CHUNK):
+            v = model.reconstruct(z[s:s + CHUNK])
+            vals = measure(sub, v, model.faces)
+            for i in slow:
+                out[s:s + CHUNK, i] = vals[names[i]]
+            report(f"measured {min(len(z), s + CHUNK)}/{len(z)} bodies (slices etc.)", min(1.0, (s + CHUNK) / len(z)))
+    return out * scale, units
+
+
+def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT_SIX, mset=None,
+                      sigma_range: float = 3.0, progress=None) -> TrainingSet:
+    """Sample ``n`` bodies from ``model`` and measure them (Rupprecht et al. Sec. 4.1).
+
+    Args:
+        model: a ``BodyModel`` (vertex encoding: fast path; RRE: decoded in chunks).
+        n: number of bodies (10,000 in the paper); k: coefficients that vary (25).
+        rng: seed or Generator; the same seed gives the same set, bit for bit.
+        names: measurements to take (default Rupprecht's six); mset: their set (default hm08).
+        sigma_range: half-width of the uniform box in standard deviations (3).
+        progress: ``progress(message, fraction)``.
+    """
+    z = sample_uniform(model, n, k, sigma_range, rng)
+    x, units = measure_coefficients(model, z, names, mset, progress=progress)
+    return TrainingSet(z, x, tuple(names), units, min(int(k), model.n_components), float(sigma_range),
+                       rng if isinstance(rng, (int, np.integer)) else None)

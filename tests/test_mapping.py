@@ -1,0 +1,170 @@
+"""Training data, measurement Jacobians, exact refinement and the three-method evaluation."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from bodyspace.errors import ParameterError
+from bodyspace.mapping import LinearLeafForest, LinearMapping
+from bodyspace.mapping.gradients import (RUPPRECHT_SIX, LinearBodyMeasures, distance_grad, loop_length_grad,
+                                         path_length_grad, subset, unit_vector_grad)
+from bodyspace.mapping.refine import refine
+from bodyspace.mapping.training import make_training_set
+from bodyspace.measure import load_measurement_set, measure
+
+
+@pytest.fixture(scope="module")
+def model(template, tmp_path_factory):
+    from bodyspace.data.population import build_population
+    from bodyspace.model import BodyModel
+    db = build_population(template, tmp_path_factory.mktemp("mapping") / "db", 24, 0, rng=0)
+    return BodyModel.fit(db, encoding="vertex", selection="rest")
+
+
+@pytest.fixture(scope="module")
+def mset():
+    return load_measurement_set()
+
+
+@pytest.fixture(scope="module")
+def fitted(model):
+    train = make_training_set(model, 1500, rng=0)
+    held = make_training_set(model, 100, rng=1)
+    X, Y = train.measurements, train.coefficients[:, :train.k]
+    return (train, held, LinearMapping().fit(X, Y),
+            LinearLeafForest(n_trees=20, random_state=0, n_jobs=1).fit(X, Y))
+
+
+def _fd(f, x, h=1e-6):
+    """Central differences of f: (..., D) -> (...) over the last axis of x (..., D)."""
+    g = np.zeros_like(x)
+    for idx in np.ndindex(*x.shape[1:]):
+        e = np.zeros_like(x)
+        e[(slice(None),) + idx] = h
+        g[(slice(None),) + idx] = (f(x + e) - f(x - e)) / (2 * h)
+    return g
+
+
+def test_vertex_level_jacobians_match_finite_differences():
+    rng = np.random.default_rng(0)
+    ring = rng.normal(size=(3, 9, 3))
+    ax = np.array([0.2, 1.0, -0.1])
+    ax /= np.linalg.norm(ax)
+    _, g = loop_length_grad(ring, ax)
+    np.testing.assert_allclose(g, _fd(lambda r: loop_length_grad(r, ax)[0], ring), atol=1e-7)
+    pts = rng.normal(size=(3, 4, 3))
+    np.testing.assert_allclose(path_length_grad(pts)[1], _fd(lambda p: path_length_grad(p)[0], pts), atol=1e-7)
+    a, b, p, q = rng.normal(size=(4, 3, 3))
+
+    def dist(a, b, p, q):
+        d = q - p
+        return distance_grad(a, b, d / np.linalg.norm(d, axis=-1, keepdims=True))[0]
+
+    d = q - p
+    _, ga, gb, gax = distance_grad(a, b, d / np.linalg.norm(d, axis=-1, keepdims=True))
+    gp, gq = unit_vector_grad(p, q, gax)
+    np.testing.assert_allclose(ga, _fd(lambda x: dist(x, b, p, q), a), atol=1e-7)
+    np.testing.assert_allclose(gb, _fd(lambda x: dist(a, x, p, q), b), atol=1e-7)
+    np.testing.assert_allclose(gp, _fd(lambda x: dist(a, b, x, q), p), atol=1e-7)
+    np.testing.assert_allclose(gq, _fd(lambda x: dist(a, b, p, x), q), atol=1e-7)
+    _, ga, gb, _ = distance_grad(a, b, None)
+    np.testing.assert_allclose(gb, _fd(lambda x: distance_grad(a, x, None)[0], b), atol=1e-7)
+
+
+def test_coefficient_jacobians_match_finite_differences_and_evaluate(model, mset):
+    tilted = {"name": "tilted", "method": "distance", "from": "crotch", "to": "head_top", "unit": "m",
+              "axis": ["crotch", ["neck_front", "neck_back"]], "requires": []}
+    ms = dataclasses.replace(mset, measurements=mset.measurements + (tilted,))
+    names = RUPPRECHT_SIX + ("arm_length_l", "shoulder_width", "tilted")
+    lb = LinearBodyMeasures.from_model(model, ms, names)
+    sd = np.sqrt(model.space.explained_variance_)
+    z = np.random.default_rng(3).uniform(-2, 2, (4, len(sd))) * sd
+    vals, J = lb(z, jacobian=True)
+    h = 1e-6 * sd
+    fd = np.stack([(lb(z + h[k] * np.eye(len(sd))[k]) - lb(z - h[k] * np.eye(len(sd))[k])) / (2 * h[k])
+                   for k in range(len(sd))], axis=-1)
+    np.testing.assert_allclose(J, fd, atol=1e-6 * np.abs(J).max())
+    ref = measure(subset(ms, names), model.reconstruct(z), model.faces)
+    want = np.stack([ref[n] for n in names], axis=1)
+    ok = np.isfinite(want)          # "not upright" bodies are NaN in evaluate, measured here as in the paper
+    np.testing.assert_allclose(vals[ok], want[ok], atol=1e-10)
+
+
+def test_slices_and_rre_are_refused_with_a_reason(model, mset):
+    with pytest.raises(ParameterError, match="no analytic Jacobian"):
+        LinearBodyMeasures.from_model(model, mset, ("waist_girth",))
+    fake = type("M", (), {"encoding": "rre"})()
+    with pytest.raises(ParameterError, match="vertex"):
+        LinearBodyMeasures.from_model(fake)
+
+
+def test_training_set_is_deterministic_and_in_the_box(model):
+    a = make_training_set(model, 200, rng=5)
+    b = make_training_set(model, 200, rng=5)
+    c = make_training_set(model, 200, rng=6)
+    np.testing.assert_array_equal(a.measurements, b.measurements)
+    np.testing.assert_array_equal(a.coefficients, b.coefficients)
+    assert not np.array_equal(a.coefficients, c.coefficients)
+    sd = np.sqrt(model.space.explained_variance_[:a.k])
+    assert np.all(np.abs(a.coefficients[:, :a.k]) <= 3 * sd)
+    assert a.names == RUPPRECHT_SIX and a.units == ("cm",) * 6
+    assert 120 < a.column("height").mean() < 220
+    # any other measurement of the set, e.g. a slice, goes through evaluate
+    d = make_training_set(model, 3, rng=5, names=("height", "waist_girth"))
+    np.testing.assert_allclose(d.measurements[:, 0], a.measurements[:3, 0])
+    assert np.all((d.measurements[:, 1] > 40) & (d.measurements[:, 1] < 200))
+
+
+def test_forest_beats_linear_on_every_parameter(model, fitted):
+    train, held, lin, forest = fitted
+    lb = LinearBodyMeasures.from_model(model)
+    err = {name: lb(est.predict(held.measurements)) * 100 - held.measurements
+           for name, est in (("linear", lin), ("forest", forest))}
+    assert np.all(err["forest"].var(axis=0) < err["linear"].var(axis=0))
+
+
+def test_refinement_meets_feasible_requests_within_1mm(model, fitted):
+    _, held, _, forest = fitted
+    res = refine(model, forest.predict(held.measurements), held.measurements)
+    err = np.abs(res.measured - held.measurements).max(axis=1)
+    assert np.mean(err <= 0.1) >= 0.99
+    assert sum(bool(m) for m in res.misses) <= 1
+    # the reported measurements are the body's
+    lb = LinearBodyMeasures.from_model(model)
+    np.testing.assert_allclose(lb(res.coefficients) * 100, res.measured, atol=1e-9)
+    sd = np.sqrt(model.space.explained_variance_[:len(res.coefficients[0])])
+    assert np.all(np.abs(res.coefficients / sd) <= 3 + 1e-9)
+
+
+def test_infeasible_request_gets_closest_plausible_body_and_report(model, fitted):
+    _, held, _, forest = fitted
+    req = held.measurements[:2].copy()
+    req[:, 0] += 60.0                      # 60 cm taller, same legs: no body in the box
+    res = refine(model, forest.predict(req), req)
+    assert not res.met.any()
+    miss = res.misses[0]
+    assert "height" in miss or "leg_length" in miss
+    for v in miss.values():
+        assert abs(v["measured"] - v["requested"] - v["difference"]) < 1e-9 and abs(v["difference"]) > 0.1
+    sd = np.sqrt(model.space.explained_variance_[:res.coefficients.shape[1]])
+    assert np.all(np.abs(res.coefficients / sd) <= 3 + 1e-9)
+    # closer than the start
+    lb = LinearBodyMeasures.from_model(model)
+    start = np.abs(lb(forest.predict(req)) * 100 - req).sum()
+    assert np.abs(res.measured - req).sum() < start
+    one = refine(model, forest.predict(req[0]), req[0])
+    assert one.coefficients.ndim == 1 and one.measured.shape == (6,)
+
+
+def test_evaluation_report_files(model, tmp_path):
+    from bodyspace.mapping.evaluate import METHODS, evaluate_mapping, write_report
+    ev, fitted = evaluate_mapping(model, samples=600, held_out=30, seed=0, n_trees=4, n_jobs=1)
+    assert tuple(ev.errors) == METHODS and ev.errors["forest"].shape == (30, 6)
+    assert ev.within("forest + refinement") >= 0.96
+    files = write_report(model, ev, tmp_path / "out")
+    for f in files.values():
+        assert f.exists() and f.stat().st_size > 0
+    text = files["tables"].read_text()
+    assert "forest + refinement variance" in text and "shoulder_size sweep" in text
+    assert len(ev.sweep["measured"]) == 5

@@ -1,0 +1,194 @@
+"""SemanticModel: closed-loop generation, morphing with keep and masks, units, CLI."""
+
+import csv
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from bodyspace.cli_semantics import crowd, evaluate, generate, morph
+from bodyspace.data.population import build_population
+from bodyspace.mesh.io import load_mesh
+from bodyspace.model import BodyModel
+from bodyspace.semantics.model import (MaskedBlend, SemanticModel, TargetError, semantics_path,
+                                       tolerance)
+from bodyspace.units import UnitError, parse_assignment, parse_target
+
+
+@pytest.fixture(scope="session")
+def setup(template, tmp_path_factory):
+    root = tmp_path_factory.mktemp("semantic")
+    db = build_population(template, root / "db", 24, 0, rng=0)
+    model = BodyModel.fit(db, "vertex", "rest")
+    model.save(root / "model.npz")
+    sm = SemanticModel(model).fit(db, template=template)
+    sm.save(semantics_path(root / "model.npz"))
+    return root, db, model, sm
+
+
+def _check(result):
+    for name, goal in result.targets.items():
+        assert abs(result.values[name] - goal) <= tolerance(name), (name, result.values[name], goal)
+
+
+@pytest.mark.parametrize("targets", [
+    {"stature": 1.80, "mass": 80.0},
+    {"stature": 1.62, "mass": 55.0, "waist_girth": 0.72},
+    {"sex": 0.0, "mass": 65.0, "stature": (1.55, 1.85)},
+])
+def test_generate_measures_what_was_asked(setup, targets):
+    _, _, model, sm = setup
+    result = sm.generate(targets, rng=3)
+    assert result.converged
+    _check(result)
+    # the reached values are what a tape measure reads on the mesh
+    from bodyspace.measure import measure
+    m = measure(sm.mset, result.vertices, model.faces)
+    for name in ("stature", "mass"):
+        if name in targets and not isinstance(targets[name], tuple):
+            assert abs(m[name] - targets[name]) <= tolerance(name)
+    if "stature" in targets and isinstance(targets["stature"], tuple):
+        assert 1.55 <= m["stature"] <= 1.85
+
+
+def test_infeasible_refused_with_range_or_clamped(setup):
+    _, _, model, sm = setup
+    lo, hi = sm.reachable_range("stature")
+    with pytest.raises(TargetError, match=r"outside what the model can reach \(\d+\.\d cm to \d+\.\d cm"):
+        sm.generate({"stature": 2.6})
+    clamping = SemanticModel.load(semantics_path(setup[0] / "model.npz"), model, on_infeasible="clamp")
+    with pytest.warns(RuntimeWarning, match="clamped to"):
+        result = clamping.generate({"stature": 2.6}, rng=0)
+    assert result.targets["stature"] == pytest.approx(hi)
+    assert any("clamped" in m for m in result.messages)
+
+
+def test_taller_same_mass(setup):
+    _, _, model, sm = setup
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
+    from bodyspace.measure import measure
+    before = measure(sm.mset, x0, model.faces)
+    result = sm.morph(x0, {"stature": 0.05}, keep=["mass"])
+    after = measure(sm.mset, result.vertices, model.faces)
+    assert abs(after["stature"] - before["stature"] - 0.05) <= 0.004
+    assert abs(after["mass"] - before["mass"]) <= 0.5
+
+
+@pytest.mark.parametrize("region", ["upper_body", "legs", "left"])
+def test_masked_morph_keeps_outside(setup, region):
+    _, _, model, sm = setup
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=7))[0]
+    result = sm.morph(x0, {"mass": 4.0}, mask=region)
+    w = sm.regions_[region]
+    moved = np.linalg.norm(result.vertices - x0, axis=1)
+    assert moved[w == 0].max() < 0.002
+    assert moved[w == 1].max() > 0.005           # inside it did change
+    assert abs(result.values["mass"] - result.targets["mass"]) <= 0.5
+    # no step at the seam: along edges, the change varies no more there than inside the mask
+    e = np.unique(np.sort(model.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    jump = np.linalg.norm((result.vertices - x0)[e[:, 0]] - (result.vertices - x0)[e[:, 1]], axis=1)
+    seam = (w[e[:, 0]] == 0) != (w[e[:, 1]] == 0)
+    inside = (w[e[:, 0]] == 1) & (w[e[:, 1]] == 1)
+    assert jump[seam].max() < 3 * np.percentile(jump[inside], 99)
+
+
+def test_masked_blend_identity_and_zero(setup):
+    _, _, model, sm = setup
+    x0 = model.mean_vertices
+    d = np.random.default_rng(0).normal(size=x0.shape) * 1e-3
+    w = sm.regions_["arms"]
+    out = MaskedBlend(x0, model.faces, w)(d)
+    assert np.all(out[w == 0] == 0)
+    with pytest.raises(Exception, match="every weight is 0"):
+        MaskedBlend(x0, model.faces, np.zeros(len(x0)))
+
+
+def test_save_load_round_trip(setup):
+    root, _, model, sm = setup
+    sm2 = SemanticModel.load(semantics_path(root / "model.npz"), model)
+    c = model.sample_coefficients(3, rng=1)
+    for name in sm.labels_:
+        np.testing.assert_allclose(sm2.regressors_[name].predict(c), sm.regressors_[name].predict(c))
+    assert sm2.reachable_range("mass") == pytest.approx(sm.reachable_range("mass"))
+    np.testing.assert_allclose(sm2.regions_["legs"], sm.regions_["legs"], atol=1e-7)
+
+
+def test_units():
+    assert parse_target("stature", "180cm").value == pytest.approx(1.8)
+    assert parse_target("stature", "1.8m").value == pytest.approx(1.8)
+    assert parse_target("weight", "80kg").name == "mass"
+    t = parse_target("stature", "+5cm")
+    assert (t.kind, t.value) == ("delta", pytest.approx(0.05))
+    assert parse_target("sex", "female").value == 0.0
+    r = parse_assignment("stature=155:185cm")
+    assert (r.kind, r.lo, r.hi) == ("range", pytest.approx(1.55), pytest.approx(1.85))
+    with pytest.raises(UnitError, match=r"stature: '180' has no unit; expected one of cm, m"):
+        parse_target("stature", "180")
+    with pytest.raises(UnitError, match="not a length unit"):
+        parse_target("stature", "80kg")
+    with pytest.raises(UnitError, match="mass: unit 'cm'.*not a mass unit; expected one of kg"):
+        parse_target("mass", "80cm")
+    with pytest.raises(UnitError, match="expected male or female"):
+        parse_target("sex", "x")
+    with pytest.raises(UnitError, match="NAME=VALUE"):
+        parse_assignment("stature180cm")
+    with pytest.raises(UnitError, match="low >= high"):
+        parse_target("stature", "185:155cm")
+
+
+@pytest.fixture(scope="module")
+def app():
+    a = typer.Typer()
+    for f in (evaluate, generate, morph, crowd):
+        a.command(f.__name__)(f)
+    return a
+
+
+def test_cli_generate_and_morph(setup, app, tmp_path):
+    root, _, model, sm = setup
+    runner = CliRunner()
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=180cm", "--set", "mass=80kg",
+                            "--set", "sex=male", "--out", str(tmp_path / "a.obj")])
+    assert r.exit_code == 0, r.output
+    v, f = load_mesh(tmp_path / "a.obj")
+    from bodyspace.measure import measure
+    m = measure(sm.mset, v, f)
+    assert abs(m["stature"] - 1.80) <= 0.0045 and abs(m["mass"] - 80) <= 0.55
+    r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
+                            "--keep", "mass", "--mask", "upper_body", "--out", str(tmp_path / "b.obj")])
+    assert r.exit_code == 0, r.output
+    v2, _ = load_mesh(tmp_path / "b.obj")
+    w = sm.regions_["upper_body"]
+    assert np.linalg.norm(v2 - v, axis=1)[w == 0].max() < 0.002
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=260cm", "--out",
+                            str(tmp_path / "c.obj")])
+    assert r.exit_code == 2 and "can reach" in r.output and "cm to" in r.output
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=260cm", "--clamp", "--out",
+                            str(tmp_path / "c.obj")])
+    assert r.exit_code == 0 and "clamped" in r.output
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=180", "--out",
+                            str(tmp_path / "d.obj")])
+    assert r.exit_code == 2 and "no unit" in r.output
+
+
+def test_cli_crowd_and_evaluate(setup, app, tmp_path):
+    root, db, _, _ = setup
+    runner = CliRunner()
+    r = runner.invoke(app, ["crowd", str(root / "model.npz"), "-n", "4", "--set", "sex=female", "--set", "mass=65kg",
+                            "--range", "stature=155:185cm", "--out", str(tmp_path / "crowd")])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader(open(tmp_path / "crowd" / "crowd.csv")))
+    assert len(rows) == 4 and (tmp_path / "crowd" / "lineup.png").stat().st_size > 0
+    for row in rows:
+        assert abs(float(row["mass (kg)"]) - 65) <= 0.5
+        assert 155 <= float(row["stature (cm)"]) <= 185
+    # evaluate fits the regressors from --database when asked to
+    copy = tmp_path / "m.npz"
+    copy.write_bytes((root / "model.npz").read_bytes())
+    r = runner.invoke(app, ["evaluate", str(copy), "--folds", "3"])
+    assert r.exit_code == 2 and "--database" in r.output
+    r = runner.invoke(app, ["evaluate", str(copy), "--database", str(root / "db"), "--folds", "3"])
+    assert r.exit_code == 0, r.output
+    text = (tmp_path / "m.evaluation.md").read_text()
+    assert "filtered linear" in text and "non-linear" in text and "μ" in text and "stature (cm)" in text
