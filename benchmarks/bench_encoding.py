@@ -1,10 +1,13 @@
 """Benchmark of the relative rotation encoding on the 13,380-vertex template.
 
 Prints, in one run:
-- decode ms per body with the prefactored method (tree gauge + Laplacian-preconditioned block
-  CG, direct fallback) and with the baseline that assembles and factors the rotation system for
-  every body, and their ratio, for three kinds of code: a round trip (encoded scan), halfway
-  between two poses of one subject, and a PCA sample;
+- decode ms per body with the chosen method (``rotation_solver="pcg"``: tree gauge, smoothed,
+  Laplacian-preconditioned block CG, with a fixed-pattern qdldl refactorization for the codes CG
+  would not finish), with the fixed-pattern refactorization alone (``"exact"``) and with the
+  baseline that assembles and factors the rotation system with SuperLU for every body
+  (``"direct"``), for: a round trip (encoded scan), halfway between two poses of one subject,
+  PCA samples of the shape-only (rest scans) and of the pose+shape model (all scans);
+- batch decode of 20 PCA samples (two threads);
 - encode bodies/s;
 - batch decode: 100 bodies at once vs one at a time, ms per body;
 - the halfway-pose distortion (edge length, volume) of both encodings.
@@ -82,24 +85,36 @@ def main() -> None:
     space = ShapeSpace(enc, n_components=min(30, len(scans) - 1)).fit(codes)
     rest = np.flatnonzero((pose == "rest") & (subject == subject[0]))[0]
     posed = np.flatnonzero((pose != "rest") & (subject == subject[0]))[0]
-    cases = {
-        "round trip (encoded scan)": codes[posed],
-        f"halfway rest -> {pose[posed]} (one subject)": 0.5 * (codes[rest] + codes[posed]),
-        "PCA sample (2 sigma, all components)": space.inverse_transform(
-            space.sample_coefficients(1, sigma_range=2.0, rng=0))[0],
-    }
-    print("\ndecode one body (median of %d):" % args.repeat)
-    print(f"  {'code':48s} {'fast ms':>8s} {'CG steps':>8s} {'refactorize ms':>15s} {'ratio':>6s} "
-          f"{'max |diff| m':>13s}")
-    for name, code in cases.items():
+    shape_space = ShapeSpace(enc, n_components=min(30, int((pose == "rest").sum()) - 1)).fit(codes[pose == "rest"])
+    n_samples = 4
+    cases = {"round trip (encoded scan)": codes[posed][None]}
+    for p in np.flatnonzero((pose != "rest") & (subject == subject[0])):
+        cases[f"halfway rest -> {pose[p]}"] = (0.5 * (codes[rest] + codes[p]))[None]
+    cases["PCA sample, shape-only model (rest scans)"] = shape_space.inverse_transform(
+        shape_space.sample_coefficients(n_samples, sigma_range=2.0, rng=0))
+    cases["PCA sample, pose+shape model (all scans)"] = space.inverse_transform(
+        space.sample_coefficients(n_samples, sigma_range=2.0, rng=0))
+    height = np.ptp(enc.mean_vertices_, axis=0).max()
+    print("\ndecode one body, ms (median of %d; PCA rows: mean over %d samples, 2 sigma, all components):"
+          % (args.repeat, n_samples))
+    print(f"  {'code':44s} {'chosen':>7s} {'steps':>5s} {'fact.':>5s} {'exact':>7s} {'baseline':>9s} "
+          f"{'ratio':>6s} {'max |diff| / height':>20s}")
+    for name, rows in cases.items():
+        res = {}
+        for solver in ("pcg", "exact", "direct"):
+            enc.rotation_solver = solver
+            times, outs, steps, fact = [], [], 0, 0
+            for code in rows:
+                el, out = timed(lambda: enc.decode(code), args.repeat if solver != "direct" else max(1, args.repeat // 2))
+                times.append(el)
+                outs.append(out)
+                steps, fact = max(steps, enc.last_iterations_), fact + enc.last_factorized_
+            res[solver] = (float(np.mean(times)), np.concatenate(outs), steps, fact)
         enc.rotation_solver = "pcg"
-        fast, a = timed(lambda: enc.decode(code), args.repeat)
-        steps = enc.last_iterations_
-        enc.rotation_solver = "direct"
-        slow, b = timed(lambda: enc.decode(code), max(1, args.repeat // 2))
-        enc.rotation_solver = "pcg"
-        print(f"  {name:48s} {fast * 1e3:8.1f} {steps:8d} {slow * 1e3:15.1f} {slow / fast:6.1f} "
-              f"{np.abs(a - b).max():13.1e}")
+        fast, a, steps, fact = res["pcg"]
+        diff = max(np.abs(a - res["direct"][1]).max(), np.abs(res["exact"][1] - res["direct"][1]).max())
+        print(f"  {name:44s} {fast * 1e3:7.1f} {steps:5d} {fact:2d}/{len(rows):<2d} {res['exact'][0] * 1e3:7.1f} "
+              f"{res['direct'][0] * 1e3:9.1f} {res['direct'][0] / fast:6.1f} {diff / height:20.1e}")
 
     # --- batch decode
     def per_body(fn, items, runs=2):
@@ -121,6 +136,15 @@ def main() -> None:
     many = per_body(enc.decode, mixed, runs=1)
     print(f"batch decode (halfway codes, {len(mixed)}): one at a time {single * 1e3:.1f} ms/body, "
           f"all at once {many * 1e3:.1f} ms/body ({single / many:.2f}x)")
+    for name, sp_ in (("shape-only", shape_space), ("pose+shape", space)):
+        samples = sp_.inverse_transform(sp_.sample_coefficients(20, sigma_range=2.0, rng=1))
+        for solver in ("pcg", "exact"):
+            enc.rotation_solver = solver
+            single = per_body(lambda cs: [enc.decode(c) for c in cs], samples, runs=1)
+            many = per_body(enc.decode, samples, runs=1)
+            print(f"batch decode (20 PCA samples, {name}, {solver}): one at a time {single * 1e3:.1f} ms/body, "
+                  f"all at once {many * 1e3:.1f} ms/body ({single / many:.2f}x)")
+    enc.rotation_solver = "pcg"
     t0 = time.perf_counter()
     for x in scans[:20]:
         enc.encode(x)

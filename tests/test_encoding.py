@@ -7,6 +7,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from bodyspace.encoding import PositionConstraints, RelativeRotationEncoder, VertexEncoder, rigid_procrustes
+import bodyspace.encoding.rre as rre
 from bodyspace.encoding.rre import (polar_decomposition, project_to_rotations, quaternion_from_matrix,
                                     quaternion_log, rotation_exp, rotation_log)
 from bodyspace.errors import MeshError
@@ -277,6 +278,59 @@ def test_template_rejects_degenerate_faces(sphere):
 
 
 # ---------------------------------------------------------------------------- real template
+def test_fixed_pattern_factorization_matches_direct_solve(sphere):
+    """The exact path (anchor columns eliminated, upper triangle, one symbolic analysis reused
+    by every body) equals the per-body SuperLU baseline, with boundaries and two parts, for
+    codes far from consistent; and the tree-gauge + CG path agrees with it on them."""
+    v, f = tube()
+    v2, f2 = sphere
+    verts = np.concatenate([v, v2 + [1.0, 0, 0]])
+    faces = np.concatenate([f, f2 + len(v)])
+    scans = np.stack([np.concatenate([bend(v, a), smooth_deform(v2, 0.1, s)])
+                      for s, a in [(0, 0.4), (1, -0.9), (2, 1.3)]])
+    enc = RelativeRotationEncoder(verts, faces).fit(scans)
+    codes = enc.encode(scans)
+    wild = np.stack([2.0 * codes[0] - 1.5 * codes[1] + codes[2], 0.5 * (codes[1] + codes[2]),
+                     codes[0] + 0.2 * RNG.normal(size=codes.shape[1])])
+    rel = enc.relative_rotations(wild)
+    direct = enc.solve_rotations(rel, "direct")
+    for _ in range(2):  # the second call reuses the analysed pattern (numeric update only)
+        exact = enc.solve_rotations(rel, "exact")
+        assert enc.last_factorized_ == len(wild)
+        np.testing.assert_allclose(exact, direct, atol=1e-9)
+    tol = 1e-6 * height(scans)
+    enc.rotation_solver = "direct"
+    ref = enc.decode(wild)
+    for solver in ("exact", "pcg"):
+        enc.rotation_solver = solver
+        assert np.abs(enc.decode(wild) - ref).max() < tol
+    enc.rotation_solver, enc.n_jobs = "exact", 2  # threads share the pattern, one solver each
+    assert np.abs(enc.decode(np.concatenate([wild, wild])) - np.concatenate([ref, ref])).max() < tol
+
+
+def test_smoothed_gauge_needs_fewer_cg_steps(sphere, monkeypatch):
+    """A PCA-like combination leaves the tree gauge mismatched on the loop-closing edges; the
+    Lie-algebra smoothing of the gauge spreads that, and CG (routing to the factorization
+    off) needs fewer steps to the same least-squares solution."""
+    v, f = sphere
+    scans = np.stack([smooth_deform(v, 0.15, s) for s in range(4)])
+    enc = RelativeRotationEncoder(v, f).fit(scans)
+    codes = enc.encode(scans)
+    sample = codes[0] - 0.5 * codes[1] + 0.3 * codes[3]
+    enc.rotation_solver = "direct"
+    exact = enc.decode(sample)
+    enc.rotation_solver, enc.max_iter = "pcg", 200
+    monkeypatch.setattr(rre, "DIRECT_FRACTION", 1.0)
+    steps = {}
+    for rounds in (0, 1, 2):
+        monkeypatch.setattr(rre, "SMOOTH_ROUNDS", rounds)
+        out = enc.decode(sample)
+        steps[rounds] = enc.last_iterations_
+        assert enc.last_factorized_ == 0
+        assert np.abs(out - exact).max() < 1e-6 * height(scans)
+    assert 0 < steps[1] < steps[0] and steps[2] <= steps[1]
+
+
 # ``template`` is the session fixture of conftest.py (the CC0 template, cached after first use).
 
 def pose_arm(t, x, angle, bone="upperarm01.L", axis=(0.0, 0.0, 1.0)):

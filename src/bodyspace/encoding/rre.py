@@ -40,17 +40,23 @@ are orthogonal) and off-diagonal blocks ``-(Q_ij + Q_ji^T)``. In the gauge of th
 (L: the dual graph's uniform Laplacian, fixed per template) plus a perturbation that vanishes
 wherever the code is consistent. So ``2 L`` is factored once per template, and each body is
 solved by block conjugate gradients preconditioned with it. An unmodified code (a round trip)
-is consistent: the tree rotations solve it exactly and no step runs. A modified code
-(interpolation between nearby bodies) converges in a few steps; a strongly inconsistent one
-(the mean model, PCA samples of a mixed-pose population), for which the first steps predict
-more than ``max_iter`` steps, is solved directly. ``rotation_solver="direct"`` assembles
-and factors the full system for every body (the baseline the benchmark compares against).
+is consistent: the tree rotations solve it exactly and no step runs. For a modified code the
+tree gauge piles the code's holonomy onto the edges that close tree loops; a Gauss-Newton
+step in the Lie algebra (a solve with the same ``2 L``) first spreads it, after which mild
+codes (interpolations between nearby bodies) converge in 1-3 steps. Codes mismatched on many
+edges or with a strong defect (PCA samples, LBS fold-overs combined), or that the first steps
+predict to need more than ``max_iter`` steps, would cost more CG steps than a factorization
+and are solved exactly by ``FixedPatternRotationSolver``: the system's pattern is analysed once
+per template and each body costs a numeric LDL^T refactorization (qdldl).
+``rotation_solver="exact"`` uses that for every body; ``"direct"`` assembles and factors the
+full system with SuperLU for every body (the baseline the benchmark compares against).
 See docs/encoding.md for the measurements behind these choices.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -67,6 +73,11 @@ from bodyspace.mesh.topology import (check_topology, dual_graph, face_components
                                      vertex_components)
 from scipy.sparse.csgraph import breadth_first_order
 
+try:  # LDL^T with a reusable symbolic analysis (Apache-2.0); without it SuperLU per body.
+    import qdldl as _qdldl
+except ImportError:  # pragma: no cover - depends on the environment
+    _qdldl = None
+
 FEATURES_PER_FACE = 15
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:
 # its deformation gradient is (nearly) singular and has no meaningful polar decomposition.
@@ -78,8 +89,14 @@ DECODE_CHUNK = 1
 # Block-CG steps before the convergence rate is judged, and the fraction of edge slots whose
 # tree-gauge mismatch |E - I| exceeds 0.1 beyond which a code goes straight to the direct
 # solve (see solve_rotations_pcg).
-PROBE_STEPS = 4
-DIRECT_FRACTION = 0.01
+PROBE_STEPS = 3
+DIRECT_FRACTION = 0.002
+# A slot mismatched by more than this in the tree gauge (|E - I|_F = 1: a ~41 degree defect,
+# typically where near-180-degree relative rotations of an LBS fold-over were combined) marks
+# a vortex that CG resolves only in 15-70 steps (measured): such codes are factored at once.
+DEFECT_MISMATCH = 1.0
+# Gauss-Newton rounds smoothing the tree gauge before CG (see _smooth_gauge).
+SMOOTH_ROUNDS = 1
 # Encoding works on one body at a time: its arrays (~0.2 MB each) stay in cache, which made
 # encoding 2x faster per body than 16 at once (measured).
 ENCODE_CHUNK = 1
@@ -333,11 +350,10 @@ class _GaugedRotationSystem:
     Laplacian wherever T agrees with the code (E = I). Root faces are Dirichlet rows (Y = I).
     """
 
-    def __init__(self, relative_gauged, gauge, nbr, bk, valid, roots):
-        """``relative_gauged`` (N, F, slot, 3, 3) is ``Q_ij T_j`` per face i and slot."""
+    def __init__(self, e, gauge, nbr, bk, valid, roots):
+        """``e`` (N, F, slot, 3, 3) is ``E_ij = T_i^T Q_ij T_j`` per face i and slot."""
         self.gauge, self.roots = gauge, roots
         n, nf = gauge.shape[:2]
-        e = np.swapaxes(gauge, -1, -2)[:, :, None] @ relative_gauged
         self.blocks = e + np.swapaxes(e[:, nbr, bk], -1, -2)  # (N, F, slot, 3, 3)
         self.blocks[:, ~valid] = 0.0
         self.deg2 = 2.0 * valid.sum(axis=1)[None, :, None, None]
@@ -389,19 +405,39 @@ def _block_pcg(system, precondition, y, r, tol, budget, state=None):
     return y, r, (z, p, zr), budget, bool(np.abs(z).max() < tol)
 
 
+def _smooth_gauge(q_rel, t, nbr, bk, valid, roots, laplacian):
+    """One Gauss-Newton step on the gauge: ``T_i <- T_i exp([phi_i])`` where phi solves Eq. 9
+    linearized in the Lie algebra, ``2 L phi_i = sum_j (eps_ij - eps_ji)`` with
+    ``eps_ij = log(T_i^T Q_ij T_j)`` (zero at the roots). ``laplacian`` is the factored ``2 L``.
+
+    Any gauge gives the same least-squares solution; a smooth one leaves CG a small, spread-out
+    residual instead of the holonomy the tree gauge piles onto its loop-closing edges.
+    Quaternions, component-first: ``q_rel`` (4, N, F, slot), ``t`` (4, N, F). Returns the new t.
+    """
+    n, nf = t.shape[1:]
+    eps = _qlog(_qmul(_qmul(_qconj(t)[:, :, :, None], q_rel), t[:, :, nbr]))  # (3, N, F, slot)
+    eps[:, :, ~valid] = 0.0
+    b = (eps - eps[:, :, nbr, bk]).sum(axis=3)  # (3, N, F)
+    b[:, :, roots] = 0.0
+    phi = laplacian.solve(np.ascontiguousarray(b.transpose(2, 1, 0)).reshape(nf, n * 3))
+    step = _qexp(np.ascontiguousarray(phi.reshape(nf, n, 3).transpose(2, 1, 0)))  # (4, N, F)
+    return _qmul(t, step)
+
+
 def solve_rotations_pcg(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray, forest,
                         preconditioner: FactorizedSolver, inverse_norm: float, tol: float = 3e-6,
-                        max_iter: int = 25) -> tuple[np.ndarray, int, np.ndarray]:
+                        max_iter: int = 5) -> tuple[np.ndarray, int, np.ndarray]:
     """Least-squares rotations of Eq. 9 by tree-gauged, Laplacian-preconditioned block CG.
 
     The gauge is the tree rotations (``tree_rotations``): they solve a consistent code exactly,
     so an unmodified code (a round trip) needs no CG step at all. A modified code (an
     interpolation, a PCA sample) leaves its inconsistency on the edges that close loops of the
-    tree; CG removes it in a few steps when the code is nearly consistent (interpolation between
-    nearby bodies). Strongly inconsistent codes converge slowly: a code mismatched on more than
-    ``DIRECT_FRACTION`` of its edge slots is returned at once, and otherwise after
-    ``PROBE_STEPS`` steps the contraction rate predicts the total; if it exceeds ``max_iter``
-    the function returns early. Either way ``converged`` is False for those bodies, so that the
+    tree; ``SMOOTH_ROUNDS`` Gauss-Newton steps in the Lie algebra (``_smooth_gauge``) spread it
+    over the mesh, and CG removes the rest in a few steps. Codes that would converge slowly
+    are given up early: a code whose tree gauge is mismatched above 0.1 on more than
+    ``DIRECT_FRACTION`` of its edge slots, or above ``DEFECT_MISMATCH`` anywhere, is returned
+    at once, and otherwise after ``PROBE_STEPS`` steps the contraction rate predicts the total;
+    if it exceeds ``max_iter`` the function returns early. Either way ``converged`` is False for those bodies, so that the
     caller solves them directly. Any gauge gives the same least-squares solution; it only
     changes the number of steps.
 
@@ -440,11 +476,25 @@ def solve_rotations_pcg(relative: np.ndarray, neighbors: np.ndarray, back: np.nd
     mismatch[:, ~valid] = 0.0
     if 6.0 * mismatch.max() * inverse_norm < tol:
         return gauge, 0, np.ones(n, dtype=bool)
-    # Codes mismatched on many edges (measured: PCA samples of a mixed-pose population, 5-10%
-    # of the slots above 0.1) never converged within the budget: do not even start.
-    if ((mismatch > 0.1).sum(axis=(1, 2)) > DIRECT_FRACTION * valid.sum()).all():
+    # Codes mismatched on more than a few edges, or with one strong defect (measured: PCA samples,
+    # 0.8-8% of the slots above 0.1; halfway codes across an LBS fold-over, up to 2.8) need
+    # more CG steps than a factorization costs (measured: 4-70 steps at ~10 ms after ~50 ms of
+    # set-up, against ~120 ms): do not even start.
+    hard = ((mismatch > 0.1).sum(axis=(1, 2)) > DIRECT_FRACTION * valid.sum()) | \
+        (mismatch.max(axis=(1, 2)) > DEFECT_MISMATCH)
+    if hard.all():
         return gauge, 0, np.zeros(n, dtype=bool)
-    system = _GaugedRotationSystem(rt, gauge, nbr, bk, valid, roots)
+    # The tree gauge piles the code's holonomy onto the edges that close tree loops, which CG
+    # then has to spread out again. Smooth the gauge first (Gauss-Newton steps in the Lie
+    # algebra, quaternions): halfway codes 4 -> 1 step, PCA samples 23-200 -> 3-16 (measured).
+    q_rel = _qfrom_matrix(_planar(relative.reshape(n, nf, 3, 9), 9))  # (4, N, F, slot)
+    t = _qfrom_matrix(_planar(gauge.reshape(n, nf, 9), 9))  # (4, N, F)
+    for _ in range(SMOOTH_ROUNDS):
+        t = _smooth_gauge(q_rel, t, nbr, bk, valid, roots, preconditioner)
+    eq = _qmul(_qmul(_qconj(t)[:, :, :, None], q_rel), t[:, :, nbr])  # E_ij = T_i^T Q_ij T_j
+    gauge = np.moveaxis(_qmatrix(t), 0, -1).reshape(n, nf, 3, 3)
+    e = np.moveaxis(_qmatrix(eq), 0, -1).reshape(n, nf, 3, 3, 3)
+    system = _GaugedRotationSystem(e, gauge, nbr, bk, valid, roots)
     r = system.residual_at_identity()
     y = np.broadcast_to(np.eye(3), (n, nf, 3, 3)).copy()
     z = precondition(r)
@@ -499,6 +549,106 @@ def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np
     return out
 
 
+class FixedPatternRotationSolver:
+    """Exact least-squares rotations of Eq. 9 with a sparsity pattern analysed once per template.
+
+    The normal matrix of Eq. 9 changes its values with every code but never its pattern (3x3
+    blocks on the dual graph). Anchor rows and columns are eliminated (their known identity
+    moves to the right-hand side), which keeps the matrix symmetric, and only its upper
+    triangle is stored: a precomputed map sends every (face, slot, 3x3 entry) of an upper
+    off-diagonal block straight to its place in the CSC data array, so each body only writes
+    values. With ``qdldl`` (LDL^T, Apache-2.0) the ordering and symbolic analysis are done at
+    the first solve and every later body costs a numeric refactorization with the same pattern
+    (``Solver.update``), which releases the GIL, so ``n_jobs`` threads factor bodies side by
+    side. Without qdldl each body is factored by SuperLU (the same matrix, slower).
+    One qdldl solver object per concurrent thread is kept in a small pool.
+    """
+
+    def __init__(self, neighbors: np.ndarray, back: np.ndarray, roots: np.ndarray):
+        nf = len(neighbors)
+        self.n_faces = nf
+        valid = neighbors >= 0
+        self.nbr = np.where(valid, neighbors, 0)
+        self.bk = np.where(valid, back, 0)
+        self.roots = np.asarray(roots)
+        is_root = np.zeros(nf, dtype=bool)
+        is_root[self.roots] = True
+        self.valid = valid
+        i_idx = np.broadcast_to(np.arange(nf)[:, None], (nf, 3))
+        # Upper off-diagonal blocks: face i < neighbour j, neither an anchor.
+        upper = valid & (i_idx < self.nbr) & ~is_root[:, None] & ~is_root[self.nbr]
+        self.upper = upper
+        # Anchor columns: rows i (not anchors) whose neighbour is an anchor; their block times
+        # the anchor's identity goes to the right-hand side.
+        self.to_root = valid & ~is_root[:, None] & is_root[self.nbr]
+        a3 = np.arange(3)
+        bi, bj = i_idx[upper], self.nbr[upper]
+        rows = (3 * bi[:, None, None] + a3[None, :, None] + 0 * a3[None, None, :]).ravel()
+        cols = (3 * bj[:, None, None] + 0 * a3[None, :, None] + a3[None, None, :]).ravel()
+        diag = np.arange(3 * nf)
+        rows = np.concatenate([rows, diag])
+        cols = np.concatenate([cols, diag])
+        n = 3 * nf
+        # Place index k+1 at each entry; CSC conversion then tells where entry k lands.
+        tag = sp.csc_matrix((np.arange(1, len(rows) + 1, dtype=np.float64), (rows, cols)), shape=(n, n))
+        tag.sum_duplicates()
+        if tag.nnz != len(rows):
+            raise MeshError("rotation system: repeated face pair in the adjacency, expected a manifold mesh")
+        self.indices, self.indptr = tag.indices.copy(), tag.indptr.copy()
+        pos = np.empty(len(rows), dtype=np.int64)
+        pos[tag.data.astype(np.int64) - 1] = np.arange(len(rows))
+        n_off = len(rows) - n
+        self.pos_off, self.pos_diag = pos[:n_off], pos[n_off:]
+        self.diag_values = np.repeat(np.where(is_root, 1.0, 2.0 * valid.sum(axis=1)), 3)
+        self.shape = (n, n)
+        self._pool: list = []
+        self._lock = threading.Lock()
+
+    def matrix(self, relative: np.ndarray) -> sp.csc_matrix:
+        """Upper triangle (CSC) of the anchored normal matrix for one body's relative rotations
+        (F, 3, 3, 3); off-diagonal blocks ``-(Q_ij + Q_ji^T)``."""
+        up = self.upper
+        blocks = -(relative[up] + np.swapaxes(relative[self.nbr[up], self.bk[up]], -1, -2))
+        data = np.empty(len(self.indices))
+        data[self.pos_off] = blocks.ravel()
+        data[self.pos_diag] = self.diag_values
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+    def rhs(self, relative: np.ndarray) -> np.ndarray:
+        """Right-hand sides (3F, 3): identity at the anchors, ``(Q_ij + Q_ji^T) I`` moved from
+        the eliminated anchor columns."""
+        out = np.zeros((self.n_faces, 3, 3))
+        out[self.roots] = np.eye(3)
+        tr = self.to_root
+        if tr.any():
+            i = np.broadcast_to(np.arange(self.n_faces)[:, None], tr.shape)[tr]
+            blocks = relative[tr] + np.swapaxes(relative[self.nbr[tr], self.bk[tr]], -1, -2)
+            np.add.at(out, i, blocks)
+        return out.reshape(3 * self.n_faces, 3)
+
+    def solve(self, relative: np.ndarray) -> np.ndarray:
+        """Least-squares ``Q_i`` (N, F, 3, 3), not projected, of relative rotations (N, F, 3, 3, 3)."""
+        out = np.empty((len(relative),) + (self.n_faces, 3, 3))
+        for m, rel in enumerate(relative):
+            a, b = self.matrix(rel), self.rhs(rel)
+            if _qdldl is None:
+                full = a + sp.triu(a, k=1).T
+                x = sla.splu(full.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                             options={"SymmetricMode": True}).solve(b)
+            else:
+                with self._lock:
+                    solver = self._pool.pop() if self._pool else None
+                if solver is None:
+                    solver = _qdldl.Solver(a, upper=True)  # ordering + symbolic + numeric
+                else:
+                    solver.update(a, upper=True)  # numeric only, same pattern
+                x = np.stack([solver.solve(b[:, k]) for k in range(3)], axis=1)
+                with self._lock:
+                    self._pool.append(solver)
+            out[m] = x.reshape(self.n_faces, 3, 3)
+        return out
+
+
 # ---------------------------------------------------------------------------- the encoder
 
 def _central_face(graph: sp.csr_matrix, start: int) -> int:
@@ -522,18 +672,19 @@ class RelativeRotationEncoder:
     Args:
         template_vertices: (V, 3) the rest mesh whose triangles the deformations are relative to.
         faces: (F, 3) int, shared by every scan.
-        rotation_solver: "pcg" (tree-conjugated, Laplacian-preconditioned conjugate gradients
-            with a factorization made once per template) or "direct" (assemble and factor the
-            Eq. 9 system for every body; slow, for reference).
+        rotation_solver: "pcg" (tree gauge, smoothed, Laplacian-preconditioned block CG with a
+            factorization made once per template; the codes CG would not finish go to the exact
+            path), "exact" (the Eq. 9 system refactorized for every body on a pattern analysed
+            once: ``FixedPatternRotationSolver``) or "direct" (assemble and factor with SuperLU
+            for every body; slow, the reference).
         tol: CG stops when the estimated remaining correction of every rotation entry is below
             this. The default leaves decoded vertices within ~3e-7 m of the exact least-squares
             decode on the 1.7 m template (measured, docs/encoding.md), well inside the
             1e-6 x height round-trip tolerance.
-        max_iter: block-CG step budget, about the cost of one direct solve (~11 ms a step,
-            ~300 ms a factorization on the template). After a few steps the contraction rate
-            predicts the steps needed; a code that would exceed the budget (a strongly
-            inconsistent one, such as the mean model or a PCA sample of a mixed-pose
-            population) is solved directly at once.
+        max_iter: block-CG step budget, about the cost of one exact solve (~10 ms a step,
+            ~120 ms a refactorization plus solve on the template). After a few steps the
+            contraction rate predicts the steps needed; a code that would exceed the budget is
+            solved exactly at once.
         on_flipped: what ``encode``/``fit`` do with a flipped triangle, one whose normal points
             against the vertex normals of its corners while the template's does not (a
             fold-over): "raise" (MeshError), "warn" or "ignore". Such triangles round-trip
@@ -548,17 +699,19 @@ class RelativeRotationEncoder:
         n_features_: D = 15 F (available before fit).
         slot_mask_: (F, 3) bool, True where the edge slot has a neighbour.
         last_iterations_: most block-CG steps any body of the last decode call took (0 for
-            consistent codes).
+            consistent codes, and for bodies sent straight to the factorization).
+        last_factorized_: how many bodies of the last decode call were solved by a
+            factorization instead of CG (all of them with "exact" or "direct").
     """
 
     def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "pcg",
-                 tol: float = 3e-6, max_iter: int = 25, on_flipped: str = "raise", n_jobs: int | None = None):
+                 tol: float = 3e-6, max_iter: int = 5, on_flipped: str = "raise", n_jobs: int | None = None):
         check_mesh(template_vertices, faces, name="template")
         tv = np.asarray(template_vertices, dtype=float)
         if tv.ndim != 2:
             raise MeshError(f"template: vertices have shape {tv.shape}, expected (V, 3)")
-        if rotation_solver not in ("pcg", "direct"):
-            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'pcg' or 'direct'")
+        if rotation_solver not in ("pcg", "exact", "direct"):
+            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'pcg', 'exact' or 'direct'")
         self.template_vertices = tv
         self.faces = np.asarray(faces, dtype=np.int64)
         if on_flipped not in ("raise", "warn", "ignore"):
@@ -612,7 +765,10 @@ class RelativeRotationEncoder:
         n_comp, self._vertex_part = vertex_components(self.faces, self.n_vertices)
         self._part_vertices = [np.flatnonzero(self._vertex_part == c) for c in range(n_comp)]
         self._face_part = self._vertex_part[self.faces[:, 0]]
+        # Exact path: the Eq. 9 pattern analysed once, a numeric refactorization per body.
+        self._exact = FixedPatternRotationSolver(self.neighbors, self.back, self.anchor_faces)
         self.last_iterations_ = 0
+        self.last_factorized_ = 0
 
     # ------------------------------------------------------------------ validation
     def _require_fit(self):
@@ -738,12 +894,13 @@ class RelativeRotationEncoder:
                 chunk_constraints = PositionConstraints(constraints.indices,
                                                         np.asarray(constraints.positions)[s:s + DECODE_CHUNK],
                                                         constraints.weight)
-            out[s:s + DECODE_CHUNK], n_steps = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints,
-                                                             self.mean_vertices_)
-            steps.append(n_steps)
+            out[s:s + DECODE_CHUNK], n_steps, n_fact = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints,
+                                                                     self.mean_vertices_)
+            steps.append((n_steps, n_fact))
 
         self._run(work, range(0, len(c), DECODE_CHUNK))
-        self.last_iterations_ = max(steps)
+        self.last_iterations_ = max(k for k, _ in steps)
+        self.last_factorized_ = sum(f for _, f in steps)
         return out
 
     def _run(self, work, starts) -> None:
@@ -770,37 +927,43 @@ class RelativeRotationEncoder:
 
     def solve_rotations(self, relative: np.ndarray, solver: str | None = None) -> np.ndarray:
         """Per-face rotations R_i (N, F, 3, 3) from relative rotations (N, F, 3, 3, 3) by Eq. 9,
-        projected onto SO(3). ``solver``: "pcg" or "direct" (default: ``rotation_solver``)."""
-        rot, self.last_iterations_ = self._solve_rotations(relative, solver or self.rotation_solver)
+        projected onto SO(3). ``solver``: "pcg", "exact" or "direct" (default:
+        ``rotation_solver``)."""
+        rot, self.last_iterations_, self.last_factorized_ = self._solve_rotations(
+            relative, solver or self.rotation_solver)
         return rot
 
-    def _solve_rotations(self, relative: np.ndarray, solver: str) -> tuple[np.ndarray, int]:
-        steps = 0
+    def _solve_rotations(self, relative: np.ndarray, solver: str) -> tuple[np.ndarray, int, int]:
+        """(R (N, F, 3, 3), most CG steps, number of bodies solved by a factorization)."""
+        steps, factorized = 0, len(relative)
         if solver == "direct":
             rot = solve_rotations_direct(relative, self.neighbors, self.back, self.anchor_faces)
+        elif solver == "exact":
+            rot = self._exact.solve(relative)
         else:
             rot, steps, converged = solve_rotations_pcg(relative, self.neighbors, self.back, self._forest,
                                                         self._preconditioner, self._inverse_norm, self.tol,
                                                         self.max_iter)
-            if not converged.all():
-                # Strongly inconsistent codes: CG would not pay off, solve them directly.
-                rot[~converged] = solve_rotations_direct(relative[~converged], self.neighbors, self.back,
-                                                         self.anchor_faces)
+            factorized = int((~converged).sum())
+            if factorized:
+                # Strongly inconsistent codes: CG would not pay off, factor their systems (fixed
+                # pattern, numeric refactorization only).
+                rot[~converged] = self._exact.solve(relative[~converged])
         # Eq. 9 solves for Q_i = R_i^T; return the rotations R_i of U_i = R_i S_i.
-        return np.swapaxes(project_to_rotations(rot), -1, -2), steps
+        return np.swapaxes(project_to_rotations(rot), -1, -2), steps, factorized
 
-    def _decode(self, c: np.ndarray, constraints, reference: np.ndarray) -> np.ndarray:
+    def _decode(self, c: np.ndarray, constraints, reference: np.ndarray):
         n = len(c)
         c = c.reshape(n, self.n_faces, FEATURES_PER_FACE)
-        rot, steps = self._solve_rotations(self.relative_rotations(c), self.rotation_solver)
+        rot, steps, factorized = self._solve_rotations(self.relative_rotations(c), self.rotation_solver)
         u = rot @ unpack_stretch(c[..., 9:] + self.mean_stretch_)
         x = self._poisson.solve(u)
         placed, part_rot = self._place(x, reference)
         if constraints is None:
-            return placed, steps
+            return placed, steps, factorized
         # Keep the placed orientation: rotate each part's gradients as the placement rotated it.
         u = part_rot[:, self._face_part] @ u
-        return self._poisson.solve(u, constraints, pinned_positions=placed), steps
+        return self._poisson.solve(u, constraints, pinned_positions=placed), steps, factorized
 
     def _place(self, x: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rigidly align each connected part of ``x`` (N, V, 3) onto ``reference`` (V, 3)."""
