@@ -398,3 +398,96 @@ def test_landmark_figure(tmp_path):
     assert np.all(np.diff(np.sort(y)) >= 0.03 - 1e-12) and (np.argsort(y) == np.arange(4)).all()
     out = landmark_figure(tmp_path / "names.png", dpi=40)
     assert out.stat().st_size > 10_000
+
+
+def _canonical(c, group):
+    """Points (K, 3) in order, their contour partition (labels renumbered by first use) and the
+    segments as sorted point pairs, for one group of a ``Contours``."""
+    idx = np.flatnonzero(c.body == group)
+    where = np.full(len(c.points), -1)
+    where[idx] = np.arange(len(idx))
+    _, first = np.unique(c.label[idx], return_index=True)
+    relabel = {c.label[idx][f]: r for r, f in enumerate(np.sort(first))}
+    seg = c.seg[np.isin(c.seg[:, 0], idx)]
+    seg = np.sort(where[seg], axis=1)
+    seg = seg[np.lexsort(seg.T[::-1])]
+    return c.points[idx], np.array([relabel[x] for x in c.label[idx]]), seg
+
+
+def test_band_contours_equal_per_plane_cuts(mset, mean_body, phenotype_model, template):
+    """The batched band (all planes in one Contours, crossings linked through the faces, edges
+    pruned with approximate heights) gives every plane's contours exactly as one plane at a time."""
+    from bodyspace.measure.slicing import approx_heights, band_contours, edge_neighbours, slice_band
+    v = np.concatenate([mean_body[None], phenotype_model.vertices({"weight": np.array([0.1, 0.9])})])
+    f = template.faces
+    edges, ef = mesh_edges(f)
+    nb = edge_neighbours(f, edges, ef)
+    n = len(v)
+    normal = np.tile([0.1, 0.99, 0.05], (n, 1)) / np.linalg.norm([0.1, 0.99, 0.05])
+    y = np.linspace(-0.7, 0.75, 9)                      # legs, hands, torso, head
+    origins = np.stack([np.c_[np.zeros(n), np.full(n, t), np.zeros(n)] for t in y])
+    planes = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+    approx = approx_heights(planes, normal, float(np.abs(v).sum(axis=-1).max()))
+    per_plane = slice_band(v, edges, ef, origins, normal)
+    for kw in ({}, {"neighbours": nb}, {"neighbours": nb, "heights": approx}):
+        band = band_contours(v, edges, ef, origins, normal, **kw)
+        for p, c in enumerate(per_plane):
+            for i in range(n):
+                a = _canonical(c, i)
+                b = _canonical(band, p * n + i)
+                assert len(a[0]) > 0
+                for x, z in zip(a, b):
+                    assert np.array_equal(x, z), (kw.keys(), p, i)
+
+
+def test_band_contours_open_mesh_and_miss():
+    """Border edges (an open mesh) link like the sort-based assembly; a plane that misses gives
+    no contour (and pick_contours -1)."""
+    from bodyspace.measure.slicing import band_contours, edge_neighbours, slice_band
+    sphere = trimesh.creation.icosphere(3)
+    v = np.asarray(sphere.vertices)[None]
+    f = np.asarray(sphere.faces)
+    f = f[v[0][f].mean(axis=1)[:, 1] < 0.2]             # open at the top
+    edges, ef = mesh_edges(f)
+    nb = edge_neighbours(f, edges, ef)
+    n = np.array([[0.0, 1.0, 0.0]])
+    origins = np.array([[[0, y, 0]] for y in (-0.5, 0.1, 0.19, 5.0)], dtype=float)
+    per_plane = slice_band(v, edges, ef, origins, n)
+    band = band_contours(v, edges, ef, origins, n, neighbours=nb)
+    for p, c in enumerate(per_plane):
+        for x, z in zip(_canonical(c, 0), _canonical(band, p)):
+            assert np.array_equal(x, z), p
+    assert per_plane[3].n_labels == 0 and not np.any(band.body == 3)
+    assert pick_contours(per_plane[3], origins[3], n)[0] == -1
+
+
+def test_batched_hulls_equal_qhull():
+    """hull_perimeters (all groups at once) equals Qhull's perimeter per group, and leaves the
+    degenerate groups (collinear, too few points) to hull_perimeter (NaN)."""
+    from bodyspace.measure.slicing import hull_perimeter, hull_perimeters
+    rng = np.random.default_rng(7)
+    groups = []
+    for i in range(120):
+        k = int(rng.integers(1, 300))
+        t = rng.random(k) * 2 * np.pi
+        kind = i % 5
+        if kind == 0:
+            p = rng.normal(size=(k, 2))
+        elif kind == 1:                                 # star-shaped, concave
+            r = 1 + 0.3 * np.sin(5 * t)
+            p = np.c_[r * np.cos(t), r * np.sin(t)] + [0.3, -2.0]
+        elif kind == 2:                                 # duplicates and collinear runs
+            p = np.round(rng.normal(size=(k, 2)) * 2)
+        elif kind == 3:                                 # collinear: degenerate
+            p = np.c_[rng.random(k), np.full(k, 1.0)]
+        else:                                           # far from the origin, as in metres
+            p = np.c_[0.15 * np.cos(t), 0.1 * np.sin(t)] + [0.4, 1.2]
+        groups.append(p)
+    xy = np.concatenate(groups)
+    starts = np.cumsum([0] + [len(p) for p in groups[:-1]])
+    fast = hull_perimeters(xy, starts)
+    exact = np.array([hull_perimeter(p)[0] for p in groups])
+    ok = ~np.isnan(fast)
+    assert ok.sum() > 80
+    assert np.allclose(fast[ok], exact[ok], rtol=1e-13, atol=0)
+    assert not ok[3::5].any()                           # collinear: left to hull_perimeter

@@ -2,9 +2,9 @@
 
 Everything but the slices is one vectorized expression over the batch (landmarks are a sparse
 (L, V) product, loops/distances/paths are sums of segment lengths, volume and area are the
-mesh/geometry sums). Slices are batched too (``slicing.slice_contours`` cuts all bodies at once,
-one plane each); only the final convex hull runs per body, in C (Qhull). Bodies are processed in
-chunks to bound the (N, E) crossing masks.
+mesh/geometry sums). Slices are batched too (``slicing.band_contours`` cuts all bodies and all
+planes of a band at once; ``slicing.hull_perimeters`` takes all the hulls at once, Qhull only
+for degenerate contours or drawn polylines). Bodies are processed in chunks to bound the memory.
 
 Values are SI inside (metres, kilograms, m³); ``Measurement.display`` converts lengths to cm
 for people (the CLI and JSON).
@@ -15,11 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from bodyspace.data.composition import mass_from_volume
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
-from bodyspace.measure.slicing import (contour_girths, mesh_edges, pick_contours, slice_band,
-                                      support_perimeters)
+from bodyspace.measure.slicing import (approx_heights, band_contours, contour_girths, edge_neighbours,
+                                      mesh_edges, pick_contours, support_perimeters)
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 
 CHUNK = 64
@@ -60,6 +61,7 @@ class _Geometry:
     faces: np.ndarray
     edges: np.ndarray = field(init=False)
     edge_faces: np.ndarray = field(init=False)
+    neighbours: tuple = field(init=False)
     loops: list = field(init=False)
 
     cache_key: object = None
@@ -67,6 +69,7 @@ class _Geometry:
 
     def __post_init__(self):
         self.edges, self.edge_faces = mesh_edges(self.faces)
+        self.neighbours = edge_neighbours(self.faces, self.edges, self.edge_faces)
         self.loops = boundary_loops(self.faces)
 
 
@@ -144,10 +147,23 @@ def _conditions(mset: MeasurementSet, lm: dict, n: int) -> dict[str, list]:
     return out
 
 
-def _slice(m: dict, v: np.ndarray, lm: dict, geo: _Geometry, keep_polylines: bool):
-    """Girths (N,) and polylines of one slice measurement over a chunk of bodies."""
+def _slice(m: dict, v: np.ndarray, lm: dict, geo: _Geometry, keep_polylines: bool, heights: dict | None = None):
+    """Girths (N,) and polylines of one slice measurement over a chunk of bodies.
+
+    ``heights`` caches the chunk's float32 coordinate planes and the approximate vertex heights
+    per normal axis across the measurements of a chunk (chest, underbust, waist and hip share
+    the torso axis).
+    """
     n = len(v)
     normal = _axis(m["normal"], lm, n)
+    key = repr(m["normal"])
+    if heights is None:
+        heights = {}
+    if key not in heights:
+        if "planes" not in heights:
+            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
+        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
     band = m.get("band")
     if band is None:
         origins = [_point(m["at"], lm, v)]
@@ -156,34 +172,31 @@ def _slice(m: dict, v: np.ndarray, lm: dict, geo: _Geometry, keep_polylines: boo
         ts = np.linspace(float(band.get("start", 0.0)), float(band.get("stop", 1.0)), int(band.get("steps", 12)))
         origins = [a + t * (b - a) for t in ts]
     pick_fixed = _point(m["pick"], lm, v) if m.get("pick") is not None else None
-    cuts = slice_band(v, geo.edges, geo.edge_faces, np.stack(origins), normal)
-    chosen = []
-    for o, c in zip(origins, cuts):
-        ch = pick_contours(c, o if pick_fixed is None else pick_fixed, normal)
-        missed = np.flatnonzero(ch < 0)
-        if len(missed):
-            raise MeasurementError(f"measurement {m['name']!r}: the plane through {m.get('at', band)} hits "
-                                   f"nothing on body {int(missed[0])} (the landmarks are off the body or "
-                                   "the normal axis is degenerate)")
-        chosen.append(ch)
-    if len(cuts) == 1:
+    # Every plane of the band in one Contours: group p * n + i is plane p of body i.
+    n_planes = len(origins)
+    cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
+                         heights=heights[key], neighbours=geo.neighbours)
+    normals = np.tile(normal, (n_planes, 1))
+    picks = np.concatenate(origins if pick_fixed is None else [pick_fixed] * n_planes)
+    chosen = pick_contours(cuts, picks, normals)
+    missed = np.flatnonzero(chosen < 0)
+    if len(missed):
+        raise MeasurementError(f"measurement {m['name']!r}: the plane through {m.get('at', band)} hits "
+                               f"nothing on body {int(missed[0]) % n} (the landmarks are off the body or "
+                               "the normal axis is degenerate)")
+    if n_planes == 1:
         k = np.zeros(n, dtype=np.int64)
     else:
         # Pick the band's extreme plane by the fast support-function estimate, then measure
         # only that plane exactly: one hull per body instead of one per plane.
-        est = np.stack([support_perimeters(c, ch, normal) for c, ch in zip(cuts, chosen)])
+        est = support_perimeters(cuts, chosen, normals).reshape(n_planes, n)
         k = np.argmax(est, axis=0) if band["mode"] == "max" else np.argmin(est, axis=0)
-    value = np.empty(n)
-    polys: list = [None] * n
-    for p in np.unique(k):
-        idx = np.flatnonzero(k == p)
-        ch = np.full(n, -1, dtype=np.int64)
-        ch[idx] = chosen[p][idx]
-        g, pl = contour_girths(cuts[p], ch, normal, keep_polylines)
-        value[idx] = g[idx]
-        for i in idx:
-            polys[i] = pl[i]
-    return value, (polys if keep_polylines else None)
+    group = k * n + np.arange(n)
+    ch = np.full(n_planes * n, -1, dtype=np.int64)
+    ch[group] = chosen[group]
+    g, pl = contour_girths(cuts, ch, normals, keep_polylines)
+    value = g[group]
+    return value, ([pl[i] for i in group] if keep_polylines else None)
 
 
 def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, geo: _Geometry, L, keep_polylines: bool,
@@ -193,10 +206,11 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, geo: _Geometry, L, keep
     lm = {name: P[:, i] for i, name in enumerate(mset.landmarks)}
     cond = _conditions(mset, lm, n)
     res: dict = {}
+    heights: dict = {}
     for m in mset.measurements:
         meth, poly = m["method"], None
         if meth == "slice":
-            val, poly = _slice(m, v, lm, geo, keep_polylines)
+            val, poly = _slice(m, v, lm, geo, keep_polylines, heights)
         elif meth == "loop":
             ring = v[:, m["vertices"]]
             ax = _axis(m.get("axis", "up"), lm, n)[:, None, :]
@@ -264,17 +278,23 @@ def _volume_area(v: np.ndarray, geo: _Geometry) -> tuple[np.ndarray, np.ndarray]
     # Keyed by identity while holding a reference, so a freed chunk's id can never be reused.
     if geo.cache_key is v:
         return geo.cache_val
-    f = geo.faces
-    # Per-coordinate (N, V) planes gather faster than (N, V, 3) rows.
-    x, y, z = (np.ascontiguousarray(v[..., k]) for k in range(3))
-    ax, ay, az = x[:, f[:, 0]], y[:, f[:, 0]], z[:, f[:, 0]]
-    e1x, e1y, e1z = x[:, f[:, 1]] - ax, y[:, f[:, 1]] - ay, z[:, f[:, 1]] - az
-    e2x, e2y, e2z = x[:, f[:, 2]] - ax, y[:, f[:, 2]] - ay, z[:, f[:, 2]] - az
-    nx = e1y * e2z - e1z * e2y
-    ny = e1z * e2x - e1x * e2z
-    nz = e1x * e2y - e1y * e2x
-    area = 0.5 * np.sqrt(nx * nx + ny * ny + nz * nz).sum(axis=1)
-    vol = (ax * nx + ay * ny + az * nz).sum(axis=1) / 6.0
+    f0, f1, f2 = (np.ascontiguousarray(geo.faces[:, k]) for k in range(3))
+    n = len(v)
+    vol, area = np.empty(n), np.empty(n)
+    # One body at a time: its (F,) temporaries stay in cache (2x faster than (N, F) arrays).
+    # Summed in the order numpy summed the (N, F) gathers (column-major, so sequential; one
+    # body: pairwise), to keep every bit of the earlier values.
+    total = np.sum if n == 1 else (lambda a: np.cumsum(a)[-1])
+    for i in range(n):
+        x, y, z = (np.ascontiguousarray(v[i, :, k]) for k in range(3))
+        ax, ay, az = x[f0], y[f0], z[f0]
+        e1x, e1y, e1z = x[f1] - ax, y[f1] - ay, z[f1] - az
+        e2x, e2y, e2z = x[f2] - ax, y[f2] - ay, z[f2] - az
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        area[i] = 0.5 * total(np.sqrt(nx * nx + ny * ny + nz * nz))
+        vol[i] = total(ax * nx + ay * ny + az * nz) / 6.0
     if geo.loops:
         vol = vol + capped_volume(v, np.zeros((0, 3), dtype=np.int64), geo.loops)
     geo.cache_key, geo.cache_val = v, (vol, area)
@@ -284,7 +304,11 @@ def _volume_area(v: np.ndarray, geo: _Geometry) -> tuple[np.ndarray, np.ndarray]
 def _landmarks(L, v: np.ndarray) -> np.ndarray:
     """Landmark points (N, L, 3) from the sparse (L, V) matrix."""
     n, nv, _ = v.shape
-    flat = v.transpose(1, 0, 2).reshape(nv, n * 3)
+    # Only the ~1k vertices the landmarks use are transposed (not the whole (N, V, 3) batch):
+    # the same matrix with its columns renumbered, entries in the same order, same sums.
+    cols, local = np.unique(L.indices, return_inverse=True)
+    L = sp.csr_matrix((L.data, local.ravel(), L.indptr), shape=(L.shape[0], len(cols)))
+    flat = v[:, cols].transpose(1, 0, 2).reshape(len(cols), n * 3)
     return np.asarray(L @ flat).reshape(L.shape[0], n, 3).transpose(1, 0, 2)
 
 
@@ -319,8 +343,15 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
         geo.cache_key = geo.cache_val = None
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
-            parts = list(pool.map(_run_job, jobs))
+        # The forked workers inherit the jobs: only (token, index) is pickled, not ~20 MB of
+        # vertices per chunk (that pickling cost ~10 % of the CPU time).
+        token = object()
+        _FORKED[id(token)] = jobs
+        try:
+            with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as pool:
+                parts = list(pool.map(_run_forked, [(id(token), i) for i in range(len(jobs))]))
+        finally:
+            del _FORKED[id(token)]
     else:
         parts = [_run_job(j) for j in jobs]
     out = {}
@@ -337,6 +368,14 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
 
 def _run_job(job):
     return _evaluate_chunk(*job)
+
+
+_FORKED: dict = {}
+
+
+def _run_forked(key):
+    token, i = key
+    return _evaluate_chunk(*_FORKED[token][i])
 
 
 def measure(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, **kw) -> dict[str, np.ndarray]:

@@ -15,7 +15,14 @@ and one plane per body at once:
    plane (even–odd ray test, vectorized over all segments), else the nearest one. So a thigh
    plane that also cuts the other leg and a hand keeps only the thigh.
 4. ``hull_perimeter``: perimeter of the 2-D convex hull (Qhull; Andrew's monotone chain for
-   degenerate input).
+   degenerate input); ``hull_perimeters`` does all chosen contours of a batch at once.
+
+``band_contours`` is the fast path ``evaluate`` uses: every plane of a band (or the one plane
+of a slice) for every body in one ``Contours`` (group = plane * N + body). It drops the edges
+that cannot cross any plane in any body from approximate heights, finds which planes an edge
+crosses from its ends' ranks among the sorted plane offsets, and links the two crossings of a
+triangle through the face's third vertex instead of a sort. The points, their order within a
+group, the segments and the contours are the same as ``slice_band``'s, so every value is too.
 
 Arrays: vertices (N, V, 3), faces (F, 3), plane origins and normals (N, 3).
 """
@@ -96,38 +103,218 @@ def slice_contours(vertices: np.ndarray, edges: np.ndarray, edge_faces: np.ndarr
 
 
 def slice_band(vertices: np.ndarray, edges: np.ndarray, edge_faces: np.ndarray,
-               origins: np.ndarray, normals: np.ndarray) -> list[Contours]:
+               origins: np.ndarray, normals: np.ndarray, heights: np.ndarray | None = None) -> list[Contours]:
     """Cut bodies (N, V, 3) by P parallel planes each: ``origins`` (P, N, 3), ``normals`` (N, 3).
 
+    Returns one ``Contours`` per plane (``band_contours`` gives one for the whole band, faster).
+    """
+    x = _band_crossings(vertices, edges, origins, normals, heights)
+    n_faces = int(edge_faces.max()) + 1
+    order = np.argsort(x.plane, kind="stable")
+    starts = np.searchsorted(x.plane[order], np.arange(len(origins) + 1))
+    return [_assemble(x.points[i], x.body[i], x.edge[i], edge_faces, n_faces)
+            for i in (order[s:t] for s, t in zip(starts[:-1], starts[1:]))]
+
+
+def band_contours(vertices: np.ndarray, edges: np.ndarray, edge_faces: np.ndarray,
+                  origins: np.ndarray, normals: np.ndarray, heights: np.ndarray | None = None,
+                  neighbours: tuple | None = None) -> Contours:
+    """All contours of P parallel planes per body in one ``Contours``: ``origins`` (P, N, 3).
+
+    Its ``body`` is the group p * N + i (plane p, body i), so the per-body functions
+    (``pick_contours``, ``support_perimeters``, ``contour_girths``) run on every plane of the
+    band at once with (P * N, ...) arguments. Within a group the points are in edge order, as
+    in ``slice_band``, so every per-group result is the same. ``heights`` (N, V) float32 may
+    pass ``vertex_heights(vertices, normals)`` when several bands share a normal;
+    ``neighbours`` = ``edge_neighbours(faces, edges, edge_faces)`` links the crossings without
+    a sort.
+    """
+    x = _band_crossings(vertices, edges, origins, normals, heights)
+    group = x.plane * len(vertices) + x.body
+    if neighbours is None:
+        return _assemble(x.points, group, x.edge, edge_faces, int(edge_faces.max()) + 1)
+    # Each crossed triangle holds exactly two crossings: the second is on the edge from the
+    # crossed edge's end that is on the other side than the triangle's third vertex.
+    opp, other_a, other_b = neighbours
+    k = len(x.points)
+    side_a = x.h_a >= x.off                                                    # on or above: "above"
+    n_local = x.hv.shape[1]
+    partner = np.full((k, 2), -1, dtype=np.int64)
+    for s in range(2):
+        o = opp[x.edge, s]
+        ok = o >= 0
+        # c is on a crossed edge of the crossed face, so it is a candidate vertex.
+        side_c = x.hv.ravel()[x.body[ok] * n_local + x.local[o[ok]]] >= x.off[ok]
+        # Third vertex on a's side: the b-c edge is crossed, else the a-c edge.
+        pe = np.where(side_c == side_a[ok], other_b[x.edge[ok], s], other_a[x.edge[ok], s])
+        ok[ok] = pe >= 0
+        pe = pe[pe >= 0]
+        cell = x.body[ok] * x.n_cand + x.cand_of[pe]
+        partner[ok, s] = x.first[cell] + x.rank[x.plane[ok], x.body[ok]] - x.start[cell]
+    me = np.arange(k)
+    seg = np.concatenate([np.stack([me[partner[:, s] > me], partner[partner[:, s] > me, s]], axis=1)
+                          for s in range(2)])
+    if k == 0:
+        return Contours(x.points, group, np.zeros(0, dtype=np.int64), seg, 0)
+    graph = sp.coo_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(k, k))
+    n_labels, label = connected_components(graph, directed=False)
+    return Contours(x.points, group, label.astype(np.int64), seg, int(n_labels))
+
+
+def edge_neighbours(faces: np.ndarray, edges: np.ndarray, edge_faces: np.ndarray):
+    """Per edge (a, b) and each of its two faces (E, 2): the face's third vertex c and the edge
+    ids of a-c and b-c, for ``band_contours``. -1 on a border, on a degenerate face and where
+    that edge does not list the face among its two (non-manifold), as ``mesh_edges`` pairs them.
+    """
+    faces = np.asarray(faces)
+    nv = int(faces.max()) + 1
+    keys = edges[:, 0].astype(np.int64) * nv + edges[:, 1]                   # sorted (np.unique)
+
+    def edge_id(p, q, f):
+        lo, hi = np.minimum(p, q), np.maximum(p, q)
+        i = np.minimum(np.searchsorted(keys, lo.astype(np.int64) * nv + hi), len(keys) - 1)
+        ok = (keys[i] == lo.astype(np.int64) * nv + hi) & ((edge_faces[i] == f[:, None]).any(axis=1))
+        return np.where(ok, i, -1)
+
+    opp = np.full(edge_faces.shape, -1, dtype=np.int64)
+    other_a, other_b = opp.copy(), opp.copy()
+    for s in range(2):
+        ok = edge_faces[:, s] >= 0
+        f_id = edge_faces[ok, s]
+        f = faces[f_id]                                                        # (M, 3)
+        a, b = edges[ok, 0], edges[ok, 1]
+        c = f.sum(axis=1) - a - b                                              # the third vertex
+        good = (c != a) & (c != b) & (a != b)
+        opp[ok, s] = np.where(good, c, -1)
+        other_a[ok, s] = np.where(good, edge_id(a, c, f_id), -1)
+        other_b[ok, s] = np.where(good, edge_id(b, c, f_id), -1)
+    return opp, other_a, other_b
+
+
+@dataclass
+class _Crossings:
+    points: np.ndarray     # (K, 3) float64
+    plane: np.ndarray      # (K,)
+    body: np.ndarray       # (K,)
+    edge: np.ndarray       # (K,)
+    h_a: np.ndarray        # (K,) float32 height of the edge's first vertex
+    off: np.ndarray        # (K,) float32 plane offset
+    hv: np.ndarray         # (N, Vc) float32 heights of the candidate edges' vertices
+    local: np.ndarray      # (V,) column of a vertex in ``hv``
+    n_cand: int            # candidate edges C
+    cand_of: np.ndarray    # (E,) candidate index of an edge (-1: none)
+    first: np.ndarray      # (N * C,) index of the first crossing of (body, candidate)
+    start: np.ndarray      # (N * C,) its rank among the body's sorted plane offsets
+    rank: np.ndarray       # (P, N) rank of each plane among the body's offsets
+
+
+def _band_crossings(vertices, edges, origins, normals, heights) -> _Crossings:
+    """Every crossing of P parallel planes per body, sorted by body, then edge (then plane).
+
     Parallel planes differ only by their offset along the normal, so the signed heights and
-    the edges' height intervals are computed once; the edges that can cross any plane of the
-    band are found in one (N, E) pass and each plane then filters only those candidates.
-    Returns one ``Contours`` per plane.
+    the edges' height intervals are computed once for the whole band.
     """
     v = np.asarray(vertices, dtype=float)
     n = np.asarray(normals, dtype=float)
-    n_faces = int(edge_faces.max()) + 1
-    # Heights in float32 (0.1 um at 1 m): the (N, E) passes below are memory-bound and this
-    # halves them; the crossing points themselves are interpolated in float64.
-    h = np.einsum("nvi,ni->nv", v, n).astype(np.float32)                      # (N, V)
+    if heights is None:
+        heights = HeightBounds(vertex_heights(v, n), 0.0)
     offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
-    ha, hb = h[:, edges[:, 0]], h[:, edges[:, 1]]
-    lo, hi = np.minimum(ha, hb), np.maximum(ha, hb)
-    # A vertex exactly on the plane counts as above it: edge crosses iff lo < off <= hi.
-    cb, ce = np.nonzero((lo < offs.max(axis=0)[:, None]) & (hi >= offs.min(axis=0)[:, None]))
-    c_lo, c_hi, c_ha, c_hb = lo[cb, ce], hi[cb, ce], ha[cb, ce], hb[cb, ce]
-    out = []
-    for off in offs:
-        o = off[cb]
-        keep = (c_lo < o) & (o <= c_hi)
-        b, e = cb[keep], ce[keep]
-        da = c_ha[keep].astype(float) - o[keep]
-        db = c_hb[keep].astype(float) - o[keep]
-        t = (da / (da - db))[:, None]                                          # signs differ: no 0/0
-        pa, pb = v[b, edges[e, 0]], v[b, edges[e, 1]]
-        points = pa + t * (pb - pa)
-        out.append(_assemble(points, b, e, edge_faces, n_faces))
-    return out
+    n_planes = len(offs)
+    o_lo, o_hi = offs.min(axis=0)[:, None], offs.max(axis=0)[:, None]
+    # A vertex exactly on the plane counts as above it: edge crosses iff lo < off <= hi. An edge
+    # whose two ends are below every plane (or at/above every plane) in every body of the batch
+    # crosses nothing: two cheap (N, V) passes drop them, and the interval passes below run on
+    # the edges left (a superset of the crossings, in edge order, so nothing else changes).
+    t_lo, t_hi = o_lo, o_hi
+    if heights.tol > 0:             # thresholds rounded outwards, so the margin stays >= tol
+        t_lo = np.nextafter((o_lo.astype(float) - heights.tol).astype(np.float32), np.float32(-np.inf))
+        t_hi = np.nextafter((o_hi.astype(float) + heights.tol).astype(np.float32), np.float32(np.inf))
+    below, above = (heights.h < t_lo).all(axis=0), (heights.h >= t_hi).all(axis=0)
+    ea, eb = edges[:, 0], edges[:, 1]
+    cand = np.flatnonzero(~((below[ea] & below[eb]) | (above[ea] & above[eb])))
+    n_cand = len(cand)
+    nv = v.shape[1]
+    # Each vertex's slot: how many of its body's planes are at or below it. An edge crosses
+    # exactly the planes between its two ends' slots (those with lo < off <= hi), so the P
+    # comparisons run once per vertex of the candidate edges, not per edge.
+    used = np.zeros(nv, dtype=bool)
+    used[ea[cand]] = used[eb[cand]] = True
+    cv = np.flatnonzero(used)
+    local = np.zeros(nv, dtype=np.int64)
+    local[cv] = np.arange(len(cv))
+    # Exact heights (``vertex_heights``' values: einsum row by row) on those vertices only.
+    hv = heights.h[:, cv] if heights.tol == 0 else vertex_heights(v[:, cv], n)  # (N, Vc)
+    order = np.argsort(offs, axis=0, kind="stable")                            # (P, N)
+    srt = np.take_along_axis(offs, order, axis=0)
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.arange(n_planes)[:, None], axis=0)
+    slot = np.zeros(hv.shape, np.int8 if n_planes < 127 else np.int64)
+    for q in range(n_planes):
+        slot += srt[q][:, None] <= hv
+    sa, sb = slot[:, local[ea[cand]]], slot[:, local[eb[cand]]]                # (N, C)
+    start = np.minimum(sa, sb).ravel()
+    cnt = np.abs(sa.astype(np.int64) - sb).ravel() if n_planes >= 127 else np.abs(sa - sb).ravel()
+    cell = np.flatnonzero(cnt)                                                 # (body, candidate)
+    c = cnt[cell].astype(np.int64)
+    first_of_cell = np.cumsum(c) - c
+    if len(c) and c.max() > 1:
+        rep = np.repeat(np.arange(len(cell)), c)
+        pos = np.arange(len(rep)) - first_of_cell[rep] + start[cell][rep]
+        fl = cell[rep]
+    else:
+        pos, fl = start[cell].astype(np.int64), cell
+    b, j = fl // n_cand, fl % n_cand
+    p = order[pos, b]
+    e = cand[j]
+    off = offs[p, b]
+    hflat = hv.ravel()
+    h_a, h_b = hflat[b * len(cv) + local[ea[e]]], hflat[b * len(cv) + local[eb[e]]]
+    va_, vb_ = b * nv + ea[e], b * nv + eb[e]
+    da = h_a.astype(float) - off
+    db = h_b.astype(float) - off
+    t = (da / (da - db))[:, None]                                              # signs differ: no 0/0
+    flat_v = v.reshape(-1, 3)
+    pa, pb = np.take(flat_v, va_, axis=0), np.take(flat_v, vb_, axis=0)
+    first = np.zeros(len(cnt), dtype=np.int64)
+    first[cell] = first_of_cell
+    cand_of = np.full(len(edges), -1, dtype=np.int64)
+    cand_of[cand] = np.arange(n_cand)
+    return _Crossings(pa + t * (pb - pa), p, b, e, h_a, off, hv, local, n_cand, cand_of, first,
+                      start.astype(np.int64), rank)
+
+
+@dataclass
+class HeightBounds:
+    """Vertex heights ``h`` (N, V) float32 within ``tol`` of ``vertex_heights`` (exact if 0).
+
+    Only used to rule out edges that cannot cross (with ``tol`` to spare); the crossings
+    themselves always use the exact heights.
+    """
+
+    h: np.ndarray
+    tol: float
+
+
+def approx_heights(planes: tuple, normals: np.ndarray, scale: float) -> HeightBounds:
+    """Float32 heights from the coordinate planes ``planes`` = (x, y, z), each (N, V) float32,
+    of bodies whose coordinates satisfy |x| + |y| + |z| <= ``scale``: 3x cheaper than the exact
+    einsum, within 2^-18 * scale of it (float32 rounding is below 2^-21 * scale here)."""
+    n = np.asarray(normals, dtype=np.float32)
+    x, y, z = planes
+    h = x * n[:, :1]
+    h += y * n[:, 1:2]
+    h += z * n[:, 2:]
+    return HeightBounds(h, float(2.0 ** -18 * scale))
+
+
+def vertex_heights(vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Signed heights (N, V) of the vertices along unit ``normals`` (N, 3), in float32.
+
+    Float32 (0.1 um at 1 m): the passes over the heights are memory-bound and this halves them;
+    the crossing points themselves are interpolated in float64.
+    """
+    return np.einsum("nvi,ni->nv", np.asarray(vertices, dtype=float),
+                     np.asarray(normals, dtype=float)).astype(np.float32)
 
 
 def _assemble(points: np.ndarray, b: np.ndarray, e: np.ndarray, edge_faces: np.ndarray,
@@ -228,6 +415,67 @@ def hull_perimeter(xy: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.linalg.norm(h - np.roll(h, -1, axis=0), axis=1).sum()), idx
 
 
+def hull_perimeters(xy: np.ndarray, starts: np.ndarray, max_rounds: int = 64) -> np.ndarray:
+    """Convex-hull perimeters (G,) of G point groups at once: ``xy`` (K, 2), group g is
+    ``xy[starts[g]:starts[g + 1]]``. NaN where a group needs ``hull_perimeter`` (fewer than
+    four points, degenerate, or not settled in ``max_rounds``).
+
+    Vectorized over all groups (no per-contour call): sort each group by angle around its
+    centroid (strictly inside the hull), then repeatedly drop every point that does not turn
+    left between its neighbours (it lies in the triangle centroid-prev-next, so it is not a
+    hull vertex); what remains is the hull in counter-clockwise order. Same hull as Qhull, so
+    the same perimeter up to rounding (1e-16 relative).
+    """
+    k = len(xy)
+    n_groups = len(starts)
+    out = np.full(n_groups, np.nan)
+    if k == 0:
+        return out
+    size = np.diff(np.r_[starts, k])
+    g = np.repeat(np.arange(n_groups), size)
+    c = np.add.reduceat(xy, starts, axis=0) / size[:, None]
+    r = xy - c[g]
+    ang = np.arctan2(r[:, 1], r[:, 0])
+    rad = np.einsum("ki,ki->k", r, r)
+    order = np.lexsort((-rad, ang, g))
+    g, r, ang = g[order], r[order], ang[order]
+    # Points on one ray from the centroid: only the farthest can be a hull vertex (this also
+    # drops duplicates).
+    keep = np.r_[True, (g[1:] != g[:-1]) | (ang[1:] != ang[:-1])]
+    g, r = g[keep], r[keep]
+    settled = False
+    for _ in range(max_rounds):
+        first = np.r_[True, g[1:] != g[:-1]]
+        last = np.r_[first[1:], True]
+        idx = np.arange(len(g))
+        grp_start = np.maximum.accumulate(np.where(first, idx, 0))
+        nxt = np.where(last, 0, idx + 1)
+        nxt[last] = grp_start[last]
+        prv = np.where(first, 0, idx - 1)
+        grp_end = np.flatnonzero(last)
+        prv[first] = grp_end
+        a, b = r[prv], r[nxt]
+        turn = (r[:, 0] - a[:, 0]) * (b[:, 1] - r[:, 1]) - (r[:, 1] - a[:, 1]) * (b[:, 0] - r[:, 0])
+        wedge = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        drop = (turn <= 0) & (wedge > 0)
+        if not drop.any():
+            settled = True
+            break
+        g, r = g[~drop], r[~drop]
+    if not settled:
+        return out
+    ok = np.ones(n_groups, dtype=bool)
+    ok[size < 4] = False
+    cnt = np.bincount(g, minlength=n_groups)
+    ok[cnt < 3] = False
+    ok[g[(turn <= 0) | (wedge <= 0)]] = False                                 # not a convex fan
+    d = b - r
+    length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+    per = np.bincount(g, weights=length, minlength=n_groups)
+    out[ok] = per[ok]
+    return out
+
+
 def support_perimeters(c: Contours, chosen: np.ndarray, normals: np.ndarray, n_dirs: int = 48) -> np.ndarray:
     """Fast estimate (N,) of the chosen contours' hull perimeters (NaN where none).
 
@@ -248,9 +496,12 @@ def support_perimeters(c: Contours, chosen: np.ndarray, normals: np.ndarray, n_d
     x = np.einsum("ki,ki->k", c.points[sel], u[bodies])
     y = np.einsum("ki,ki->k", c.points[sel], w[bodies])
     th = np.linspace(0.0, 2 * np.pi, n_dirs, endpoint=False)
-    proj = x[:, None] * np.cos(th) + y[:, None] * np.sin(th)                 # (K, n_dirs)
+    cos, sin = np.cos(th), np.sin(th)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
-    h = np.maximum.reduceat(proj, starts, axis=0)
+    # One direction at a time: (K,) temporaries stay in cache where a (K, n_dirs) one does not.
+    h = np.empty((len(starts), n_dirs))
+    for d in range(n_dirs):
+        h[:, d] = np.maximum.reduceat(x * cos[d] + y * sin[d], starts)
     out[bodies[starts]] = h.sum(axis=1) * (2 * np.pi / n_dirs)
     return out
 
@@ -276,6 +527,12 @@ def contour_girths(c: Contours, chosen: np.ndarray, normals: np.ndarray,
                    np.einsum("ki,ki->k", c.points[sel], w[bodies])], axis=1)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
     ends = np.r_[starts[1:], len(sel)]
+    if not keep_polylines:
+        # All hulls at once; the rare group the batched hull leaves (NaN) goes to Qhull below.
+        fast = hull_perimeters(xy, starts)
+        girth[bodies[starts]] = fast
+        todo = np.flatnonzero(np.isnan(fast))
+        starts, ends = starts[todo], ends[todo]
     for s, e in zip(starts, ends):
         i = bodies[s]
         girth[i], idx = hull_perimeter(xy[s:e])
