@@ -12,22 +12,14 @@ from bodyspace.encoding.rre import (polar_decomposition, project_to_rotations, q
                                     quaternion_log, rotation_exp, rotation_log)
 from bodyspace.errors import MeshError
 from bodyspace.shape.compare import interpolation_distortion
+from _meshes import open_tube
 
 RNG = np.random.default_rng(7)
 
 
 def tube(rings=24, around=12, length=0.8, radius=0.06):
     """Open cylinder along +y (two boundary loops), rings of ``around`` vertices."""
-    t = 2 * np.pi * np.arange(around) / around
-    y = np.linspace(0, length, rings)
-    v = np.stack([radius * np.cos(t)[None].repeat(rings, 0), y[:, None].repeat(around, 1),
-                  radius * np.sin(t)[None].repeat(rings, 0)], -1).reshape(-1, 3)
-    f = []
-    for r in range(rings - 1):
-        for a in range(around):
-            i, j = r * around + a, r * around + (a + 1) % around
-            f += [[i, i + around, j], [j, i + around, j + around]]
-    return v, np.array(f)
+    return open_tube(rings, around, length, radius)
 
 
 def bend(v, angle, joint=0.4, band=0.15):

@@ -10,21 +10,13 @@ from bodyspace.mesh.operators import (cotangent_laplacian, deformation_gradients
                                       gradient_operator, triangle_frames)
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints
 from bodyspace.mesh.topology import (check_same_topology, check_topology, edges, face_adjacency,
+from _meshes import open_tube
                                      face_components, spanning_forest, vertex_components)
 
 
 def tube(rings=6, around=8, length=1.0, radius=0.2):
-    """Open cylinder along y: two boundary loops."""
-    t = 2 * np.pi * np.arange(around) / around
-    y = np.linspace(0, length, rings)
-    v = np.stack([radius * np.cos(t)[None].repeat(rings, 0), y[:, None].repeat(around, 1),
-                  radius * np.sin(t)[None].repeat(rings, 0)], -1).reshape(-1, 3)
-    f = []
-    for r in range(rings - 1):
-        for a in range(around):
-            i, j = r * around + a, r * around + (a + 1) % around
-            f += [[i, i + around, j], [j, i + around, j + around]]
-    return v, np.array(f)
+    """Open cylinder along +y (two boundary loops), rings of ``around`` vertices."""
+    return open_tube(rings, around, length, radius)
 
 
 @pytest.fixture
