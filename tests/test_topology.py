@@ -10,8 +10,8 @@ from bodyspace.mesh.operators import (cotangent_laplacian, deformation_gradients
                                       gradient_operator, triangle_frames)
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints
 from bodyspace.mesh.topology import (check_same_topology, check_topology, edges, face_adjacency,
-from _meshes import open_tube
                                      face_components, spanning_forest, vertex_components)
+from _meshes import open_tube
 
 
 def tube(rings=6, around=8, length=1.0, radius=0.2):
