@@ -17,9 +17,11 @@ except ModuleNotFoundError:  # not installed: run from the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from bodyspace.errors import AssetError, ParameterError
-from bodyspace.rig.kinematics import (bone_rest_frames, forward_kinematics, linear_blend_skinning,
-                                      matrix_to_rotvec, rotvec_to_matrix, topological_order)
-from bodyspace.rig.poses import LIBRARY_PATH, load_pose_library, place_on_ground, pose_bodies
+from bodyspace.rig.kinematics import (bone_rest_frames, dual_quaternion_skinning, forward_kinematics,
+                                      linear_blend_skinning, matrix_to_rotvec, rotvec_to_matrix,
+                                      topological_order)
+from bodyspace.rig.poses import (LIBRARY_PATH, count_folded_triangles, load_pose_library, place_on_ground,
+                                 pose_bodies)
 
 FLIP_X = np.array([-1.0, 1.0, 1.0])
 
@@ -384,3 +386,58 @@ def test_pose_bodies_batches_and_shapes(rig, body, library):
     moved = place_on_ground(batch + 1.0, np.ones((3, 3)), np.zeros((3, 3)))
     np.testing.assert_allclose(moved[:, :, 1].min(axis=1), 0, atol=1e-12)
     np.testing.assert_allclose(moved[:, :, [0, 2]], batch[:, :, [0, 2]], atol=1e-12)
+
+
+def test_dqs_matches_lbs_for_rigid_parts_and_keeps_identity():
+    rng = np.random.default_rng(2)
+    V, B, N = 40, 4, 3
+    G = np.tile(np.eye(4), (N, B, 1, 1))
+    G[..., :3, :3] = rotvec_to_matrix(rng.normal(size=(N, B, 3)))
+    G[..., :3, 3] = rng.normal(size=(N, B, 3))
+    v = rng.normal(size=(N, V, 3))
+    W = np.zeros((V, B))
+    W[np.arange(V), rng.integers(0, B, V)] = 1.0                # one bone per vertex: rigid
+    np.testing.assert_allclose(dual_quaternion_skinning(v, sp.csr_matrix(W), G), linear_blend_skinning(v, W, G),
+                               atol=1e-12)
+    W = rng.uniform(size=(V, B))
+    W /= W.sum(1, keepdims=True)
+    same = np.broadcast_to(G[:, :1], G.shape)                  # every bone moves alike
+    np.testing.assert_allclose(dual_quaternion_skinning(v, W, same), linear_blend_skinning(v, W, same), atol=1e-12)
+    np.testing.assert_array_equal(dual_quaternion_skinning(v, W, np.tile(np.eye(4), (N, B, 1, 1))), v)
+
+
+def test_count_folded_triangles_on_a_grid():
+    # a flat 2x2 grid of 8 triangles: no folds; pushing the centre far through a neighbour folds
+    xy = np.array([[x, y, 0.0] for y in range(3) for x in range(3)])
+    faces = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]])
+    assert count_folded_triangles(xy, faces) == 0
+    bent = xy.copy()
+    bent[4] = [2.6, 2.6, 0.0]                                      # the centre crosses vertex 8
+    assert count_folded_triangles(np.stack([xy, bent]), faces).tolist()[0] == 0
+    assert count_folded_triangles(bent, faces) > 0
+
+
+# Folded triangles a library pose may add to its rest mesh (docs/poses.md, "Folds"): with the
+# default smoothed weights the worst scan (squat, heavy body) adds 18; MakeHuman's weights as
+# shipped add up to 62.
+MAX_NEW_FOLDS = 24
+
+
+def test_library_poses_fold_little_with_the_default_skinning(template, rig, library):
+    from bodyspace.data.phenotype import PhenotypeModel
+    bodies = PhenotypeModel(template).vertices({"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0],
+                                                "muscle": [0.5, 0.5, 0.0], "height": [0.6, 0.4, 0.5]})
+    R = library.stack(library.names, rig)
+    rest = count_folded_triangles(bodies, template.faces)       # fingers/toes of some phenotypes
+    total_old = total_new = 0
+    for body, r in zip(bodies, rest):
+        many = np.broadcast_to(body, (len(R),) + body.shape)
+        new = dict(zip(library.names, count_folded_triangles(pose_bodies(many, rig, R), template.faces) - r))
+        old = count_folded_triangles(pose_bodies(many, rig, R, weights="original"), template.faces) - r
+        assert max(new.values()) <= MAX_NEW_FOLDS, new
+        # the armpit no longer folds when the arms go up
+        for name in ("arms_overhead", "arm_raised_left", "arm_raised_right", "hands_behind_head", "t_pose"):
+            assert new[name] <= 0, (name, new[name])
+        total_new += sum(max(c, 0) for c in new.values())
+        total_old += np.clip(old, 0, None).sum()
+    assert total_new < 0.5 * total_old, (total_new, total_old)

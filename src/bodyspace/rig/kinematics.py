@@ -218,6 +218,75 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     return out
 
 
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products (..., 4) of quaternions (w, x, y, z)."""
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def dual_quaternion_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarray,
+                             transforms: np.ndarray) -> np.ndarray:
+    """Dual-quaternion skinning (Kavan et al. 2008): blend unit dual quaternions, not matrices.
+
+    vertices: (N, V, 3) rest-pose vertices, or (V, 3) shared by the batch.
+    weights: (V, B) skin weights (sparse or dense), rows summing to one.
+    transforms: (N, B, 4, 4) rigid bone transforms from ``forward_kinematics``.
+    Returns (N, V, 3).
+
+    Each bone's ``G_b`` becomes a unit dual quaternion ``q_b + eps q'_b`` with
+    ``q'_b = (0, t_b) q_b / 2``; per vertex the weighted sum over its bones (each bone's sign
+    flipped into the hemisphere of the vertex's heaviest bone, so ``q`` and ``-q`` blend as the
+    same rotation) is normalized and applied as a rigid transform. The blend of rotations
+    stays a rotation, so the skin no longer collapses where a joint twists or bends far (LBS's
+    candy wrapper and its armpit/groin folds); it bulges slightly instead. All ``G_b = I``
+    returns the input bit for bit, like ``linear_blend_skinning``.
+    """
+    G = np.asarray(transforms, dtype=float)
+    if G.ndim != 4 or G.shape[-2:] != (4, 4):
+        raise ParameterError(f"transforms: shape {G.shape}, expected (N, B, 4, 4)")
+    N, B = G.shape[:2]
+    v = np.asarray(vertices, dtype=float)
+    if v.ndim == 2:
+        v = np.broadcast_to(v, (N,) + v.shape)
+    if v.ndim != 3 or v.shape[0] != N or v.shape[2] != 3:
+        raise MeshError(f"vertices: shape {np.shape(vertices)}, expected ({N}, V, 3) or (V, 3)")
+    V = v.shape[1]
+    if weights.shape != (V, B):
+        raise ParameterError(f"weights: shape {weights.shape}, expected ({V}, {B}) for {V} vertices and {B} bones")
+    W = sp.csr_matrix(weights)
+    W.sum_duplicates()
+    W.eliminate_zeros()
+    counts = np.diff(W.indptr)
+    if (counts == 0).any():
+        raise ParameterError(f"weights: vertex {int(np.flatnonzero(counts == 0)[0])} has no bone; "
+                             "expected every row to sum to one")
+    row = np.repeat(np.arange(V), counts)
+    col, w = W.indices, W.data
+    pivot = col[W.indptr[:-1] + np.array([np.argmax(W.data[a:b]) for a, b in zip(W.indptr[:-1], W.indptr[1:])])]
+    qr = matrix_to_quaternion(G[..., :3, :3])                             # (N, B, 4)
+    t = np.concatenate([np.zeros((N, B, 1)), G[..., :3, 3]], -1)
+    qd = 0.5 * _quat_mul(t, qr)                                           # (N, B, 4)
+    Q = np.concatenate([qr, qd], -1)                                      # (N, B, 8)
+    out = np.empty((N, V, 3))
+    chunk = max(1, _LBS_CHUNK_ELEMENTS // (len(col) * 8))
+    for s in range(0, N, chunk):
+        q = Q[s:s + chunk]
+        n = q.shape[0]
+        sign = np.where(np.einsum("nki,nki->nk", q[:, col, :4], q[:, pivot[row], :4]) < 0, -1.0, 1.0)
+        blended = np.add.reduceat(q[:, col] * (w * sign)[..., None], W.indptr[:-1], axis=1)   # (n, V, 8)
+        norm = np.linalg.norm(blended[..., :4], axis=-1, keepdims=True)
+        b0, be = blended[..., :4] / norm, blended[..., 4:] / norm
+        qw, qv = b0[..., :1], b0[..., 1:]
+        x = v[s:s + n]
+        # R x = x + 2 w (qv × x) + 2 qv × (qv × x); t = 2 (be conj(b0)).xyz
+        c = np.cross(qv, x)
+        trans = 2.0 * (qw * be[..., 1:] - be[..., :1] * qv + np.cross(qv, be[..., 1:]))
+        out[s:s + n] = x + (2.0 * qw * c + 2.0 * np.cross(qv, c) + trans)
+    return out
+
+
 # --------------------------------------------------------------------------- Blender frames
 
 def _blender_vec_roll_to_mat3(nor: np.ndarray, roll: np.ndarray) -> np.ndarray:
