@@ -161,5 +161,9 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
     for name in ("rre", "vertex"):
         e = np.asarray(gen["error_mm"][name])
         assert e.shape == (len(gen["components"]),) and np.isfinite(e).all() and (e > 0).all()
+        # Aligning each region rigidly first leaves only the local shape error: never much larger.
+        local = np.asarray(gen["local_error_mm"][name])
+        assert local.shape == e.shape and np.isfinite(local).all() and (local <= 1.05 * e + 1e-6).all()
+    assert gen["local_regions"] == 12
     files = write_generalization_report(gen, tmp_path)
     assert json.loads((tmp_path / files["json"]).read_text())["units"]["error"] == "mm"
