@@ -1,7 +1,9 @@
 """Semantic generation: a body meeting targets, a (masked) morph, a crowd of 20, with the share of
-time in decoding, measuring and solving.
+time in decoding, measuring and solving; then the random-request study (200 requests of stature,
+mass and waist together inside the population's 2nd-98th percentiles: success rate, error
+percentiles, time per request).
 
-    python benchmarks/bench_semantics.py [--subjects 24] [--encoding vertex|rre]
+    python benchmarks/bench_semantics.py [--subjects 24] [--encoding vertex|rre] [--requests 200] [--out DIR]
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bodyspace.data.population import build_population  # noqa: E402
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.model import BodyModel  # noqa: E402
+from bodyspace.report.semantic_report import format_request_report, request_study, write_request_report  # noqa: E402
 from bodyspace.semantics.model import SemanticModel  # noqa: E402
 
 
@@ -31,6 +34,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--subjects", type=int, default=24)
     ap.add_argument("--encoding", default="vertex")
+    ap.add_argument("--requests", type=int, default=200, help="random requests in the study (0: skip)")
+    ap.add_argument("--out", default=None, help="folder for requests.md/json (default: print only)")
     args = ap.parse_args()
     template = load_template()
     with tempfile.TemporaryDirectory() as tmp:
@@ -67,6 +72,20 @@ def main() -> None:
         print(f"crowd of 20 (female, 65 kg, 155-185 cm): {total:.2f} s ({total / 20 * 1000:.0f} ms a body), "
               f"{sum(c.converged for c in crowd)}/20 converged, corrections mean {its.mean():.1f} max {its.max()}; "
               f"{_share(agg, total)}")
+
+        if args.requests > 0:
+            study = request_study(sm, n=args.requests, rng=0)
+            e = study["errors"]
+            print(f"request study: {study['successes']}/{study['n']} ({100 * study['success_rate']:.1f}%) within "
+                  f"tolerance; |error| p50/p90/p99/max: "
+                  + "; ".join(f"{k} {v['p50']:.2f}/{v['p90']:.2f}/{v['p99']:.2f}/{v['max']:.2f} {v['unit']}"
+                              for k, v in e.items())
+                  + f"; {study['time_s']['mean']:.2f} s a request (median {study['time_s']['median']:.2f}, "
+                  f"max {study['time_s']['max']:.2f})")
+            if args.out:
+                write_request_report(study, args.out)
+            else:
+                print(format_request_report(study))
 
 
 if __name__ == "__main__":

@@ -192,3 +192,21 @@ def test_cli_crowd_and_evaluate(setup, app, tmp_path):
     assert r.exit_code == 0, r.output
     text = (tmp_path / "m.evaluation.md").read_text()
     assert "filtered linear" in text and "non-linear" in text and "μ" in text and "stature (cm)" in text
+
+
+def test_request_study_small(setup, tmp_path):
+    import json
+
+    from bodyspace.report.semantic_report import request_study, write_request_report
+    _, _, _, sm = setup
+    study = request_study(sm, n=40, rng=0)
+    assert study["n"] == 40 and study["success_rate"] == 1.0, study["failures"]
+    for name, (lo, hi) in study["box"].items():
+        asked = np.array([r["asked"][name] for r in study["requests"]])
+        assert lo <= asked.min() and asked.max() <= hi
+    assert study["errors"]["stature"]["max"] <= 4.0 and study["errors"]["mass"]["max"] <= 0.5
+    assert study["errors"]["waist_girth"]["unit"] == "mm" and study["errors"]["waist_girth"]["max"] <= 9.0
+    assert sm.mset.names == tuple(m["name"] for m in sm.mset.measurements) and len(sm.mset.names) > 5
+    files = write_request_report(study, tmp_path)
+    assert "40/40" in (tmp_path / files["md"]).read_text()
+    assert json.loads((tmp_path / files["json"]).read_text())["successes"] == 40

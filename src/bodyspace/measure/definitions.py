@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from bodyspace.errors import BodyspaceError, MeasurementError
+from bodyspace.errors import MeasurementError
 
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"

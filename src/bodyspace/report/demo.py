@@ -6,7 +6,9 @@ shows is one a user can run on its own (``bodyspace assets``, ``bodyspace popula
 
 from __future__ import annotations
 
+import csv
 import time
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -30,6 +32,19 @@ SAMPLES = 8
 INTERPOLATION_SUBJECTS = 2
 GENERALIZATION_FOLDS = 5
 GENERALIZATION_COMPONENTS = (1, 4, 16)
+# Semantic part: requested bodies, a crowd, and the random-request study. The study asks for
+# 200 requests (issue), but a request costs ~0.5-1 s (closed loop: ~10 decode + measure), so the
+# demo runs the largest number that keeps it within its 60 s budget; benchmarks/bench_semantics.py
+# runs all 200. Below SEMANTIC_MIN_SUBJECTS (e.g. the CLI test's 4) the study is skipped.
+DEMO_REQUESTS = 40
+FULL_REQUESTS = 200
+SEMANTIC_MIN_SUBJECTS = 8
+CROWD = 12
+REQUESTED = (("180 cm, 80 kg, male", {"stature": 1.80, "mass": 80.0, "sex": 1.0}),
+             ("165 cm, 60 kg, female", {"stature": 1.65, "mass": 60.0, "sex": 0.0}),
+             ("190 cm, 95 kg, male", {"stature": 1.90, "mass": 95.0, "sex": 1.0}),
+             ("155 cm, 50 kg, female", {"stature": 1.55, "mass": 50.0, "sex": 0.0}))
+TALLER_CM = (0, 3, 6, 9)
 
 
 def population_summary(db, survey: dict) -> dict:
@@ -104,7 +119,8 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
     timings["render_s"] = time.perf_counter() - t
 
     shape_summary = shape_space_demo(db, template, out, seed, timings,
-                                     lambda m, f: report(m, 0.75 + 0.24 * f))
+                                     lambda m, f: report(m, 0.75 + 0.14 * f))
+    semantic_summary = semantic_demo(db, template, out, seed, timings, lambda m, f: report(m, 0.89 + 0.1 * f))
 
     summary = {
         "output": str(out.resolve()),
@@ -114,8 +130,10 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
                      "vertices": db.n_vertices, "poses": sorted(set(db.scans["pose"].tolist()))},
         "survey": survey["citation"],
         "population": summary_pop,
-        "pictures": ["lineup.png", "poses.png", "scans.png", "histograms.png"] + shape_summary.pop("pictures"),
+        "pictures": ["lineup.png", "poses.png", "scans.png", "histograms.png"] + shape_summary.pop("pictures")
+                    + semantic_summary.pop("pictures"),
         **shape_summary,
+        **semantic_summary,
         "timings_s": {k: round(v, 2) for k, v in timings.items()},
         "units": {"stature": "cm", "mass": "kg", "bmi": "kg/m^2", "interpolation": "fraction",
                   "generalization_error": "mm"},
@@ -178,4 +196,170 @@ def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) 
         "generalization": {"selection": "rest", "folds": general["folds"], "components": general["components"],
                            "error_mm": general["error_mm"], **general_files},
         "pictures": ["samples.png", interp_files["png"], general_files["png"]],
+    }
+
+
+def _cm_kg(values: dict) -> dict:
+    """Measured labels in display units (cm, kg; sex and other model labels as they are)."""
+    from bodyspace.units import kind_of
+    out = {}
+    for k, v in values.items():
+        kind = kind_of(k)
+        out[f"{k}_cm" if kind == "length" else f"{k}_kg" if kind == "mass" else k] = \
+            round(float(v) * (100.0 if kind == "length" else 1.0), 2)
+    return out
+
+
+def semantic_demo(db, template, out: Path, seed: int, timings: dict, report) -> dict:
+    """Fit a shape-only vertex-encoding BodyModel and its SemanticModel, then: requested bodies
+    (``requested.png``), taller at the same mass (``taller_same_weight.png``), a masked morph
+    (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Table 1 and Table 2
+    (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``)."""
+    from bodyspace.atomic import atomic_path
+    from bodyspace.report.semantic_report import request_study, write_request_report
+    from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+    from bodyspace.semantics.model import SemanticModel
+    from bodyspace.units import kind_of
+
+    messages: list = []
+    t = time.perf_counter()
+    report("fitting the semantic model (vertex encoding, rest scans)", 0.0)
+    bm = BodyModel.fit(db, "vertex", "rest", template=template, on_flipped="ignore")
+    sm = SemanticModel(bm, on_infeasible="clamp").fit(db, rng=seed, template=template)
+    timings["semantic_fit_s"] = time.perf_counter() - t
+    n_subj = len(sm.X_)
+    faces = bm.faces
+
+    def run(fn, *a, **kw):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            r = fn(*a, **kw)
+        messages.extend(str(w.message) for w in caught)
+        return r
+
+    def st_kg(r):
+        m = r.measurements
+        return f"{100 * m['stature']:.1f} cm, {m['mass']:.1f} kg"
+
+    # requested bodies
+    t = time.perf_counter()
+    report("generating requested bodies", 0.05)
+    requested, rows = [], []
+    for i, (title, targets) in enumerate(REQUESTED):
+        targets = {k: v for k, v in targets.items() if k in sm.labels_}
+        r = run(sm.generate, targets, rng=seed + i)
+        requested.append(r)
+        rows.append({"request": title, "converged": r.converged, "iterations": r.iterations,
+                     "measured": _cm_kg({k: r.measurements[k] for k in sm.measured_}),
+                     **({"sex_model": round(r.values["sex"], 3)} if "sex" in r.values else {})})
+    contact_sheet(np.array([r.vertices for r in requested]), faces, out / "requested.png",
+                  labels=[f"asked {title}\nmeasured {st_kg(r)}" for (title, _), r in zip(REQUESTED, requested)],
+                  title="requested bodies (closed loop: within 4 mm stature, 0.5 kg mass)")
+    timings["semantic_requested_s"] = time.perf_counter() - t
+
+    # taller, same weight
+    t = time.perf_counter()
+    report("morphing: taller, same weight", 0.15)
+    base = requested[1]
+    seq = [base] + [run(sm.morph, base.vertices, {"stature": d / 100.0}, keep=["mass"]) for d in TALLER_CM[1:]]
+    contact_sheet(np.array([r.vertices for r in seq]), faces, out / "taller_same_weight.png",
+                  labels=[f"+{d} cm\n{st_kg(r)}" for d, r in zip(TALLER_CM, seq)],
+                  title="taller, same weight (morph with keep=mass)")
+    taller = [{"change_cm": d, "measured": _cm_kg({k: r.measurements[k] for k in ("stature", "mass")}),
+               "converged": r.converged} for d, r in zip(TALLER_CM, seq)]
+    timings["semantic_taller_s"] = time.perf_counter() - t
+
+    # masked morph: more muscular, upper body only
+    t = time.perf_counter()
+    report("morphing: more muscular, upper body only", 0.25)
+    x0 = requested[0].vertices
+    if "muscle" in sm.labels_:
+        name = "muscle"
+        y = sm.Y_[:, sm.labels_.index("muscle")]
+        change = float(2.0 * np.nanstd(y))
+    else:  # too few subjects to regress muscle: heavier instead
+        name, change = "mass", 5.0
+    if sm.regions_:
+        mm = run(sm.morph, x0, {name: change}, mask="upper_body")
+        w = sm.regions_["upper_body"]
+        moved = np.linalg.norm(mm.vertices - x0, axis=1)
+        outside = float(1000 * moved[w == 0].max()) if np.any(w == 0) else 0.0
+    else:
+        mm, outside = run(sm.morph, x0, {name: change}), float("nan")
+        moved = np.linalg.norm(mm.vertices - x0, axis=1)
+    contact_sheet(np.array([x0, mm.vertices]), faces, out / "muscle_upper_body.png", views=("front", "side"),
+                  labels=[f"before\n{name} {mm.values[name] - change:.3g}",
+                          f"{name} {change:+.3g}, upper body only\nmax move outside mask {outside:.2f} mm"],
+                  title=f"masked morph: more {'muscular' if name == 'muscle' else 'mass'}, upper body only")
+    masked = {"label": name, "change": change, "reached": round(float(mm.values[name]), 4),
+              "max_displacement_inside_mm": round(float(1000 * moved.max()), 2),
+              "max_displacement_outside_mm": round(outside, 4), "converged": mm.converged}
+    timings["semantic_masked_morph_s"] = time.perf_counter() - t
+
+    # a crowd
+    t = time.perf_counter()
+    report("generating a crowd", 0.35)
+    k = CROWD if n_subj >= SEMANTIC_MIN_SUBJECTS else 4
+    ask = {"sex": 0.0, "mass": 65.0, "stature": (1.55, 1.85)}
+    ask = {a: v for a, v in ask.items() if a in sm.labels_}
+    crowd = run(sm.crowd, k, ask, rng=seed)
+    crowd_rows = []
+    for i, r in enumerate(crowd):
+        row = {"body": i, "converged": r.converged, "iterations": r.iterations}
+        row.update(_cm_kg({m: r.measurements[m] for m in sm.measured_}))
+        row.update({f"{lab} (model)": round(float(sm.regressors_[lab].predict(r.coefficients)), 3)
+                    for lab in sm.labels_ if lab not in sm.measured_})
+        crowd_rows.append(row)
+    with atomic_path(out / "crowd.csv") as tmp, open(tmp, "w", newline="") as fh:
+        wr = csv.DictWriter(fh, fieldnames=list(crowd_rows[0]))
+        wr.writeheader()
+        wr.writerows(crowd_rows)
+    order = np.argsort([r.measurements["stature"] for r in crowd])
+    contact_sheet(np.array([crowd[i].vertices for i in order]), faces, out / "crowd.png",
+                  labels=[st_kg(crowd[i]) for i in order],
+                  title=f"crowd of {k}: women of 65 kg, stature 155-185 cm")
+    timings["semantic_crowd_s"] = time.perf_counter() - t
+
+    # Table 1 and Table 2
+    t = time.perf_counter()
+    report("Table 1 and Table 2", 0.45)
+    folds = min(10, n_subj)
+    table1, table2 = sm.evaluate(folds=folds, rng=seed)
+    unit = {"length": "cm", "mass": "kg", "age": "years", "percent": "%"}
+    scale = np.array([100.0 if kind_of(n) == "length" else 1.0 for n in table1.labels])
+    names = [f"{n} ({unit.get(kind_of(n), '1')})" for n in table1.labels]
+    shown = RegressionTable(table1.regressors, names, table1.rmse * scale, table1.n_samples, table1.folds)
+    (out / "semantic_tables.md").write_text(
+        f"# Semantic regressors (vertex encoding, {bm.n_components} components)\n\n"
+        f"## Table 1: RMSE ({table1.folds}-fold cross-validation, {n_subj} subjects, each once)\n\n"
+        f"{format_rmse_table(shown, markdown=True)}\n\n"
+        f"## Table 2: angles between the non-linear model's morphing directions (degrees)\n\n"
+        f"{format_angle_table(table2, markdown=True)}\n")
+    timings["semantic_tables_s"] = time.perf_counter() - t
+
+    # random-request study
+    t = time.perf_counter()
+    study_entry = {"skipped": f"{n_subj} subjects, fewer than {SEMANTIC_MIN_SUBJECTS}"}
+    if n_subj >= SEMANTIC_MIN_SUBJECTS:
+        report("random-request study", 0.55)
+        study = request_study(sm, n=DEMO_REQUESTS, rng=seed, progress=lambda m, f: report(m, 0.55 + 0.45 * f))
+        files = write_request_report(study, out)
+        study_entry = {"n": study["n"], "asked_n": FULL_REQUESTS,
+                       "why_fewer": f"{FULL_REQUESTS} requests (~0.2 s each on 2 cores) do not fit the "
+                                    f"demo's 60 s budget; {DEMO_REQUESTS} do. "
+                                    "benchmarks/bench_semantics.py runs all of them",
+                       "success_rate": study["success_rate"], "errors": study["errors"],
+                       "time_per_request_s": study["time_s"]["mean"], **files}
+    timings["semantic_requests_s"] = time.perf_counter() - t
+
+    return {
+        "semantic": {"model": {"encoding": "vertex", "selection": "rest", "components": bm.n_components,
+                               "labels": sm.labels_},
+                     "requested": rows, "requested_png": "requested.png",
+                     "taller_same_weight": taller, "masked_morph": masked,
+                     "crowd": {"n": k, "asked": {a: list(v) if isinstance(v, tuple) else v for a, v in ask.items()},
+                               "converged": int(sum(r.converged for r in crowd)), "csv": "crowd.csv"},
+                     "tables": {"file": "semantic_tables.md", "folds": folds},
+                     "requests": study_entry, "warnings": messages},
+        "pictures": ["requested.png", "taller_same_weight.png", "muscle_upper_body.png", "crowd.png"],
     }

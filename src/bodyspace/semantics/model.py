@@ -39,6 +39,8 @@ rebuilds the surface, spreading the seam with no step (``MaskedBlend``).
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import time
 import warnings
@@ -223,6 +225,7 @@ class SemanticModel:
         self.max_iter = int(max_iter)
         self.on_infeasible = on_infeasible
         self._mset = None
+        self._label_mset = None
 
     # ------------------------------------------------------------------ fitting
     @property
@@ -232,9 +235,17 @@ class SemanticModel:
             self._mset = load_measurement_set()
         return self._mset
 
-    def _measure(self, vertices) -> dict:
+    def _measure(self, vertices, labels_only: bool = False) -> dict:
+        """Measurements of bodies; ``labels_only`` evaluates just the measured labels (the
+        generation loop needs nothing else, and the full set costs about twice as much)."""
         from bodyspace.measure import measure
-        return measure(self.mset, vertices, self.body_model.faces)
+        mset = self.mset
+        if labels_only:
+            if getattr(self, "_label_mset", None) is None:
+                self._label_mset = dataclasses.replace(
+                    mset, measurements=tuple(m for m in mset.measurements if m["name"] in self.measured_))
+            mset = self._label_mset
+        return measure(mset, vertices, self.body_model.faces)
 
     def fit(self, db, measured=MEASURED_LABELS, subject_labels=None, rng=0, template=None) -> "SemanticModel":
         """Labels and regressors from ``db`` (the database the body model was fitted on): one
@@ -338,7 +349,7 @@ class SemanticModel:
         meas = {}
         if any(n in self.measured_ for n in names):
             t = time.perf_counter()
-            meas = self._measure(x)
+            meas = self._measure(x, labels_only=True)
             timings["measure"] += time.perf_counter() - t
         return np.array([float(meas[n]) if n in self.measured_ else float(self.regressors_[n].predict(c))
                          for n in names]), meas
