@@ -29,14 +29,14 @@ from bodyspace.report.shape_report import (generalization_study, interpolation_s
 # RRE decode on 2 cores; see report/shape_report.py).
 POSE_SHAPE_COMPONENTS = 30
 SAMPLES = 8
-INTERPOLATION_SUBJECTS = 2
-GENERALIZATION_FOLDS = 5
+INTERPOLATION_SUBJECTS = 1
+GENERALIZATION_FOLDS = 4
 GENERALIZATION_COMPONENTS = (1, 4, 16)
 # Semantic part: requested bodies, a crowd, and the random-request study. The study asks for
 # 200 requests (issue), but a request costs ~0.5-1 s (closed loop: ~10 decode + measure), so the
 # demo runs the largest number that keeps it within its 60 s budget; benchmarks/bench_semantics.py
 # runs all 200. Below SEMANTIC_MIN_SUBJECTS (e.g. the CLI test's 4) the study is skipped.
-DEMO_REQUESTS = 40
+DEMO_REQUESTS = 20
 FULL_REQUESTS = 200
 SEMANTIC_MIN_SUBJECTS = 8
 CROWD = 12
