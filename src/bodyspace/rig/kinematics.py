@@ -173,6 +173,23 @@ def forward_kinematics(rotations: np.ndarray, heads: np.ndarray, parents: np.nda
 
 # ---------------------------------------------------------------------------------- skinning
 
+def _skinning_inputs(vertices, weights, transforms) -> tuple[np.ndarray, np.ndarray]:
+    """Validate skinning inputs; return transforms (N, B, 4, 4) and vertices (N, V, 3)."""
+    G = np.asarray(transforms, dtype=float)
+    if G.ndim != 4 or G.shape[-2:] != (4, 4):
+        raise ParameterError(f"transforms: shape {G.shape}, expected (N, B, 4, 4)")
+    N, B = G.shape[:2]
+    v = np.asarray(vertices, dtype=float)
+    if v.ndim == 2:
+        v = np.broadcast_to(v, (N,) + v.shape)
+    if v.ndim != 3 or v.shape[0] != N or v.shape[2] != 3:
+        raise MeshError(f"vertices: shape {np.shape(vertices)}, expected ({N}, V, 3) or (V, 3)")
+    V = v.shape[1]
+    if weights.shape != (V, B):
+        raise ParameterError(f"weights: shape {weights.shape}, expected ({V}, {B}) for {V} vertices and {B} bones")
+    return G, v
+
+
 def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarray,
                           transforms: np.ndarray) -> np.ndarray:
     """Linear blend skinning: ``v'_i = (sum_b w_ib G_b) v_i``.
@@ -192,18 +209,9 @@ def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarra
     pose returns the input bit for bit, and weights that sum to 1 only up to rounding do not
     scale the rest mesh.
     """
-    G = np.asarray(transforms, dtype=float)
-    if G.ndim != 4 or G.shape[-2:] != (4, 4):
-        raise ParameterError(f"transforms: shape {G.shape}, expected (N, B, 4, 4)")
+    G, v = _skinning_inputs(vertices, weights, transforms)
     N, B = G.shape[:2]
-    v = np.asarray(vertices, dtype=float)
-    if v.ndim == 2:
-        v = np.broadcast_to(v, (N,) + v.shape)
-    if v.ndim != 3 or v.shape[0] != N or v.shape[2] != 3:
-        raise MeshError(f"vertices: shape {np.shape(vertices)}, expected ({N}, V, 3) or (V, 3)")
     V = v.shape[1]
-    if weights.shape != (V, B):
-        raise ParameterError(f"weights: shape {weights.shape}, expected ({V}, {B}) for {V} vertices and {B} bones")
     W = sp.csr_matrix(weights) if sp.issparse(weights) else np.asarray(weights, dtype=float)
     out = np.empty((N, V, 3))
     chunk = max(1, _LBS_CHUNK_ELEMENTS // (V * 12))
@@ -243,18 +251,9 @@ def dual_quaternion_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.nda
     candy wrapper and its armpit/groin folds); it bulges slightly instead. All ``G_b = I``
     returns the input bit for bit, like ``linear_blend_skinning``.
     """
-    G = np.asarray(transforms, dtype=float)
-    if G.ndim != 4 or G.shape[-2:] != (4, 4):
-        raise ParameterError(f"transforms: shape {G.shape}, expected (N, B, 4, 4)")
+    G, v = _skinning_inputs(vertices, weights, transforms)
     N, B = G.shape[:2]
-    v = np.asarray(vertices, dtype=float)
-    if v.ndim == 2:
-        v = np.broadcast_to(v, (N,) + v.shape)
-    if v.ndim != 3 or v.shape[0] != N or v.shape[2] != 3:
-        raise MeshError(f"vertices: shape {np.shape(vertices)}, expected ({N}, V, 3) or (V, 3)")
     V = v.shape[1]
-    if weights.shape != (V, B):
-        raise ParameterError(f"weights: shape {weights.shape}, expected ({V}, {B}) for {V} vertices and {B} bones")
     W = sp.csr_matrix(weights)
     W.sum_duplicates()
     W.eliminate_zeros()
