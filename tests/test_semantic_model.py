@@ -210,3 +210,35 @@ def test_request_study_small(setup, tmp_path):
     files = write_request_report(study, tmp_path)
     assert "40/40" in (tmp_path / files["md"]).read_text()
     assert json.loads((tmp_path / files["json"]).read_text())["successes"] == 40
+
+
+def test_generate_measurement_targets(setup, app, tmp_path):
+    """Any length of the measurement set is a target: a Rupprecht loop and an ISO width."""
+    root, _, model, sm = setup
+    assert {"waist_size", "shoulder_width", "thigh_girth_l", "height"} <= set(sm.lengths_)
+    from bodyspace.units import kind_of
+    assert all(kind_of(n) == "length" for n in sm.lengths_)
+    lo, hi = sm.reachable_range("waist_size")
+    lo2, hi2 = sm.reachable_range("shoulder_width")
+    goal = {"waist_size": lo + 0.45 * (hi - lo), "shoulder_width": lo2 + 0.55 * (hi2 - lo2)}
+    result = sm.generate(goal, rng=2)
+    assert result.converged
+    from bodyspace.measure import measure
+    m = measure(sm.mset, result.vertices, model.faces)
+    for name, v in goal.items():
+        assert abs(m[name] - v) <= 0.009, (name, m[name], v)
+    assert set(sm.measured_) <= set(result.measurements)
+    # only what was asked is measured in the loop: the small subset, not the whole set
+    assert "thigh_girth_l" not in result.measurements
+    with pytest.raises(Exception, match="accepted names.*waist_size"):
+        sm.generate({"waist_sizes": 0.8})
+    runner = CliRunner()
+    w = 0.5 * (lo + hi)
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", f"waist_size={100 * w:.1f}cm",
+                            "--out", str(tmp_path / "w.obj")])
+    assert r.exit_code == 0, r.output
+    v, f = load_mesh(tmp_path / "w.obj")
+    assert abs(measure(sm.mset, v, f)["waist_size"] - round(w, 3)) <= 0.0095
+    r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "waist_sizes=80cm",
+                            "--out", str(tmp_path / "x.obj")])
+    assert r.exit_code == 2 and "accepted names" in r.output and "shoulder_width" in r.output

@@ -33,7 +33,8 @@ RefitOption = typer.Option(False, "--refit", help="With --database: fit again ev
 ClampOption = typer.Option(False, "--clamp", help="Clamp requests outside the reachable range (with a warning) "
                                                   "instead of refusing them.")
 SetOption = typer.Option(None, "--set", help="NAME=VALUE with units, e.g. stature=180cm, mass=80kg, sex=female, "
-                                             "stature=+5cm (morph), stature=155:185cm (a range).")
+                                             "waist_size=80cm, thigh_girth_l=55cm (any length of the measurement "
+                                             "set), stature=+5cm (morph), stature=155:185cm (a range).")
 RangeOption = typer.Option(None, "--range", help="NAME=LOW:HIGH with units, e.g. stature=155:185cm.")
 
 
@@ -77,10 +78,15 @@ def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
     return SemanticModel.load(spath, model, on_infeasible=mode)
 
 
-def _targets(sets, ranges, allow_delta: bool) -> dict:
-    from bodyspace.units import UnitError, parse_assignment
+def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
+    """Parse --set/--range; with the semantic model ``sm``, an unknown name is refused (with the
+    accepted names) before its value is parsed."""
+    from bodyspace.units import ALIASES, UnitError, parse_assignment
     out = {}
     for text in list(sets or []) + list(ranges or []):
+        name = str(text).partition("=")[0].strip()
+        if sm is not None and "=" in str(text) and name:
+            sm._regressor(ALIASES.get(name, name))
         t = parse_assignment(text)
         if text in (ranges or []) and t.kind != "range":
             raise UnitError(f"--range {text!r}: expected NAME=LOW:HIGH, e.g. stature=155:185cm")
@@ -156,12 +162,13 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
              seed: int = typer.Option(0, "--seed", help="Random seed for what is not asked."),
              clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
-    """A body that measures what is asked (stature, mass, girths within 4 mm / 0.5 kg / 9 mm); the rest at random."""
+    """A body that measures what is asked (labels such as stature, mass, sex, and any length of the measurement set,
+    e.g. waist_size, shoulder_width: within 4 mm stature / 0.5 kg / 9 mm lengths); the rest at random."""
     try:
-        targets = _targets(sets, ranges, allow_delta=False)
-        if not targets:
+        if not sets and not ranges:
             raise BodyspaceError("nothing asked; pass --set NAME=VALUE, e.g. --set stature=180cm")
         sm = _load(model_file, database, refit, clamp)
+        targets = _targets(sets, ranges, allow_delta=False, sm=sm)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             result = sm.generate(targets, rng=seed)
@@ -185,10 +192,10 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
     from bodyspace.mesh.io import load_mesh
     try:
-        changes = _targets(sets, None, allow_delta=True)
-        if not changes:
+        if not sets:
             raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
         sm = _load(model_file, database, refit, clamp)
+        changes = _targets(sets, None, allow_delta=True, sm=sm)
         v, f = load_mesh(mesh)
         if v.shape != sm.body_model.template_vertices.shape or not np.array_equal(f, sm.body_model.faces):
             raise BodyspaceError(f"{mesh}: {len(v)} vertices / {len(f)} faces, expected the model's template topology "
@@ -219,8 +226,8 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     try:
         if fmt.lower() not in ("obj", "ply", "glb"):
             raise BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb")
-        targets = _targets(sets, ranges, allow_delta=False)
         sm = _load(model_file, database, refit, clamp)
+        targets = _targets(sets, ranges, allow_delta=False, sm=sm)
         with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             # nothing asked: random bodies from the shape-only model

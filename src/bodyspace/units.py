@@ -53,11 +53,14 @@ _QTY = re.compile(rf"^\s*({_NUM})\s*([a-zA-Z%/^0-9]*)\s*$")
 
 
 def kind_of(name: str) -> str:
-    """The kind of variable ``name`` ('length', 'mass', ...): KINDS, else from its suffix."""
+    """The kind of variable ``name`` ('length', 'mass', ...): KINDS, else from its suffix: every
+    length of the measurement set ends in _girth, _length, _width, _height or _size (then
+    optionally _l / _r), e.g. waist_size, thigh_girth_l, shoulder_width, arm_length_r."""
     name = ALIASES.get(name, name)
     if name in KINDS:
         return KINDS[name]
-    if name.endswith(("_girth", "_length", "_width", "_height", "_size")):
+    base = name[:-2] if name.endswith(("_l", "_r")) else name  # left/right measurements: thigh_girth_l
+    if base.endswith(("_girth", "_length", "_width", "_height", "_size")):
         return "length"
     return "ratio"
 

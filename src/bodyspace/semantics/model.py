@@ -8,6 +8,9 @@ Fitted from a shape-only ``BodyModel`` and the scan database it came from: one r
   mesh; during generation they are measured again on every decoded body;
 - *subject* labels (sex 1 = male / 0 = female, age, body fat %, muscle): the database's columns,
   only known through their regressors.
+- *measurement targets* (``lengths_``): every other length of the measurement set (Rupprecht's
+  waist_size, ..., ISO thigh_girth_l, shoulder_width, ...): a regressor each, measured on the
+  decoded body only when asked (the loop measures just the requested names and their dependencies).
 
 Every label gets a ``FilteredLinearRegressor`` on the coefficients (the paper's Table 1 winner),
 whose gradient is its morphing direction.
@@ -179,7 +182,9 @@ class GenerationResult:
     """One generated or morphed body.
 
     coefficients: (K,) PCA coefficients. vertices: (V, 3) metres. values: label -> value reached
-    (measured labels measured on ``vertices``, the others from their regressor). targets: label ->
+    (measured labels measured on ``vertices``, the others from their regressor). measurements: what
+    the loop measured on the final body (the asked names, their dependencies, and, when anything
+    was measured, every core measured label). targets: label ->
     value asked (after ranges were resolved and clamping). converged: every label within its
     tolerance. iterations: closed-loop corrections taken. mahalanobis: ``sqrt(sum c_k^2/var_k)``
     of the step from the start. timings: seconds in decode, measure, solve. messages: warnings.
@@ -225,7 +230,8 @@ class SemanticModel:
         self.max_iter = int(max_iter)
         self.on_infeasible = on_infeasible
         self._mset = None
-        self._label_mset = None
+        self._sub_msets = {}
+        self.lengths_ = []
 
     # ------------------------------------------------------------------ fitting
     @property
@@ -235,16 +241,31 @@ class SemanticModel:
             self._mset = load_measurement_set()
         return self._mset
 
-    def _measure(self, vertices, labels_only: bool = False) -> dict:
-        """Measurements of bodies; ``labels_only`` evaluates just the measured labels (the
-        generation loop needs nothing else, and the full set costs about twice as much)."""
+    def _is_measured(self, name: str) -> bool:
+        return name in self.measured_ or name in self.lengths_
+
+    def _measure(self, vertices, names=None) -> dict:
+        """Measurements of bodies: the whole set, or just ``names`` (plus what they depend on:
+        mass needs stature, bmi mass and stature), in the set's order. The generation loop
+        measures only what the request needs (the full set costs several times as much)."""
         from bodyspace.measure import measure
         mset = self.mset
-        if labels_only:
-            if getattr(self, "_label_mset", None) is None:
-                self._label_mset = dataclasses.replace(
-                    mset, measurements=tuple(m for m in mset.measurements if m["name"] in self.measured_))
-            mset = self._label_mset
+        if names is not None:
+            key = frozenset(names)
+            if key not in self._sub_msets:
+                by_name = {m["name"]: m for m in mset.measurements}
+                need, todo = set(), list(key)
+                while todo:
+                    n = todo.pop()
+                    if n in need or n not in by_name:
+                        continue
+                    need.add(n)
+                    m = by_name[n]
+                    if m["method"] in ("mass", "bmi"):
+                        todo += [m[k] for k in ("stature", "mass") if isinstance(m.get(k), str)]
+                self._sub_msets[key] = dataclasses.replace(
+                    mset, measurements=tuple(m for m in mset.measurements if m["name"] in need))
+            mset = self._sub_msets[key]
         return measure(mset, vertices, self.body_model.faces)
 
     def fit(self, db, measured=MEASURED_LABELS, subject_labels=None, rng=0, template=None) -> "SemanticModel":
@@ -289,6 +310,18 @@ class SemanticModel:
         self.measured_ = [m for m in measured]
         self.Y_ = np.column_stack([labels[n] for n in self.labels_])
         self._fit_regressors(rng)
+        # every other length of the measurement set (girths, Rupprecht loops, widths, limb
+        # lengths) is a target too: a regressor each (cheap), measured only when asked
+        self.lengths_ = []
+        for m in self.mset.measurements:
+            name = m["name"]
+            if name in labels or m["unit"] != "m" or name not in values:
+                continue
+            y = np.asarray(values[name], dtype=float)
+            ok = np.isfinite(y)
+            if ok.sum() >= 4 and np.std(y[ok]) > 0:
+                self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
+                self.lengths_.append(name)
         if template is None:
             try:
                 from bodyspace.data.template import load_template
@@ -306,10 +339,14 @@ class SemanticModel:
         for j, name in enumerate(self.labels_):
             y = self.Y_[:, j]
             ok = np.isfinite(y)
-            reg = FilteredLinearRegressor(rng=rng).fit(self.X_[ok], y[ok])
-            if not np.any(reg.coef_):  # nothing kept: fall back to the plain least squares (Eq. 10)
-                reg = SimpleLinearRegressor().fit(self.X_[ok], y[ok])
-            self.regressors_[name] = reg
+            self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
+
+    @staticmethod
+    def _fit_one(x, y, rng):
+        reg = FilteredLinearRegressor(rng=rng).fit(x, y)
+        if not np.any(reg.coef_):  # nothing kept: fall back to the plain least squares (Eq. 10)
+            reg = SimpleLinearRegressor().fit(x, y)
+        return reg
 
     # ------------------------------------------------------------------ ranges
     @property
@@ -325,8 +362,11 @@ class SemanticModel:
 
     def _regressor(self, name):
         if name not in getattr(self, "regressors_", {}):
-            raise ParameterError(f"unknown semantic variable {name!r}; this model knows "
-                                 f"{', '.join(getattr(self, 'regressors_', {}))}")
+            labels = list(getattr(self, "labels_", []))
+            lengths = list(getattr(self, "lengths_", []))
+            meas = ", ".join(lengths) or "(none: this semantics file predates measurement targets; refit it)"
+            raise ParameterError(f"unknown semantic variable {name!r}; accepted names: labels "
+                                 f"{', '.join(labels) or '(none)'}; measurements {meas}")
         return self.regressors_[name]
 
     def _check_reachable(self, name: str, value: float, messages: list) -> float:
@@ -347,11 +387,12 @@ class SemanticModel:
     # ------------------------------------------------------------------ values of a body
     def _values(self, names, x, c, timings) -> tuple[np.ndarray, dict]:
         meas = {}
-        if any(n in self.measured_ for n in names):
+        measured = [n for n in names if self._is_measured(n)]
+        if measured:
             t = time.perf_counter()
-            meas = self._measure(x, labels_only=True)
+            meas = self._measure(x, measured)
             timings["measure"] += time.perf_counter() - t
-        return np.array([float(meas[n]) if n in self.measured_ else float(self.regressors_[n].predict(c))
+        return np.array([float(meas[n]) if self._is_measured(n) else float(self.regressors_[n].predict(c))
                          for n in names]), meas
 
     def _decode(self, c, timings) -> np.ndarray:
@@ -439,6 +480,11 @@ class SemanticModel:
                 raise TargetError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
             messages.append(msg)
+        missing = [n for n in self.measured_ if n not in meas]
+        if meas and missing:  # the result reports every measured label: the rest once, on the final body
+            t = time.perf_counter()
+            meas = {**meas, **self._measure(x, missing)}
+            timings["measure"] += time.perf_counter() - t
         maha = float(np.sqrt(np.sum((c - c0) ** 2 * metric)))
         return GenerationResult(c, x, dict(zip(names, vals.tolist())), dict(zip(names, g.tolist())), converged,
                                 it, maha, dict(timings), messages, {k: float(v) for k, v in meas.items()})
@@ -589,10 +635,10 @@ class SemanticModel:
         for name, w in self.regions_.items():
             arrays[f"region/{name}"] = w.astype(np.float32)
         header = {"format": FORMAT, "format_version": FORMAT_VERSION, "labels": self.labels_,
-                  "measured": self.measured_, "regressors": regs, "regions": list(self.regions_),
+                  "measured": self.measured_, "lengths": self.lengths_, "regressors": regs, "regions": list(self.regions_),
                   "sigma_limit": self.sigma_limit, "n_components": int(self.X_.shape[1]),
                   "template_id": self.body_model.template_id,
-                  "units": {n: kind_of(n) for n in self.labels_}}
+                  "units": {n: kind_of(n) for n in self.labels_ + self.lengths_}}
         arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
@@ -622,6 +668,7 @@ class SemanticModel:
             self.X_, self.Y_ = z["X"], z["Y"]
             self.subjects_ = z["subjects"].astype(str)
             self.labels_, self.measured_ = list(header["labels"]), list(header["measured"])
+            self.lengths_ = list(header.get("lengths", []))
             self.regressors_ = {}
             for name, kind in header["regressors"].items():
                 prefix = f"reg/{name}/"
