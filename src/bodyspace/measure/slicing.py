@@ -476,6 +476,21 @@ def hull_perimeters(xy: np.ndarray, starts: np.ndarray, max_rounds: int = 64) ->
     return out
 
 
+def _chosen_in_plane(c: Contours, chosen: np.ndarray, normals: np.ndarray):
+    """Points of each body's chosen contour, grouped by body, in their plane's (u, w) basis.
+
+    Returns (sel (K,) point indices into ``c.points``, bodies (K,) sorted, x (K,), y (K,)).
+    """
+    u, w = plane_basis(normals)
+    comp_is_chosen = np.zeros(c.n_labels, dtype=bool)
+    comp_is_chosen[chosen[chosen >= 0]] = True
+    sel = np.flatnonzero(comp_is_chosen[c.label])
+    sel = sel[np.argsort(c.body[sel], kind="stable")]
+    bodies = c.body[sel]
+    return (sel, bodies, np.einsum("ki,ki->k", c.points[sel], u[bodies]),
+            np.einsum("ki,ki->k", c.points[sel], w[bodies]))
+
+
 def support_perimeters(c: Contours, chosen: np.ndarray, normals: np.ndarray, n_dirs: int = 48) -> np.ndarray:
     """Fast estimate (N,) of the chosen contours' hull perimeters (NaN where none).
 
@@ -487,14 +502,7 @@ def support_perimeters(c: Contours, chosen: np.ndarray, normals: np.ndarray, n_d
     out = np.full(len(chosen), np.nan)
     if c.n_labels == 0:
         return out
-    u, w = plane_basis(normals)
-    comp_is_chosen = np.zeros(c.n_labels, dtype=bool)
-    comp_is_chosen[chosen[chosen >= 0]] = True
-    sel = np.flatnonzero(comp_is_chosen[c.label])
-    sel = sel[np.argsort(c.body[sel], kind="stable")]
-    bodies = c.body[sel]
-    x = np.einsum("ki,ki->k", c.points[sel], u[bodies])
-    y = np.einsum("ki,ki->k", c.points[sel], w[bodies])
+    sel, bodies, x, y = _chosen_in_plane(c, chosen, normals)
     th = np.linspace(0.0, 2 * np.pi, n_dirs, endpoint=False)
     cos, sin = np.cos(th), np.sin(th)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
@@ -517,14 +525,8 @@ def contour_girths(c: Contours, chosen: np.ndarray, normals: np.ndarray,
     lines: list = [None] * n_bodies
     if c.n_labels == 0:
         return girth, lines
-    u, w = plane_basis(normals)
-    comp_is_chosen = np.zeros(c.n_labels, dtype=bool)
-    comp_is_chosen[chosen[chosen >= 0]] = True
-    sel = np.flatnonzero(comp_is_chosen[c.label])
-    sel = sel[np.argsort(c.body[sel], kind="stable")]
-    bodies = c.body[sel]
-    xy = np.stack([np.einsum("ki,ki->k", c.points[sel], u[bodies]),
-                   np.einsum("ki,ki->k", c.points[sel], w[bodies])], axis=1)
+    sel, bodies, x, y = _chosen_in_plane(c, chosen, normals)
+    xy = np.stack([x, y], axis=1)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
     ends = np.r_[starts[1:], len(sel)]
     if not keep_polylines:
