@@ -41,12 +41,7 @@ def check_X(X, n_features: int | None = None, name: str = "X") -> tuple[np.ndarr
     if n_features is not None and x.shape[1] != n_features:
         raise ParameterError(f"{name}: {x.shape[1]} features per sample, expected {n_features} "
                              "(the number the mapping was fitted on)")
-    x = x.astype(np.float64, copy=False)
-    if not np.isfinite(x).all():
-        bad = np.argwhere(~np.isfinite(x))[0]
-        raise ParameterError(f"{name}: contains NaN or infinity (first at row {bad[0]}, column {bad[1]}), "
-                             "expected finite numbers")
-    return x, single
+    return _finite_float64(x, name), single
 
 
 def check_Y(Y, n_samples: int, name: str = "Y") -> tuple[np.ndarray, bool]:
@@ -63,12 +58,17 @@ def check_Y(Y, n_samples: int, name: str = "Y") -> tuple[np.ndarray, bool]:
         raise ParameterError(f"{name}: {y.shape[0]} rows, expected {n_samples} (one per row of X)")
     if y.shape[1] < 1:
         raise ParameterError(f"{name}: shape {y.shape}, expected at least one output column")
-    y = y.astype(np.float64, copy=False)
-    if not np.isfinite(y).all():
-        bad = np.argwhere(~np.isfinite(y))[0]
+    return _finite_float64(y, name), one_d
+
+
+def _finite_float64(a: np.ndarray, name: str) -> np.ndarray:
+    """A 2-D numeric array as float64; refuses NaN or infinity, naming the first place."""
+    a = a.astype(np.float64, copy=False)
+    if not np.isfinite(a).all():
+        bad = np.argwhere(~np.isfinite(a))[0]
         raise ParameterError(f"{name}: contains NaN or infinity (first at row {bad[0]}, column {bad[1]}), "
                              "expected finite numbers")
-    return y, one_d
+    return a
 
 
 def check_ridge(ridge) -> float:
