@@ -212,6 +212,21 @@ def test_request_study_small(setup, tmp_path):
     assert json.loads((tmp_path / files["json"]).read_text())["successes"] == 40
 
 
+def test_request_study_independent_draws_never_miss_silently(setup):
+    """Box corners no subject has may be missed, but never silently, and every request inside
+    the population's joint 98% region lands."""
+    from bodyspace.report.semantic_report import format_request_report, request_study
+    _, _, _, sm = setup
+    study = request_study(sm, n=30, rng=5, joint=None)
+    split = study["by_plausibility"]
+    assert split["inside"]["n"] + split["outside"]["n"] == 30
+    assert split["inside"]["successes"] == split["inside"]["n"]
+    assert study["silent_misses"] == 0
+    assert all(f["explained"] and "not" in f["message"] for f in study["failures"])
+    assert all(0.0 <= r["population_quantile"] <= 1.0 for r in study["requests"])
+    assert "Inside and outside the population" in format_request_report(study)
+
+
 def test_generate_measurement_targets(setup, app, tmp_path):
     """Any length of the measurement set is a target: a Rupprecht loop and an ISO width."""
     root, _, model, sm = setup

@@ -8,6 +8,10 @@ independent draws), generates a body for each, and reports the share
 that lands within the closed loop's tolerances (4 mm stature, 9 mm girths, 0.5 kg mass) of the
 request, the error distribution per variable (50/90/99th percentile and max of ``|reached - asked|``)
 and the time per request. A request the model misses counts as a failure (with its message; its error still counts).
+Every request also records where it sits in the population (``population_quantile``: the
+chi-square quantile of its Mahalanobis distance), so a study of independent draws shows how its
+successes split between requests inside and outside the population's joint region, and
+``silent_misses`` counts misses that came back without a message saying so (the contract is zero).
 ``write_request_report`` writes it as Markdown and JSON.
 """
 
@@ -19,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyspace.atomic import write_json
+from bodyspace.atomic import atomic_path, write_json
 from bodyspace.errors import BodyspaceError
 from bodyspace.semantics.model import tolerance
 from bodyspace.units import kind_of
 
-__all__ = ["REQUEST_LABELS", "request_study", "format_request_report", "write_request_report"]
+__all__ = ["REQUEST_LABELS", "request_study", "population_quantile", "format_request_report", "write_request_report"]
 
 REQUEST_LABELS = ("stature", "mass", "waist_girth")
 PERCENTILES = (2.0, 98.0)
@@ -80,17 +84,11 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
         y = y[np.isfinite(y)]
         box[name] = [float(np.percentile(y, percentiles[0])), float(np.percentile(y, percentiles[1]))]
     tol = {name: tolerance(name) for name in labels}
+    quantile = population_quantile(sm, labels)
     accept = None
     if joint is not None:
-        from scipy.stats import chi2
-        ys = sm.Y_[:, [sm.labels_.index(name) for name in labels]]
-        ys = ys[np.isfinite(ys).all(axis=1)]
-        mu, icov = ys.mean(axis=0), np.linalg.pinv(np.cov(ys, rowvar=False))
-        limit = float(chi2.ppf(joint, len(labels)))
-
         def accept(a):
-            d = np.array([a[name] for name in labels]) - mu
-            return float(d @ icov @ d) <= limit
+            return quantile(a) <= joint
     # Misses are kept (clamp mode: a warning, not an exception) so their errors count too.
     mode, sm.on_infeasible = sm.on_infeasible, "clamp"
     try:
@@ -99,6 +97,11 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
         total = time.perf_counter() - t_all
     finally:
         sm.on_infeasible = mode
+    for row in rows:
+        row["population_quantile"] = quantile(row["asked"])
+    region = JOINT_QUANTILE if joint is None else joint
+    inside = [r for r in rows if r["population_quantile"] <= region]
+    outside = [r for r in rows if r["population_quantile"] > region]
     errors = {}
     for name in labels:
         unit, f = _unit(name)
@@ -120,9 +123,31 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
                    "p90": float(np.percentile(times, 90)), "max": float(times.max()), "total": total},
         "iterations": {"mean": float(its.mean()) if its.size else float("nan"),
                        "max": int(its.max()) if its.size else 0},
+        "by_plausibility": {"quantile": region,
+                            "inside": {"n": len(inside), "successes": int(sum(r["ok"] for r in inside))},
+                            "outside": {"n": len(outside), "successes": int(sum(r["ok"] for r in outside))}},
+        "silent_misses": int(sum(1 for f in failures if not f["explained"])),
         "failures": failures,
         "requests": rows,
     }
+
+
+def population_quantile(semantic_model, labels=REQUEST_LABELS):
+    """A function: request dict (label -> SI value) -> chi-square quantile in [0, 1] of its
+    Mahalanobis distance under the covariance of ``labels`` over the model's subjects (measured
+    labels ``Y_``). 0.98 means "on the edge of the population's 98% joint region"."""
+    from scipy.stats import chi2
+
+    sm = semantic_model
+    labels = list(labels)
+    ys = sm.Y_[:, [sm.labels_.index(name) for name in labels]]
+    ys = ys[np.isfinite(ys).all(axis=1)]
+    mu, icov = ys.mean(axis=0), np.linalg.pinv(np.cov(ys, rowvar=False))
+
+    def quantile(asked: dict) -> float:
+        d = np.array([asked[name] for name in labels]) - mu
+        return float(chi2.cdf(float(d @ icov @ d), len(labels)))
+    return quantile
 
 
 def _run_requests(sm, n, gen, labels, box, tol, accept, progress):
@@ -155,7 +180,9 @@ def _run_requests(sm, n, gen, labels, box, tol, accept, progress):
                "iterations": iterations, "seed": seed}
         rows.append(row)
         if not ok:
-            failures.append({"index": i, "asked": asked, "reached": reached, "message": message or "outside tolerance"})
+            # "explained": the caller was told (refusal, clamp warning or "not met" report).
+            failures.append({"index": i, "asked": asked, "reached": reached, "explained": bool(message),
+                             "message": message or "outside tolerance, with no message (a silent miss)"})
         if progress:
             progress(f"request {i + 1}/{n}", (i + 1) / n)
     return rows, failures
@@ -188,6 +215,16 @@ def format_request_report(study: dict) -> str:
         e = study["errors"][n]
         cells = [f"{e.get(k, float('nan')):.2f}" for k in ("p50", "p90", "p99", "max", "mean")]
         lines.append(f"| {n} | {e['unit']} | {e['tolerance']:.1f} | " + " | ".join(cells) + " |")
+    split = study.get("by_plausibility")
+    if split and study.get("joint_quantile") is None:
+        q = 100 * split["quantile"]
+        lines += ["", "## Inside and outside the population", "",
+                  f"| requests | n | within tolerance |", "|---|---:|---:|",
+                  f"| inside the population's {q:g}% joint region | {split['inside']['n']} | "
+                  f"{split['inside']['successes']} |",
+                  f"| outside it (combinations few or no subjects have) | {split['outside']['n']} | "
+                  f"{split['outside']['successes']} |", "",
+                  f"Misses returned without a message saying so: {study['silent_misses']}."]
     t, it = study["time_s"], study["iterations"]
     lines += ["", f"Time per request: mean {t['mean']:.2f} s, median {t['median']:.2f} s, p90 {t['p90']:.2f} s, "
               f"max {t['max']:.2f} s (total {t['total']:.1f} s). Closed-loop corrections: mean {it['mean']:.1f}, "
@@ -216,6 +253,7 @@ def write_request_report(study: dict, out, stem: str = "requests") -> dict:
     """Write ``{stem}.md`` and ``{stem}.json`` into folder ``out``; returns their file names."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.md").write_text(format_request_report(study))
+    with atomic_path(out / f"{stem}.md") as tmp:
+        tmp.write_text(format_request_report(study))
     write_json(out / f"{stem}.json", _finite(study))
     return {"md": f"{stem}.md", "json": f"{stem}.json"}

@@ -231,6 +231,7 @@ class SemanticModel:
         self.on_infeasible = on_infeasible
         self._mset = None
         self._sub_msets = {}
+        self._blends = {}
         self.lengths_ = []
 
     # ------------------------------------------------------------------ fitting
@@ -438,7 +439,10 @@ class SemanticModel:
         u = self.variances[:, None] * grads.T
         extra = np.eye(len(metric))[:, :min(EXTRA_DIRECTIONS, len(metric))] * np.sqrt(self.variances)[:, None]
         u = _metric_orthonormal(np.hstack([u, extra]), metric)
-        jac, fresh = None, False
+        # The regressors' gradients are a first model of the measured Jacobian in that span: a
+        # correction costs one decode instead of a finite-difference column per direction, and
+        # the finite differences run only once a step shows the model is off.
+        jac, fresh = grads @ u, False
         while np.any(np.abs(g - vals) > tol) and it < self.max_iter:
             if jac is None:
                 jac = np.empty((len(names), u.shape[1]))
@@ -557,6 +561,19 @@ class SemanticModel:
             return np.max([self.regions_[m] for m in mask], axis=0)
         return np.asarray(mask, dtype=float)
 
+    def _masked_blend(self, weights) -> MaskedBlend:
+        """The ``MaskedBlend`` of a mask, built on the model's mean body and cached: its matrix
+        depends on the mask and the rest geometry only, so a morph pays triangular solves, not a
+        factorization. Using the mean body's gradients instead of the morphed body's changes only
+        the metric the change is blended in; outside the mask nothing moves either way."""
+        key = np.asarray(weights, dtype=float).tobytes()
+        if key not in self._blends:
+            if len(self._blends) >= 8:  # bounded: user-supplied weight arrays are keys too
+                self._blends.pop(next(iter(self._blends)))
+            mean = np.asarray(self.body_model.encoder.mean_vertices_, dtype=float)
+            self._blends[key] = MaskedBlend(mean, self.body_model.faces, weights)
+        return self._blends[key]
+
     def morph(self, vertices, changes: dict, keep=(), mask=None) -> GenerationResult:
         """Morph a registered mesh (V, 3): ``changes`` name -> ``Target`` (value/delta/range) or a
         float *change* (SI), ``keep`` names held at their measured value, ``mask`` a region
@@ -581,7 +598,7 @@ class SemanticModel:
         d0 = np.asarray(self.body_model.reconstruct(c0))[0]
         timings["decode"] += time.perf_counter() - t
         w = self.mask_weights(mask)
-        blend = MaskedBlend(x0, self.body_model.faces, w) if w is not None else None
+        blend = self._masked_blend(w) if w is not None else None
 
         def body(c):
             d = self._decode(c, timings) - d0
