@@ -3,10 +3,12 @@
 ``LinearLeafForest`` is the paper's regression forest with affine leaves; ``LinearMapping`` the
 single affine map of the related work (its baseline). Both are scikit-learn-style estimators
 (``fit(X, Y)``, ``predict(X)``) that store themselves as flat arrays (``to_arrays`` /
-``from_arrays``) for the model bundle, never pickle.
+``from_arrays``) for the model bundle, never pickle. ``DecoderLinearization`` is the affine
+stand-in for the RRE decoder that exact refinement of RRE models steps with (linearize.py).
 """
 
 from bodyspace.mapping.forest import LinearLeafForest, grow_tree
 from bodyspace.mapping.linear import LinearMapping, fit_affine
+from bodyspace.mapping.linearize import DecoderLinearization
 
-__all__ = ["LinearLeafForest", "LinearMapping", "fit_affine", "grow_tree"]
+__all__ = ["DecoderLinearization", "LinearLeafForest", "LinearMapping", "fit_affine", "grow_tree"]

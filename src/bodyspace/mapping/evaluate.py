@@ -7,6 +7,11 @@ each, the body of the predicted coefficients is measured again and ``measured - 
 is summarized per parameter by its mean and variance, as in the paper's tables; plus the share
 of requests with all six within 1 mm. Figure 6: shoulder size swept from 100 to 140 cm, the
 other five held at the training set's median.
+
+RRE models: every body is decoded (training set, held-out requests, both predictions, each
+refinement iteration), so the default sizes are smaller (``default_sizes``) and
+``estimate_seconds`` says how long it will take before starting; the measurements of all three
+methods are those of the truly decoded bodies.
 """
 
 from __future__ import annotations
@@ -93,51 +98,124 @@ def _pad(z: np.ndarray, K: int) -> np.ndarray:
     return out
 
 
-def evaluate_mapping(model, samples: int = 10000, held_out: int = 1000, seed: int = 0, k: int = 25,
+def default_sizes(model) -> tuple[int, int]:
+    """(training samples, held-out requests) by encoding: the paper's 10,000 / 1,000 for vertex
+    models; 1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each)."""
+    return (10000, 1000) if model.encoding == "vertex" else (1000, 100)
+
+
+def decode_seconds(model, n: int = 4, k: int = 25, seed: int = 0) -> float:
+    """Seconds per decoded body of ``model`` (wall clock, batched as in training), timed on ``n``
+    uniform ±3 sigma samples; 0 for the vertex encoding (nothing is decoded)."""
+    if model.encoding == "vertex":
+        return 0.0
+    from bodyspace.mapping.training import sample_uniform
+    z = sample_uniform(model, n, k, 3.0, seed + 12345)
+    t = time.perf_counter()
+    model.reconstruct(z)
+    return (time.perf_counter() - t) / n
+
+
+def estimate_seconds(model, samples: int, held_out: int, per_body: float | None = None,
+                     refine_iterations: float = 6.0, sweep: bool = True) -> float:
+    """Rough wall-clock estimate of ``evaluate_mapping`` for an RRE model: every training body,
+    every held-out body, the linear and forest predictions and ~``refine_iterations`` refinement
+    iterations per request are one decode each. 0 for vertex models (seconds at most)."""
+    if model.encoding == "vertex":
+        return 0.0
+    per_body = decode_seconds(model) if per_body is None else per_body
+    n_sweep = len(SWEEP_CM) * (2 + refine_iterations) if sweep else 0
+    return per_body * (samples + held_out * (3 + refine_iterations) + n_sweep)
+
+
+def evaluate_mapping(model, samples: int | None = None, held_out: int | None = None, seed: int = 0, k: int = 25,
                      n_trees: int = 50, n_jobs: int | None = None, sweep: bool = True,
                      progress=None) -> tuple[MappingEvaluation, dict]:
     """Train the three methods on ``samples`` bodies and evaluate them on ``held_out`` requests.
 
     Training uses ``rng=seed``, the held-out set ``rng=seed + 1`` (both deterministic).
-    Returns the evaluation and the fitted ``{"linear": ..., "forest": ...}``.
+    ``samples`` / ``held_out`` default to ``default_sizes(model)``. With the RRE encoding every
+    body is decoded (training, held-out, the predictions, each refinement iteration): see
+    ``estimate_seconds``; the refinement's Jacobians use the training set's least-squares
+    linearization of the decoder.
+    Returns the evaluation and the fitted ``{"linear": ..., "forest": ..., "linearization": ...}``
+    (linearization None for vertex models).
     """
     report = progress or (lambda msg, frac: None)
+    d_samples, d_held = default_sizes(model)
+    samples = d_samples if samples is None else int(samples)
+    held_out = d_held if held_out is None else int(held_out)
+    decoded = model.encoding != "vertex"
+    # progress fractions of the stages (decoding dominates for RRE models)
+    f_train, f_held, f_fit, f_pred, f_ref = (0.2, 0.22, 0.25, 0.6, 0.95) if not decoded else \
+        _stage_fractions(samples, held_out)
     timings = {}
     t = time.perf_counter()
     report("training set", 0.0)
-    train = make_training_set(model, samples, k, rng=seed)
-    held = make_training_set(model, held_out, k, rng=seed + 1)
+    train = make_training_set(model, samples, k, rng=seed,
+                              progress=lambda msg, f: report(f"training set: {msg}", f * f_train))
+    held = make_training_set(model, held_out, k, rng=seed + 1,
+                             progress=lambda msg, f: report(f"held-out: {msg}", f_train + f * (f_held - f_train)))
     timings["training_set_s"] = time.perf_counter() - t
     kk = train.k
     X, Y = train.measurements, train.coefficients[:, :kk]
-    report("linear mapping", 0.2)
+    report("linear mapping", f_held)
     t = time.perf_counter()
     lin = LinearMapping().fit(X, Y)
     timings["linear_fit_s"] = time.perf_counter() - t
-    report("forest", 0.25)
+    report("forest", f_held)
     t = time.perf_counter()
-    forest = LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs).fit(X, Y)
+    # min_samples_leaf: the paper's 30, or one leaf for tiny (test) training sets
+    forest = LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs,
+                              min_samples_leaf=min(30, len(X))).fit(X, Y)
     timings["forest_fit_s"] = time.perf_counter() - t
-    measurer = LinearBodyMeasures.from_model(model, names=RUPPRECHT_SIX, k=kk)
+    measurer = LinearBodyMeasures.from_model(model, names=RUPPRECHT_SIX, k=kk, linearization=train.linearization)
     req = held.measurements
     K = model.n_components
     preds = {"linear": _pad(lin.predict(req), K)}
     t = time.perf_counter()
     preds["forest"] = _pad(forest.predict(req), K)
     timings["forest_predict_s"] = time.perf_counter() - t
-    report("refinement", 0.6)
+    errors = {}
+    if decoded:     # measure the decoded bodies of both predictions
+        for i, m in enumerate(("linear", "forest")):
+            errors[m] = _measure_decoded(model, measurer, preds[m], kk, lambda msg, f, i=i: report(
+                f"{m}: {msg}", f_fit + (i + f) / 2 * (f_pred - f_fit))) - req
+    report("refinement", f_pred)
     t = time.perf_counter()
-    ref = refine(model, preds["forest"], req, measurer=measurer, k=kk)
+    ref = refine(model, preds["forest"], req, measurer=measurer, k=kk,
+                 progress=lambda msg, f: report(f"refinement: {msg}", f_pred + f * (f_ref - f_pred)))
     timings["refine_s"] = time.perf_counter() - t
     timings["refine_ms_per_request"] = 1000 * timings["refine_s"] / len(req)
     preds["forest + refinement"] = ref.coefficients
-    errors = {m: measurer(preds[m][:, :kk]) * 100.0 - req for m in METHODS}
+    if decoded:
+        errors["forest + refinement"] = ref.measured - req      # measured on the decoded bodies
+    else:
+        errors = {m: measurer(preds[m][:, :kk]) * 100.0 - req for m in METHODS}
+    report("shoulder sweep", f_ref)
     sw = shoulder_sweep(model, forest, train, measurer) if sweep else {}
     report("done", 1.0)
     ev = MappingEvaluation(train.names, req, errors, timings, sw,
                            {"samples": samples, "held_out": held_out, "seed": seed, "k": kk, "n_trees": n_trees,
-                            "encoding": model.encoding, "refine_misses": int(sum(bool(m) for m in ref.misses))})
-    return ev, {"linear": lin, "forest": forest}
+                            "encoding": model.encoding, "refine_misses": int(sum(bool(m) for m in ref.misses)),
+                            "refine_iterations_mean": float(ref.iterations.mean()),
+                            "refine_iterations_max": int(ref.iterations.max()), "refine_decodes": int(ref.decodes)})
+    return ev, {"linear": lin, "forest": forest, "linearization": train.linearization}
+
+
+def _stage_fractions(samples, held_out, iterations=6.0):
+    """Progress fractions at the end of each stage, in proportion to the decodes it does."""
+    w = np.cumsum([samples, held_out, 1e-9, 2 * held_out, iterations * held_out, len(SWEEP_CM) * (2 + iterations)])
+    return tuple(w[:5] / w[-1])
+
+
+def _measure_decoded(model, measurer, z, k, progress, chunk: int = 32) -> np.ndarray:
+    """Measurements (N, M) cm of the decoded bodies of coefficients z (N, K), in chunks."""
+    out = np.empty((len(z), len(measurer.names)))
+    for s in range(0, len(z), chunk):
+        out[s:s + chunk] = measurer.measure_bodies(model.reconstruct(z[s:s + chunk])) * 100.0
+        progress(f"decoded {min(len(z), s + chunk)}/{len(z)}", min(1.0, (s + chunk) / len(z)))
+    return out
 
 
 def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "shoulder_size") -> dict:
@@ -154,9 +232,13 @@ def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "
     K = model.n_components
     z0 = _pad(forest.predict(req), K)
     res = refine(model, z0, req, measurer=measurer, k=train.k)
+    if model.encoding == "vertex":
+        start = measurer(z0[:, :train.k]) * 100.0
+    else:
+        start = measurer.measure_bodies(model.reconstruct(z0)) * 100.0
     return {"names": list(names), "swept": name, "sizes_cm": list(sizes), "requests": req,
             "coefficients": res.coefficients, "measured": res.measured,
-            "forest_measured": measurer(z0[:, :train.k]) * 100.0, "misses": res.misses}
+            "forest_measured": start, "misses": res.misses}
 
 
 def plot_errors(ev: MappingEvaluation, path) -> Path:

@@ -1,4 +1,4 @@
-"""Analytic Jacobians of body measurements, for bodies linear in their shape coefficients.
+"""Analytic Jacobians of body measurements with respect to shape coefficients.
 
 With the vertex encoding a body is ``v(z) = base + sum_k z_k C_k`` (``base`` (V, 3) the mean
 body, ``C`` (K, V, 3) the principal components reshaped), so ``dv/dz = C`` exactly. The
@@ -14,9 +14,15 @@ batched functions), then chained with ``C``:
 - **path** (sum of segment lengths through landmark points): unit segment vectors.
 
 Landmarks are sparse linear combinations of vertices (``L @ v``), so their gradients go back to
-vertices through ``L^T``. Slices (plane cross-sections, convex-hull girths) are not
-differentiated yet: ``LinearBodyMeasures`` refuses them with a message, and
-``training.make_training_set`` measures them with ``measure.evaluate`` instead.
+vertices through ``L^T``.
+
+With the RRE encoding bodies are not linear in z: ``LinearBodyMeasures.measure_bodies`` measures
+the truly decoded bodies (exact values) and chains the exact vertex gradients with a fitted
+linearization of the decoder (``linearize.DecoderLinearization``) for dv/dz.
+
+Slices (plane cross-sections, convex-hull girths) are not differentiated yet:
+``LinearBodyMeasures`` refuses them with a message, and ``training.make_training_set`` measures
+them with ``measure.evaluate`` instead.
 Conditions (``requires``: upright etc.) are not checked here: rest-pose shape-space bodies meet them.
 
 Shapes: N bodies, R ring points, K coefficients, M measurements. Values in metres.
@@ -179,35 +185,48 @@ class LinearBodyMeasures:
         return self
 
     @classmethod
-    def from_model(cls, model, mset: MeasurementSet | None = None, names=RUPPRECHT_SIX, k: int | None = None):
-        """For a vertex-encoding ``BodyModel`` and its first ``k`` components (default all).
+    def from_model(cls, model, mset: MeasurementSet | None = None, names=RUPPRECHT_SIX, k: int | None = None,
+                   linearization=None):
+        """For a ``BodyModel`` and its first ``k`` components (default all; 25 at most for RRE).
 
+        Vertex encoding: the model's own basis, exact. RRE encoding: the basis of
+        ``linearization`` (a ``linearize.DecoderLinearization``; default: forward differences at
+        the mean body, ``k + 1`` decodes, cached), so ``measure_bodies`` gives exact values of
+        decoded bodies with approximate Jacobians, and ``__call__`` measures the linearized bodies.
         Cached per model (weakly) and arguments: a second call for one request costs nothing.
         """
-        key = (id(mset), tuple(names), k)
+        key = (id(mset), tuple(names), k, id(linearization))
         try:
             per_model = _CACHE.setdefault(model, {})
         except TypeError:
             per_model = {}
         hit = per_model.get(key)
-        if hit is not None and hit[0] is mset and hit[1] is model.space.components_:
+        if hit is not None and hit[0] is mset and hit[1] is model.space.components_ and hit[3] is linearization:
             return hit[2]
-        out = cls._from_model(model, mset, names, k)
-        per_model[key] = (mset, model.space.components_, out)
+        out = cls._from_model(model, mset, names, k, linearization)
+        per_model[key] = (mset, model.space.components_, out, linearization)
         return out
 
     @classmethod
-    def _from_model(cls, model, mset, names, k):
-        if model.encoding != "vertex":
-            raise ParameterError(f"model encoding {model.encoding!r}: exact measurement Jacobians need the 'vertex' "
-                                 "encoding (linear decoding); the RRE decoder is not linearized yet")
+    def _from_model(cls, model, mset, names, k, linearization=None):
         from bodyspace.measure import load_measurement_set
         mset = load_measurement_set() if mset is None else mset
         sp = model.space
-        k = sp.n_components_ if k is None else min(int(k), sp.n_components_)
-        V = model.mean_vertices.shape[0]
-        base = model.mean_vertices + sp.mean_.reshape(V, 3)
-        basis = sp.components_[:k].reshape(k, V, 3)
+        if model.encoding == "vertex":
+            k = sp.n_components_ if k is None else min(int(k), sp.n_components_)
+            V = model.mean_vertices.shape[0]
+            base = model.mean_vertices + sp.mean_.reshape(V, 3)
+            basis = sp.components_[:k].reshape(k, V, 3)
+        elif model.encoding == "rre":
+            from bodyspace.mapping.linearize import DecoderLinearization
+            if linearization is None:
+                linearization = DecoderLinearization.at_mean(model, 25 if k is None else k)
+            elif k is not None and linearization.k < min(int(k), sp.n_components_):
+                raise ParameterError(f"linearization: covers {linearization.k} coefficients, expected at least k={k}")
+            k = linearization.k if k is None else min(int(k), linearization.k)
+            base, basis = linearization.base_, linearization.basis_[:k]
+        else:
+            raise ParameterError(f"model encoding {model.encoding!r}: expected 'vertex' or 'rre'")
         return cls(base, basis, mset, names).restrict_floor(4.0 * np.sqrt(sp.explained_variance_[:k]))
 
     # ------------------------------------------------------------------ evaluation
@@ -244,6 +263,7 @@ class LinearBodyMeasures:
             z = z[:, :K]
         n = len(z)
         lm = self.lm_base + (z @ self.lm_basis.reshape(K, -1)).reshape(n, -1, 3)   # (N, Lm, 3)
+        floor_y = low = None
         if self.needs_floor:
             if self.box is not None and np.all(np.abs(z) <= self.box):
                 y = self.floor_base + z @ self.floor_basis
@@ -254,32 +274,58 @@ class LinearBodyMeasures:
                 y = self.base_y + z @ self.basis_y
                 low = np.argmin(y, axis=1)
                 floor_y = y[np.arange(n), low]
+        rings = {name: rb + (z @ rc.reshape(K, -1)).reshape(n, -1, 3) for name, (rb, rc) in self.rings.items()}
+        out = self._measure(lm, rings, floor_y, low, jacobian)
+        if single:
+            return (out[0][0], out[1][0]) if jacobian else out[0]
+        return out
+
+    def measure_bodies(self, vertices: np.ndarray, jacobian: bool = False):
+        """Measurements (N, M) in metres of given bodies ``vertices`` (N, V, 3) (e.g. truly decoded
+        RRE bodies); with ``jacobian`` also d measurement / d z (N, M, K): the exact gradients with
+        respect to those bodies' vertices, chained with this object's ``basis`` as dv/dz (for a
+        non-linear decoder, its linearization: see ``linearize.DecoderLinearization``). The values
+        are exact whatever the basis; the floor is searched over all vertices."""
+        v = np.asarray(vertices, dtype=float)
+        if v.ndim != 3 or v.shape[1:] != (self.n_vertices, 3):
+            raise ParameterError(f"vertices: shape {v.shape}, expected (N, {self.n_vertices}, 3)")
+        n = len(v)
+        lm = np.einsum("lu,nud->nld", self.L, v[:, self.ids])
+        rings = {name: v[:, self.ids[idx]] for name, idx in self.loop_pos.items()}
+        floor_y = low = None
+        if self.needs_floor:
+            low = np.argmin(v[:, :, 1], axis=1)
+            floor_y = v[np.arange(n), low, 1]
+        return self._measure(lm, rings, floor_y, low, jacobian)
+
+    def _measure(self, lm, rings, floor_y, low, jacobian):
+        """Values (N, M) and (with ``jacobian``) d/dz (N, M, K) from the touched points: landmarks
+        lm (N, Lm, 3), loop rings (name -> (N, R, 3)), floor height (N,) and lowest vertex (N,)."""
+        n, K = len(lm), self.n_coefficients
         vals = np.empty((n, len(self.defs)))
-        if jacobian:
-            J = np.empty((n, len(self.defs), K))
+        J = np.empty((n, len(self.defs), K)) if jacobian else None
         for j, m in enumerate(self.defs):
             glm = np.zeros_like(lm) if jacobian else None
             gfloor = None
             meth = m["method"]
             if meth == "loop":
-                rb, rc = self.rings[m["name"]]
-                ring = rb + (z @ rc.reshape(K, -1)).reshape(n, -1, 3)
-                val, g = loop_length_grad(ring, UP)
+                rc = self.rings[m["name"]][1]
+                val, g = loop_length_grad(rings[m["name"]], UP)
                 if jacobian:
                     J[:, j] = g.reshape(n, -1) @ rc.reshape(K, -1).T
             elif meth == "path":
-                pts = np.stack([self._points(z, lm, p) for p in m["through"]], axis=1)
+                pts = np.stack([self._points(None, lm, p) for p in m["through"]], axis=1)
                 val, g = path_length_grad(pts)
                 if jacobian:
                     for i, p in enumerate(m["through"]):
                         self._add_point(glm, p, g[:, i])
             else:  # distance
-                a = self._points(z, lm, m["from"])
+                a = self._points(None, lm, m["from"])
                 if m["to"] == "floor":
                     b = a.copy()
                     b[:, 1] = floor_y
                 else:
-                    b = self._points(z, lm, m["to"])
+                    b = self._points(None, lm, m["to"])
                 ax = self._axis(lm, m.get("axis"), n)
                 val, ga, gb, gax = distance_grad(a, b, ax)
                 if jacobian:
@@ -291,7 +337,7 @@ class LinearBodyMeasures:
                     self._add_point(glm, m["from"], ga)
                     spec = m.get("axis")
                     if spec not in (None, "up"):
-                        p0, p1 = self._points(z, lm, spec[0]), self._points(z, lm, spec[1])
+                        p0, p1 = self._points(None, lm, spec[0]), self._points(None, lm, spec[1])
                         g0, g1 = unit_vector_grad(p0, p1, gax)
                         self._add_point(glm, spec[0], g0)
                         self._add_point(glm, spec[1], g1)
@@ -300,6 +346,4 @@ class LinearBodyMeasures:
                 J[:, j] = glm.reshape(n, -1) @ self.lm_basis.reshape(K, -1).T
                 if gfloor is not None:
                     J[:, j] += gfloor[:, None] * self.basis_y[:, low].T
-        if single:
-            return (vals[0], J[0]) if jacobian else vals[0]
         return (vals, J) if jacobian else vals

@@ -8,8 +8,11 @@ definitions of Sec. 3.1.2 (``height``, ``breast_size``, ``waist_size``, ``hip_si
 With the vertex encoding, loops, distances and paths are computed straight from the
 coefficients on the few vertices they touch (``gradients.LinearBodyMeasures``, the same numbers
 as ``measure.evaluate`` to rounding; conditions such as "upright" are not applied, as in the
-paper); any other measurement (slices, volume, mass), and every measurement with the RRE
-encoding, goes through ``model.reconstruct`` and ``measure.evaluate`` in chunks.
+paper); any other measurement (slices, volume, mass) goes through ``model.reconstruct`` and
+``measure.evaluate`` in chunks. With the RRE encoding every body is decoded (in chunks, on the
+decoder's threads); loops, distances and paths are measured on the decoded vertices
+(``LinearBodyMeasures.measure_bodies``, same numbers as ``measure.evaluate``), and the decoded
+bodies are fitted, on the way, by the least-squares linearization refinement uses.
 
 Measurements are returned in **cm** (lengths; other units unchanged), the units of the mapping.
 """
@@ -24,12 +27,16 @@ from bodyspace.errors import ParameterError
 from bodyspace.mapping.gradients import DIFFERENTIABLE, RUPPRECHT_SIX, LinearBodyMeasures, subset
 
 CHUNK = 256
+# RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.
+RRE_CHUNK = 32
 
 
 @dataclass
 class TrainingSet:
     """coefficients (N, K) (the first ``k`` vary), measurements (N, M) in cm for lengths,
-    names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed."""
+    names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed; linearization: RRE
+    models only, the least-squares ``linearize.DecoderLinearization`` of the decoded bodies (None
+    for the vertex encoding, which is linear)."""
 
     coefficients: np.ndarray
     measurements: np.ndarray
@@ -38,6 +45,8 @@ class TrainingSet:
     k: int
     sigma_range: float
     seed: object = None
+    linearization: object = None
+
 
     def column(self, name: str) -> np.ndarray:
         return self.measurements[:, self.names.index(name)]
@@ -60,8 +69,12 @@ def _display(unit: str) -> tuple[str, float]:
 
 
 def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, measurer=None,
-                         progress=None) -> tuple[np.ndarray, tuple]:
-    """Measurements (N, M) (cm for lengths) and their display units of bodies with coefficients z (N, K)."""
+                         progress=None, linearization=None) -> tuple[np.ndarray, tuple]:
+    """Measurements (N, M) (cm for lengths) and their display units of bodies with coefficients z (N, K).
+
+    RRE models decode every body; pass ``linearization`` (a ``DecoderLinearization``) to have
+    it accumulate the decoded bodies on the way (``partial_fit``).
+    """
     from bodyspace.measure import load_measurement_set, measure
     mset = load_measurement_set() if mset is None else mset
     names = tuple(names)
@@ -69,24 +82,38 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
     units = tuple(_display(by_name[n]["unit"])[0] for n in names)
     scale = np.array([_display(by_name[n]["unit"])[1] for n in names])
     out = np.empty((len(z), len(names)))
-    fast = [i for i, n in enumerate(names) if model.encoding == "vertex" and by_name[n]["method"] in DIFFERENTIABLE
+    fast = [i for i, n in enumerate(names) if by_name[n]["method"] in DIFFERENTIABLE
             and (by_name[n]["method"] != "loop" or by_name[n].get("axis", "up") == "up")]
     slow = [i for i in range(len(names)) if i not in fast]
     report = progress or (lambda msg, frac: None)
-    if fast:
-        if measurer is None:
-            measurer = LinearBodyMeasures.from_model(model, mset, [names[i] for i in fast])
-        for s in range(0, len(z), 4 * CHUNK):
-            out[s:s + 4 * CHUNK, fast] = measurer(z[s:s + 4 * CHUNK, :measurer.n_coefficients])
-            report(f"measured {min(len(z), s + 4 * CHUNK)}/{len(z)} bodies", min(1.0, (s + 4 * CHUNK) / len(z)))
-    if slow:
-        sub = subset(mset, [names[i] for i in slow])
-        for s in range(0, len(z), CHUNK):
-            v = model.reconstruct(z[s:s + CHUNK])
-            vals = measure(sub, v, model.faces)
-            for i in slow:
-                out[s:s + CHUNK, i] = vals[names[i]]
-            report(f"measured {min(len(z), s + CHUNK)}/{len(z)} bodies (slices etc.)", min(1.0, (s + CHUNK) / len(z)))
+    if model.encoding == "vertex":
+        if fast:
+            if measurer is None:
+                measurer = LinearBodyMeasures.from_model(model, mset, [names[i] for i in fast])
+            for s in range(0, len(z), 4 * CHUNK):
+                out[s:s + 4 * CHUNK, fast] = measurer(z[s:s + 4 * CHUNK, :measurer.n_coefficients])
+                report(f"measured {min(len(z), s + 4 * CHUNK)}/{len(z)} bodies", min(1.0, (s + 4 * CHUNK) / len(z)))
+        fast_bodies = None
+    else:
+        # Every body is decoded: measure the loops/distances/paths on the decoded vertices (same
+        # numbers as measure.evaluate, without its conditions), the rest with evaluate.
+        fast_bodies = LinearBodyMeasures(model.mean_vertices, np.zeros((1,) + model.mean_vertices.shape), mset,
+                                         [names[i] for i in fast]) if fast else None
+    if slow or fast_bodies is not None:
+        sub = subset(mset, [names[i] for i in slow]) if slow else None
+        chunk = CHUNK if model.encoding == "vertex" else RRE_CHUNK
+        for s in range(0, len(z), chunk):
+            v = model.reconstruct(z[s:s + chunk])
+            if linearization is not None:
+                linearization.partial_fit(z[s:s + chunk], v)
+            if fast_bodies is not None:
+                out[s:s + chunk, fast] = fast_bodies.measure_bodies(v)
+            if slow:
+                vals = measure(sub, v, model.faces)
+                for i in slow:
+                    out[s:s + chunk, i] = vals[names[i]]
+            report(f"decoded and measured {min(len(z), s + chunk)}/{len(z)} bodies",
+                   min(1.0, (s + chunk) / len(z)))
     return out * scale, units
 
 
@@ -95,7 +122,9 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT
     """Sample ``n`` bodies from ``model`` and measure them (Rupprecht et al. Sec. 4.1).
 
     Args:
-        model: a ``BodyModel`` (vertex encoding: fast path; RRE: decoded in chunks).
+        model: a ``BodyModel`` (vertex encoding: fast path; RRE: decoded in chunks, and the
+            least-squares ``DecoderLinearization`` of those bodies is fitted on the way,
+            ``TrainingSet.linearization``, for refinement).
         n: number of bodies (10,000 in the paper); k: coefficients that vary (25).
         rng: seed or Generator; the same seed gives the same set, bit for bit.
         names: measurements to take (default Rupprecht's six); mset: their set (default hm08).
@@ -103,6 +132,13 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT
         progress: ``progress(message, fraction)``.
     """
     z = sample_uniform(model, n, k, sigma_range, rng)
-    x, units = measure_coefficients(model, z, names, mset, progress=progress)
-    return TrainingSet(z, x, tuple(names), units, min(int(k), model.n_components), float(sigma_range),
-                       rng if isinstance(rng, (int, np.integer)) else None)
+    kk = min(int(k), model.n_components)
+    lin = None
+    if model.encoding != "vertex":
+        from bodyspace.mapping.linearize import DecoderLinearization
+        lin = DecoderLinearization(kk)
+    x, units = measure_coefficients(model, z, names, mset, progress=progress, linearization=lin)
+    if lin is not None and not hasattr(lin, "basis_"):
+        lin = None                                       # n <= k bodies: not determined
+    return TrainingSet(z, x, tuple(names), units, kk, float(sigma_range),
+                       rng if isinstance(rng, (int, np.integer)) else None, lin)
