@@ -44,6 +44,9 @@ def test_demo_command_writes_pictures_and_summary(template, tmp_path):
     female = summary["population"]["female"]
     assert female["subjects"] == 2
     assert np.isfinite(female["bmi_kg_m2"]["mean"])
+    mapping = summary["mapping"]
+    assert set(mapping["within_1mm"]) == {"linear", "forest", "forest + refinement"}
+    assert (out / mapping["files"]["tables"]).read_text().count("|") > 20
 
 
 def test_measure_command_json_csv_png(phenotype_model, template, tmp_path):
