@@ -13,7 +13,8 @@ from bodyspace.cli import app
 from bodyspace.data.population import build_population
 from bodyspace.encoding import VertexEncoder, rigid_procrustes
 from bodyspace.errors import BodyspaceError
-from bodyspace.model import BodyModel, ModelError, pca_full, pca_randomized
+from bodyspace.model import BodyModel, ModelError
+from bodyspace.shape.solvers import pca_full, pca_randomized
 from bodyspace.report.shape_report import (generalization_study, interpolation_study, write_generalization_report,
                                            write_interpolation_report)
 from bodyspace.shape import ShapeSpace

@@ -25,7 +25,7 @@ Array layout of a model file (``FORMAT_VERSION = 1``)::
 
 Components are kept at float32 precision in memory too (float64 values exactly representable in
 float32), so a saved model loads bit-exactly; the PCA itself runs in float64 up to
-``FULL_PCA_MAX_BYTES`` of codes and in float32 with a randomized range finder beyond
+``FULL_PCA_MAX_BYTES`` of codes and in float32 with a randomized block Krylov method beyond
 (``pca_solver``), see ``fit``.
 
 How the encoder is fitted on large databases: the relative rotation encoder's mean model (the
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -51,6 +52,7 @@ from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.encoding.rre import quaternion_exp
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.shape import ShapeSpace
+from bodyspace.shape.solvers import KRYLOV_DEPTH, mean_and_scatter, pca_block_krylov, pca_full
 
 FORMAT = "bodyspace.BodyModel"
 FORMAT_VERSION = 1
@@ -58,17 +60,15 @@ ENCODINGS = ("rre", "vertex")
 SELECTIONS = ("rest", "all")
 # Relative rotation encoder: the mean model is averaged over at most this many scans.
 ENCODER_FIT_MAX_SCANS = 64
-# Scans encoded per call while building: bounds the float64 codes in flight (~13 MB a scan).
-ENCODE_BATCH = 32
+# Scans read and encoded per call while building (~1 MB of vertices a scan); the next batch is
+# read while this one is encoded. The codes go straight into the (N, D) matrix.
+ENCODE_BATCH = 64
 # Up to this many bytes of float64 codes, the PCA is exact (Gram matrix, float64); beyond, the
-# codes are held in float32 and the leading components found by a randomized range finder.
+# codes are held in float32 and the leading components found by a randomized block Krylov
+# method (pca_block_krylov).
 FULL_PCA_MAX_BYTES = 2_000_000_000
 # n_components=None keeps every component with variance, at most this many.
 MAX_DEFAULT_COMPONENTS = 100
-# Randomized range finder (Halko, Martinsson and Tropp 2011, Alg. 4.4): extra columns and
-# power iterations.
-RANDOMIZED_OVERSAMPLES = 10
-RANDOMIZED_POWER_ITERATIONS = 2
 _ZIP_MAGIC = b"PK\x03\x04"
 
 
@@ -128,73 +128,6 @@ def shape_space_from_state(encoder, mean, components, explained_variance, explai
 
 # ----------------------------------------------------------------------------------- PCA
 
-def _svd_wide(a: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Thin SVD ``a = u diag(s) vt`` (float64) of a wide matrix (m, D), m << D.
-
-    Through the Gram matrix ``a a^T`` (m x m, one BLAS product; numpy's SVD of a 144 x 401k
-    matrix took 32 s, this ~0.5 s) and ``vt = u^T a / s`` (a second product). Squaring costs
-    accuracy only in the weakest directions: a direction's error is ~``eps s_max^2 / s^2``, so
-    directions with ``s^2 < rel_tol s_max^2`` are dropped (numerically no variance) and the rest
-    are accurate to ~1e-6 or better, below the float32 rounding the model keeps components at.
-    """
-    g = a @ a.T
-    lam, u = np.linalg.eigh(g)
-    lam, u = lam[::-1], u[:, ::-1]
-    keep = lam > rel_tol * max(lam[0], 1e-300)
-    lam, u = lam[keep], u[:, keep]
-    s = np.sqrt(lam)
-    return u, s, (u.T @ a) / s[:, None]
-
-
-def _sign_flip(vt: np.ndarray) -> np.ndarray:
-    """scikit-learn's convention (as ``ShapeSpace.fit``): each row's largest |entry| positive."""
-    signs = np.sign(vt[np.arange(len(vt)), np.argmax(np.abs(vt), axis=1)])
-    signs[signs == 0] = 1.0
-    return vt * signs[:, None]
-
-
-def pca_full(x: np.ndarray, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact PCA of float64 codes x (N, D) around ``mean`` (D,); x is centred in place.
-
-    Returns ``(singular_values (K,), components (K, D))``, K = numerical rank.
-    """
-    x -= mean
-    _, s, vt = _svd_wide(x)
-    return s, _sign_flip(vt)
-
-
-def pca_randomized(x: np.ndarray, mean: np.ndarray, k: int, rng=0,
-                   n_iter: int = RANDOMIZED_POWER_ITERATIONS,
-                   oversamples: int = RANDOMIZED_OVERSAMPLES) -> tuple[np.ndarray, np.ndarray]:
-    """Leading ``k`` principal directions of codes x (N, D) (float32 ok) around ``mean`` (D,).
-
-    Randomized range finder with power iterations (Halko et al. 2011, Alg. 4.4), orthonormalized
-    on the small side (N x l) only; the centring is applied inside the products, so x is never
-    copied. Cost: ``2 + 2 n_iter`` passes of an (N, D) x (D, l) product, l = k + oversamples.
-    Returns ``(singular_values (k,), components (k, D))`` in float64.
-    """
-    n, d = x.shape
-    l = min(n, k + oversamples)
-    gen = np.random.default_rng(rng)
-    dt = x.dtype
-    mu = mean.astype(dt)
-
-    def times(m):  # (x - mean) @ m, m (D, l)
-        return x @ m - (mu @ m)[None]
-
-    def times_t(y):  # (x - mean)^T @ y, y (N, l)
-        return x.T @ y - np.outer(mu, y.sum(axis=0))
-
-    y = times(gen.standard_normal((d, l)).astype(dt))
-    for _ in range(n_iter):
-        q, _ = np.linalg.qr(y.astype(np.float64))
-        y = times(times_t(q.astype(dt)))
-    q, _ = np.linalg.qr(y.astype(np.float64))
-    b = times_t(q.astype(dt)).T.astype(np.float64)  # (l, D) = q^T (x - mean)
-    _, s, vt = _svd_wide(b)
-    return s[:k], _sign_flip(vt[:k])
-
-
 # ----------------------------------------------------------------------------------- the bundle
 
 def _float32_exact(a: np.ndarray) -> np.ndarray:
@@ -252,8 +185,8 @@ class BodyModel:
                 "warn", "ignore"; the LBS-posed synthetic population needs "warn"/"ignore").
             pca_solver: "auto" (exact up to ``FULL_PCA_MAX_BYTES`` of float64 codes), "full" or
                 "randomized" (needs an int n_components).
-            rng: seed of the randomized range finder.
-            n_jobs: encoder threads (default: all cores).
+            rng: seed of the randomized PCA's start block.
+            n_jobs: encoder and PCA threads (default: all cores).
             template_id: recorded in the file (default ``db.meta['template']``).
             progress: ``progress(message, fraction)``.
         """
@@ -283,7 +216,7 @@ class BodyModel:
         if template_vertices is None:
             template_vertices = _template_for(db, faces)
         if encoding == "rre":
-            params = {"rotation_solver": "pcg", "tol": 3e-6, "max_iter": 25, "on_flipped": on_flipped}
+            params = {"rotation_solver": "pcg", "on_flipped": on_flipped}
             encoder = RelativeRotationEncoder(template_vertices, faces, n_jobs=n_jobs, **params).fit(fit_scans)
         else:
             params = {}
@@ -298,19 +231,24 @@ class BodyModel:
             raise ParameterError(f"n_components={n_components!r}: a variance fraction needs the exact PCA; for "
                                  f"{n} scans (> {FULL_PCA_MAX_BYTES / 1e9:.0f} GB of codes) pass an int")
         codes = np.empty((n, d), dtype=np.float64 if full else np.float32)
-        total = np.zeros(d)
         t = time.perf_counter()
-        for s in range(0, n, ENCODE_BATCH):
-            c = encoder.encode(_read(db, rows[s:s + ENCODE_BATCH]))
-            codes[s:s + len(c)] = c
-            total += c.sum(axis=0)
-            report(f"encoded {min(n, s + ENCODE_BATCH)}/{n} scans", 0.05 + 0.75 * min(n, s + ENCODE_BATCH) / n)
-        mean = total / n
-        # Total variance, in float64 whatever the storage (for explained_variance_ratio_).
-        ss = 0.0
-        for s in range(0, n, ENCODE_BATCH):
-            ss += float(((codes[s:s + ENCODE_BATCH] - mean) ** 2).sum())
+        starts = range(0, n, ENCODE_BATCH)
+        with ThreadPoolExecutor(1) as reader:
+            batch = reader.submit(_read, db, rows[:ENCODE_BATCH])
+            for s in starts:
+                x = batch.result()
+                if s + ENCODE_BATCH < n:
+                    batch = reader.submit(_read, db, rows[s + ENCODE_BATCH:s + 2 * ENCODE_BATCH])
+                if encoding == "rre":
+                    encoder.encode(x, out=codes[s:s + len(x)])
+                else:
+                    codes[s:s + len(x)] = encoder.encode(x)
+                report(f"encoded {s + len(x)}/{n} scans", 0.05 + 0.75 * (s + len(x)) / n)
         timings["encode_s"] = time.perf_counter() - t
+        # Mean and total variance (for explained_variance_ratio_), in float64 whatever the storage.
+        t = time.perf_counter()
+        mean, ss = mean_and_scatter(codes)
+        timings["statistics_s"] = time.perf_counter() - t
 
         # 3. PCA
         t = time.perf_counter()
@@ -321,7 +259,7 @@ class BodyModel:
             k = min(n - 1, MAX_DEFAULT_COMPONENTS) if n_components is None else int(n_components)
             if not 1 <= k < n:
                 raise ParameterError(f"n_components={n_components}, expected 1..{n - 1} for {n} scans")
-            sv, comps = pca_randomized(codes, mean, k, rng=rng)
+            sv, comps = pca_block_krylov(codes, mean, k, rng=rng, n_jobs=n_jobs)
         del codes
         var = sv ** 2 / (n - 1)
         ratio = var / (ss / (n - 1)) if ss > 0 else np.zeros_like(var)
@@ -339,6 +277,7 @@ class BodyModel:
             "subjects": sorted(set(np.asarray(db.scans["subject"])[rows].tolist())),
             "encoder_fit_scans": int(len(fit_rows)),
             "pca_solver": "full" if full else "randomized",
+            "pca_method": "gram_eigh" if full else f"block_krylov(depth={KRYLOV_DEPTH})",
             "total_variance": ss / (n - 1),
             "timings_s": {key: round(v, 3) for key, v in timings.items()},
         }

@@ -43,7 +43,7 @@ from bodyspace.atomic import atomic_path, write_json
 from bodyspace.encoding import rigid_procrustes
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
-from bodyspace.model import pca_full
+from bodyspace.shape.solvers import pca_full
 from bodyspace.report.render import contact_sheet
 from bodyspace.shape.compare import edge_lengths
 

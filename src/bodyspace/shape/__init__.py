@@ -1,5 +1,5 @@
-"""Shape spaces over encoded bodies: PCA (``pca``) and measures of how intact a body is
-(``compare``)."""
+"""Shape spaces over encoded bodies: PCA (``pca``), its solvers for large code matrices
+(``solvers``) and measures of how intact a body is (``compare``)."""
 
 from bodyspace.shape.compare import (edge_lengths, interpolate, interpolation_distortion,
                                      mean_relative_edge_change, relative_volume_change)

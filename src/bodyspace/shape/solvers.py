@@ -1,0 +1,223 @@
+"""PCA solvers for large code matrices: arrays in, ``(singular_values (k,), components (k, D))``
+out, the centring applied inside the products so a float32 (N, D) matrix is never copied.
+
+- ``pca_full``: exact, from the (N, N) Gram matrix (few scans, any width).
+- ``pca_block_krylov``: randomized block Krylov (Musco and Musco 2015), what ``BodyModel.fit``
+  uses beyond its exact-size limit.
+- ``pca_randomized``: randomized subspace iteration (Halko, Martinsson and Tropp 2011, Alg.
+  4.4), the previous solver, kept as the benchmark's baseline.
+- ``mean_and_scatter``: column means and total scatter accumulated in float64.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from bodyspace.mesh.solver import single_threaded_blas
+
+__all__ = ["pca_full", "pca_randomized", "pca_block_krylov", "mean_and_scatter"]
+
+# The previous solver, randomized subspace iteration (Halko, Martinsson and Tropp 2011,
+# Alg. 4.4; pca_randomized, kept as the benchmark's baseline): extra columns and power
+# iterations.
+RANDOMIZED_OVERSAMPLES = 10
+RANDOMIZED_POWER_ITERATIONS = 2
+# Block Krylov PCA (the solver beyond FULL_PCA_MAX_BYTES): blocks of the Krylov basis, and
+# the basis size, 2 k + KRYLOV_OVERSAMPLES split over the blocks (70 columns a block for 100
+# components; measured on 2,000 RRE codes in docs/encoding.md).
+KRYLOV_DEPTH = 3
+KRYLOV_OVERSAMPLES = 10
+PRODUCT_CHUNKS_PER_JOB = 4
+
+
+def _svd_wide(a: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Thin SVD ``a = u diag(s) vt`` (float64) of a wide matrix (m, D), m << D.
+
+    Through the Gram matrix ``a a^T`` (m x m, one BLAS product; numpy's SVD of a 144 x 401k
+    matrix took 32 s, this ~0.5 s) and ``vt = u^T a / s`` (a second product). Squaring costs
+    accuracy only in the weakest directions: a direction's error is ~``eps s_max^2 / s^2``, so
+    directions with ``s^2 < rel_tol s_max^2`` are dropped (numerically no variance) and the rest
+    are accurate to ~1e-6 or better, below the float32 rounding the model keeps components at.
+    """
+    g = a @ a.T
+    lam, u = np.linalg.eigh(g)
+    lam, u = lam[::-1], u[:, ::-1]
+    keep = lam > rel_tol * max(lam[0], 1e-300)
+    lam, u = lam[keep], u[:, keep]
+    s = np.sqrt(lam)
+    return u, s, (u.T @ a) / s[:, None]
+
+
+def _sign_flip(vt: np.ndarray) -> np.ndarray:
+    """scikit-learn's convention (as ``ShapeSpace.fit``): each row's largest |entry| positive."""
+    signs = np.sign(vt[np.arange(len(vt)), np.argmax(np.abs(vt), axis=1)])
+    signs[signs == 0] = 1.0
+    return vt * signs[:, None]
+
+
+def pca_full(x: np.ndarray, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact PCA of float64 codes x (N, D) around ``mean`` (D,); x is centred in place.
+
+    Returns ``(singular_values (K,), components (K, D))``, K = numerical rank.
+    """
+    x -= mean
+    _, s, vt = _svd_wide(x)
+    return s, _sign_flip(vt)
+
+
+def pca_randomized(x: np.ndarray, mean: np.ndarray, k: int, rng=0,
+                   n_iter: int = RANDOMIZED_POWER_ITERATIONS,
+                   oversamples: int = RANDOMIZED_OVERSAMPLES) -> tuple[np.ndarray, np.ndarray]:
+    """Leading ``k`` principal directions of codes x (N, D) (float32 ok) around ``mean`` (D,).
+
+    Randomized range finder with power iterations (Halko et al. 2011, Alg. 4.4), orthonormalized
+    on the small side (N x l) only; the centring is applied inside the products, so x is never
+    copied. Cost: ``2 + 2 n_iter`` passes of an (N, D) x (D, l) product, l = k + oversamples.
+    Returns ``(singular_values (k,), components (k, D))`` in float64.
+    """
+    n, d = x.shape
+    l = min(n, k + oversamples)
+    gen = np.random.default_rng(rng)
+    dt = x.dtype
+    mu = mean.astype(dt)
+
+    def times(m):  # (x - mean) @ m, m (D, l)
+        return x @ m - (mu @ m)[None]
+
+    def times_t(y):  # (x - mean)^T @ y, y (N, l)
+        return x.T @ y - np.outer(mu, y.sum(axis=0))
+
+    y = times(gen.standard_normal((d, l)).astype(dt))
+    for _ in range(n_iter):
+        q, _ = np.linalg.qr(y.astype(np.float64))
+        y = times(times_t(q.astype(dt)))
+    q, _ = np.linalg.qr(y.astype(np.float64))
+    b = times_t(q.astype(dt)).T.astype(np.float64)  # (l, D) = q^T (x - mean)
+    _, s, vt = _svd_wide(b)
+    return s[:k], _sign_flip(vt[:k])
+
+
+def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int = KRYLOV_DEPTH,
+                     oversamples: int = KRYLOV_OVERSAMPLES,
+                     n_jobs: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Leading ``k`` principal directions of codes x (N, D) (float32 ok) around ``mean`` (D,).
+
+    Randomized block Krylov method (Musco and Musco 2015): with ``C = x - mean`` and a random
+    start ``Y_0 = C G`` (G: D x l Gaussian, ``l = ceil((2 k + oversamples) / depth)``), each step
+    orthonormalizes ``Y_i`` against the basis so far (block ``Q_i``, N x l), computes
+    ``Z_i = C^T Q_i`` (D x l), and the next block ``Y_{i+1} = C Z_i``. The basis
+    ``K = [Q_0 .. Q_{depth-1}]`` spans the Krylov space of ``C C^T`` from ``Y_0``, and
+    the Rayleigh-Ritz matrix ``K^T C C^T K`` comes from the blocks' images ``C C^T Q_i``
+    (and a small l x l product over D for the last block): ``2 depth`` products of
+    (N, D) x (D, l) in all, and the components ``V = (K^T C)^T U / s`` from the already
+    computed ``Q_i^T C``.
+    Subspace iteration (``pca_randomized``, Halko et al. 2011, Alg. 4.4) keeps only its last
+    block, so it needs wider blocks: on the 2,000 RRE codes of the benchmark, depth 3 with
+    70-column blocks is more accurate for 100 components than 2 power iterations with 110
+    columns, at 64% of the products (docs/encoding.md). The centring is applied inside the
+    products, so x is never copied.
+    Returns ``(singular_values (k,), components (k, D))`` in float64.
+    """
+    n, d = x.shape
+    l = min(n, -(-(2 * k + oversamples) // depth))
+    gen = np.random.default_rng(rng)
+    dt = x.dtype
+    mu = np.asarray(mean, dtype=dt)
+    jobs = n_jobs or os.cpu_count() or 1
+    # The big products in PRODUCT_CHUNKS_PER_JOB pieces per thread, one BLAS thread each: on
+    # the shared machine a multi-threaded BLAS call waits for its slowest (descheduled) thread,
+    # while pieces from a queue go to whichever thread runs (measured below).
+    row_cuts = np.linspace(0, n, min(n, PRODUCT_CHUNKS_PER_JOB * jobs) + 1).astype(int)
+    col_cuts = np.linspace(0, d, PRODUCT_CHUNKS_PER_JOB * jobs + 1).astype(int)
+
+    def each(cuts, work):
+        if jobs <= 1:
+            for a, b in zip(cuts[:-1], cuts[1:]):
+                work(a, b)
+            return
+        with single_threaded_blas(), ThreadPoolExecutor(jobs) as pool:
+            for future in [pool.submit(work, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
+                future.result()
+
+    def times(m):  # (x - mean) @ m, m (D, l)
+        out = np.empty((n, m.shape[1]), dtype=np.result_type(x, m))
+
+        def work(a, b):
+            out[a:b] = x[a:b] @ m
+        each(row_cuts, work)
+        return out - (mu @ m)[None]
+
+    def t_times(y):  # y^T (x - mean), y (N, l); measured 1.3x faster than x^T @ y
+        yt = np.ascontiguousarray(y.T)
+        out = np.empty((yt.shape[0], d), dtype=np.result_type(x, y))
+
+        def work(a, b):
+            out[:, a:b] = yt @ x[:, a:b]
+        each(col_cuts, work)
+        out -= np.outer(yt.sum(axis=1), mu)
+        return out
+
+    start = gen.standard_normal((d, l), dtype=np.float32 if dt == np.float32 else np.float64)
+    y = times(start).astype(np.float64)
+    del start
+    basis = np.zeros((n, 0))
+    blocks, images = [], []
+    for step in range(depth):
+        width = min(l, n - basis.shape[1])
+        if width <= 0:
+            break
+        # Householder QR of [basis, y]: the new columns are orthonormal and orthogonal to the
+        # basis even where y has (numerically) lost rank against it. Small (N x L): one BLAS
+        # thread (two threads spinning against a loaded machine measured 10x slower).
+        with single_threaded_blas():
+            full = np.linalg.qr(np.hstack([basis, y]))[0]
+        q = full[:, basis.shape[1]:basis.shape[1] + width]
+        basis = np.hstack([basis, q])
+        blocks.append(t_times(q.astype(dt)))  # B_i = Q_i^T C (width, D)
+        if step + 1 < depth and basis.shape[1] < n:
+            y = times(blocks[-1].T).astype(np.float64)  # C C^T Q_i (N, width): the next block
+            images.append(y)
+    # Rayleigh-Ritz on the basis K: M = K^T C C^T K = B B^T (L x L). Its columns of block i <
+    # last are K^T (C C^T Q_i), the images computed anyway; only the last block's diagonal
+    # block B_last B_last^T is a product over D (small: width^2 D, in float64 by chunks).
+    sizes = [len(bk) for bk in blocks]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    ritz = np.zeros((starts[-1],) * 2)
+    with single_threaded_blas():
+        for i, image in enumerate(images):
+            ritz[:, starts[i]:starts[i + 1]] = basis.T @ image
+    last = len(images)
+    if last < len(blocks):
+        for i in range(last):
+            ritz[starts[i]:starts[i + 1], starts[last]:] = ritz[starts[last]:, starts[i]:starts[i + 1]].T
+        chunk = 1 << 16
+        with single_threaded_blas():  # a 70 x 70 output: 2 BLAS threads measured 8x slower
+            for s in range(0, d, chunk):
+                bc = blocks[last][:, s:s + chunk].astype(np.float64)
+                ritz[starts[last]:, starts[last]:] += bc @ bc.T
+    with single_threaded_blas():
+        lam, u = np.linalg.eigh(0.5 * (ritz + ritz.T))
+    lam, u = lam[::-1][:k], u[:, ::-1][:, :k]
+    sv = np.sqrt(np.maximum(lam, 0.0))
+    # Components V = B^T U / s (k, D): one (k, L) x (L, D) product.
+    comps = (u.T.astype(dt) @ np.concatenate(blocks, axis=0)).astype(np.float64)
+    comps /= np.where(sv > 0, sv, 1.0)[:, None]
+    return sv, _sign_flip(comps)
+
+
+def mean_and_scatter(x: np.ndarray, block: int = 64) -> tuple[np.ndarray, float]:
+    """Column means (D,) and total scatter ``sum |x_i - mean|^2`` of codes x (N, D), both
+    accumulated in float64 over row blocks (no float64 copy of a float32 x)."""
+    total = np.zeros(x.shape[1])
+    sq = 0.0
+    for s in range(0, len(x), block):
+        rows = x[s:s + block]
+        total += np.add.reduce(rows, axis=0, dtype=np.float64)
+        sq += float(np.einsum("ij,ij->", rows, rows, dtype=np.float64))
+    mean = total / len(x)
+    # sum |x_i - m|^2 = sum |x_i|^2 - N |m|^2; the codes are relative to the encoder's mean
+    # model, so |m| is small against the spread and the difference loses no precision.
+    return mean, max(sq - len(x) * float(mean @ mean), 0.0)
