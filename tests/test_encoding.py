@@ -312,7 +312,7 @@ def test_smoothed_gauge_needs_fewer_cg_steps(sphere, monkeypatch):
     enc.rotation_solver = "direct"
     exact = enc.decode(sample)
     enc.rotation_solver, enc.max_iter = "pcg", 200
-    monkeypatch.setattr(rre, "DIRECT_FRACTION", 1.0)
+    monkeypatch.setattr(rre, "DEFECT_SLOTS", 1.0)
     steps = {}
     for rounds in (0, 1, 2):
         monkeypatch.setattr(rre, "SMOOTH_ROUNDS", rounds)

@@ -4,7 +4,11 @@ gradients (Yu et al. 2004; Hasler et al. 2009, Sec. 3) with optional soft positi
 constraints (Hasler et al. 2009, Sec. 5.3 and 5.4).
 
 The system matrices depend on the template only, so each is factored once and every body
-afterwards costs triangular solves alone.
+afterwards costs triangular solves alone. SuperLU makes the factorization; for a symmetric
+matrix its factors are ``P A P^T = L D L^T``, and the triangular solves run in a compiled loop
+(numba) over all right-hand sides at once, interleaved so that each factor entry is read once
+for all of them: measured 2-4x faster than SuperLU's own solve for the 3-9 right-hand sides of
+a body (docs/encoding.md).
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
@@ -34,6 +39,68 @@ _controller = None
 SOLVE_BLOCK = 24
 
 
+@numba.njit(cache=True, nogil=True)
+def ldl_solve(lp, li, lx, dinv, perm, b, out):
+    """Solve ``A X = B`` with ``P A P^T = L D L^T`` for all columns of b (n, k).
+
+    Columns go in groups of 9 (the 3x3 entries of a rotation field), each group's values held
+    in nine scalars, so every factor entry is read once per group and the products stay in
+    registers (measured 25% faster than a loop over a runtime column count).
+
+    Args:
+        lp, li, lx: strictly lower triangle of L in CSC (column pointers, row indices, values;
+            values may be float32).
+        dinv: (n,) ``1 / D``.
+        perm: (n,) row i of A is row ``perm[i]`` of the factored matrix.
+        b, out: (n, k) float64, C order; ``out`` may be ``b``.
+    """
+    n, k = b.shape
+    x = np.zeros((n, 9))
+    for c0 in range(0, k, 9):
+        w = min(9, k - c0)
+        for i in range(n):
+            for c in range(w):
+                x[perm[i], c] = b[i, c0 + c]
+        for j in range(n):  # L y = P b, column by column
+            a0, a1, a2, a3, a4 = x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4]
+            a5, a6, a7, a8 = x[j, 5], x[j, 6], x[j, 7], x[j, 8]
+            for p in range(lp[j], lp[j + 1]):
+                i = li[p]
+                v = np.float64(lx[p])
+                x[i, 0] -= v * a0
+                x[i, 1] -= v * a1
+                x[i, 2] -= v * a2
+                x[i, 3] -= v * a3
+                x[i, 4] -= v * a4
+                x[i, 5] -= v * a5
+                x[i, 6] -= v * a6
+                x[i, 7] -= v * a7
+                x[i, 8] -= v * a8
+        for j in range(n - 1, -1, -1):  # L^T z = D^-1 y: rows of L^T are columns of L
+            d = dinv[j]
+            a0, a1, a2, a3, a4 = x[j, 0] * d, x[j, 1] * d, x[j, 2] * d, x[j, 3] * d, x[j, 4] * d
+            a5, a6, a7, a8 = x[j, 5] * d, x[j, 6] * d, x[j, 7] * d, x[j, 8] * d
+            for p in range(lp[j], lp[j + 1]):
+                i = li[p]
+                v = np.float64(lx[p])
+                a0 -= v * x[i, 0]
+                a1 -= v * x[i, 1]
+                a2 -= v * x[i, 2]
+                a3 -= v * x[i, 3]
+                a4 -= v * x[i, 4]
+                a5 -= v * x[i, 5]
+                a6 -= v * x[i, 6]
+                a7 -= v * x[i, 7]
+                a8 -= v * x[i, 8]
+            x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4] = a0, a1, a2, a3, a4
+            x[j, 5], x[j, 6], x[j, 7], x[j, 8] = a5, a6, a7, a8
+        for i in range(n):
+            for c in range(w):
+                out[i, c0 + c] = x[perm[i], c]
+        if c0 + 9 < k:
+            x[:] = 0.0
+
+
 def single_threaded_blas():
     """Context in which BLAS runs on one thread (a no-op without threadpoolctl)."""
     global _controller
@@ -48,7 +115,8 @@ class FactorizedSolver:
     """Sparse LU of a symmetric positive definite matrix, for repeated solves.
 
     A symmetric fill-reducing ordering with no pivoting (``diag_pivot_thresh=0``): for an SPD
-    matrix that is stable and keeps the factor as sparse as a Cholesky factor.
+    matrix that is stable and keeps the factor as sparse as a Cholesky factor. For a symmetric
+    matrix the factors are used as ``L D L^T`` (``ldl_solve``); otherwise SuperLU solves.
 
     Args:
         matrix: (n, n) sparse, symmetric positive definite.
@@ -65,6 +133,16 @@ class FactorizedSolver:
         with single_threaded_blas():
             self._lu = sla.splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
+        self._ldl = None
+        lu = self._lu
+        d = lu.U.diagonal()
+        scale = abs(matrix).max() if matrix.nnz else 1.0
+        if (np.array_equal(lu.perm_r, lu.perm_c) and (d > 0).all()
+                and abs(matrix - matrix.T).max() <= 1e-12 * scale):
+            low = sp.tril(lu.L, k=-1).tocsc()
+            low.sort_indices()
+            self._ldl = (low.indptr.astype(np.int64), low.indices.astype(np.int64),
+                         low.data.astype(self.dtype), 1.0 / d.astype(float), lu.perm_c.astype(np.int64))
 
     @property
     def factor_nnz(self) -> int:
@@ -76,6 +154,11 @@ class FactorizedSolver:
         rhs = np.asarray(rhs)
         if rhs.shape[0] != self.shape[0]:
             raise MeshError(f"right-hand side has {rhs.shape[0]} rows, expected {self.shape[0]}")
+        if self._ldl is not None:
+            b = np.ascontiguousarray(rhs.reshape(self.shape[0], -1), dtype=float)
+            out = np.empty_like(b)
+            ldl_solve(*self._ldl, b, out)
+            return out.reshape(rhs.shape)
         if rhs.ndim == 1:
             with single_threaded_blas():
                 return self._lu.solve(rhs.astype(self.dtype)).astype(float)
