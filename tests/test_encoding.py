@@ -339,13 +339,18 @@ def pose_arm(t, x, angle, bone="upperarm01.L", axis=(0.0, 0.0, 1.0)):
     return x + w[:, None] * ((x - head) @ r.T + head - x)
 
 
+def young_shapes(t, n: int, rng) -> list:
+    """``n`` template bodies, each a random convex mix (0.8 in all) of three 'young' macro targets."""
+    young = [i for i, name in enumerate(t.target_names) if name.startswith("macrodetails/") and "young" in name]
+    return [t.vertices + np.tensordot(rng.dirichlet(np.ones(3)) * 0.8, t.target_deltas[rng.choice(young, 3)], 1)
+            for _ in range(n)]
+
+
 def test_round_trip_on_template(template):
     t = template
     v, f = t.vertices, t.faces
-    young = [i for i, n in enumerate(t.target_names) if n.startswith("macrodetails/") and "young" in n]
     rng = np.random.default_rng(0)
-    shapes = [v + np.tensordot(rng.dirichlet(np.ones(3)) * 0.8, t.target_deltas[rng.choice(young, 3)], 1)
-              for _ in range(3)]
+    shapes = young_shapes(t, 3, rng)
     # Smooth random displacement of a shape, and an arm rotation of another.
     x0 = shapes[0] + 0.01 * np.sin(shapes[0] @ rng.normal(size=(3, 3)) * 3)
     x1 = pose_arm(t, shapes[1], 0.5)

@@ -7,7 +7,7 @@ import pytest
 import bodyspace.encoding.rre as rre
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace
-from test_encoding import aligned, height, pose_arm
+from test_encoding import aligned, height, pose_arm, young_shapes
 
 # The stated accuracy of the fast decode: 0.1 mm (max vertex distance) from the exact decode.
 ACCURACY_M = 1e-4
@@ -18,10 +18,7 @@ def coded(template):
     """An encoder fitted on a small posed population of the template, its codes and scans."""
     t = template
     v, f = t.vertices, t.faces
-    young = [i for i, n in enumerate(t.target_names) if n.startswith("macrodetails/") and "young" in n]
-    rng = np.random.default_rng(3)
-    shapes = [v + np.tensordot(rng.dirichlet(np.ones(3)) * 0.8, t.target_deltas[rng.choice(young, 3)], 1)
-              for _ in range(4)]
+    shapes = young_shapes(t, 4, np.random.default_rng(3))
     posed = [pose_arm(t, shapes[0], 1.1), pose_arm(t, shapes[1], -0.9, axis=(1.0, 0.0, 0.0)),
              pose_arm(t, shapes[2], 0.8, bone="upperarm01.R"), pose_arm(t, shapes[3], 1.3, bone="upperarm01.R")]
     scans = np.stack(shapes + posed)
