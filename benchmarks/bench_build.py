@@ -36,8 +36,8 @@ import numpy as np
 
 from bodyspace.data.population import build_population
 from bodyspace.data.template import load_template
-from bodyspace.encoding.rre import (polar_decomposition, quaternion_conjugate, quaternion_from_matrix,
-                                    quaternion_log, quaternion_multiply)
+from bodyspace.encoding.rotations import (polar_decomposition, quaternion_conjugate, quaternion_from_matrix,
+                                          quaternion_log, quaternion_multiply)
 from bodyspace.mesh.operators import triangle_frames
 from bodyspace.model import BodyModel
 from bodyspace.shape.solvers import pca_block_krylov, pca_randomized

@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from bodyspace.encoding import PositionConstraints, RelativeRotationEncoder, VertexEncoder, rigid_procrustes
 import bodyspace.encoding.rre as rre
-from bodyspace.encoding.rre import (polar_decomposition, project_to_rotations, quaternion_from_matrix,
-                                    quaternion_log, rotation_exp, rotation_log)
+from bodyspace.encoding.rotations import (polar_decomposition, project_to_rotations, quaternion_from_matrix,
+                                          quaternion_log, rotation_exp, rotation_log)
 from bodyspace.errors import MeshError
 from bodyspace.shape.compare import interpolation_distortion
 from _meshes import open_tube

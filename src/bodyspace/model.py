@@ -49,7 +49,7 @@ import numpy as np
 
 from bodyspace.atomic import atomic_path
 from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
-from bodyspace.encoding.rre import quaternion_exp
+from bodyspace.encoding.rotations import quaternion_exp
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import KRYLOV_DEPTH, mean_and_scatter, pca_block_krylov, pca_full

@@ -6,6 +6,9 @@
 - ``VertexEncoder`` (``vertex``): vertex positions after rigid Procrustes alignment
   (Rupprecht et al., Eq. 1).
 
+Shared parts: ``deformation`` (per-triangle deformation gradients and their closed-form polar
+decomposition) and ``rotations`` (quaternions, rotation vectors, polar factors, batched).
+
 Both: ``Encoder(template_vertices, faces).fit(scans)``, ``encode(vertices) -> (N, D)``,
 ``decode(codes, constraints=None) -> (N, V, 3)``, ``n_features_``, ``mean_vertices_``.
 """
