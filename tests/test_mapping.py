@@ -256,3 +256,42 @@ def test_rre_infeasible_request_gets_closest_plausible_body_and_report(rre_model
     lb = LinearBodyMeasures.from_model(rre_model, k=RRE_K, linearization=fitted["linearization"])
     start = lb.measure_bodies(rre_model.reconstruct(z0)) * 100
     assert np.abs(res.measured - req).sum() < np.abs(start - req).sum()
+
+
+def test_mapping_is_stored_in_the_model_file_and_makes_bodies(tmp_path, model):
+    """fit_mapping -> save -> load keeps the forest bit-exact; `mapping shape` makes a body that
+    measures the six requested values within 1 mm; a model without a mapping is refused."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from bodyspace.cli import app
+    from bodyspace.mapping.gradients import LinearBodyMeasures
+    from bodyspace.model import BodyModel
+
+    model = BodyModel.load(model.save(tmp_path / "copy.npz"))  # the fixture stays as it was
+    model.fit_mapping(samples=400, k=8, n_trees=5)
+    path = model.save(tmp_path / "m.npz")
+    header = json.loads(np.load(path)["header"].tobytes())
+    assert header["mapping"]["k"] == 8 and len(header["mapping"]["names"]) == 6
+    back = BodyModel.load(path)
+    X = np.asarray(model.mapping.forest.predict(np.zeros((1, 6)) + 100.0))
+    assert np.array_equal(back.mapping.forest.predict(np.zeros((1, 6)) + 100.0), X)
+    # a request measured on a body of the model: feasible by construction
+    z = model.sample_coefficients(1, n_components=8, sigma_range=1.0, rng=3)
+    goal = LinearBodyMeasures.from_model(model, names=back.mapping.names, k=8)(z[:, :8])[0] * 100.0
+    args = ["mapping", "shape", str(path), "--out", str(tmp_path / "b.obj")]
+    for name, v in zip(back.mapping.names, goal):
+        args += ["--set", f"{name}={v:.4f}cm"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    from bodyspace.mesh.io import load_mesh
+    v, _ = load_mesh(tmp_path / "b.obj")
+    got = LinearBodyMeasures.from_model(model, names=back.mapping.names, k=8).measure_bodies(v[None])[0] * 100.0
+    assert np.abs(got - goal).max() < 0.1, (got, goal)
+    bare = BodyModel.load(path)
+    bare.mapping = None
+    bare.save(tmp_path / "bare.npz")
+    r = CliRunner().invoke(app, ["mapping", "shape", str(tmp_path / "bare.npz"), "--out", str(tmp_path / "c.obj"),
+                                 "--set", "height=170cm"])
+    assert r.exit_code == 2 and "mapping fit" in r.output

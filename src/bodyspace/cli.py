@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bodyspace.cli_mapping import mapping_evaluate
+from bodyspace.cli_mapping import mapping_evaluate, mapping_fit, mapping_shape
 from bodyspace.cli_measure import measure
 from bodyspace.cli_semantics import crowd, evaluate, generate, morph
 from bodyspace.errors import BodyspaceError
@@ -194,6 +194,8 @@ app.command("generate")(generate)
 app.command("morph")(morph)
 app.command("crowd")(crowd)
 mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
+mapping_app.command("fit")(mapping_fit)
+mapping_app.command("shape")(mapping_shape)
 mapping_app.command("evaluate")(mapping_evaluate)
 app.add_typer(mapping_app, name="mapping")
 

@@ -22,6 +22,9 @@ Array layout of a model file (``FORMAT_VERSION = 1``)::
     pca_explained_variance_ratio (K,) float64
     pca_singular_values     (K,) float64
     fitted_scans            (N,) int64      rows of the source database the model was fitted on
+    mapping_*               optional: the measurements-to-shape mapping (``mapping.bundle``:
+                            names, k, the forest's and the linear map's flat arrays, the RRE
+                            decoder linearization); the header's "mapping" names it
 
 Components are kept at float32 precision in memory too (float64 values exactly representable in
 float32), so a saved model loads bit-exactly; the PCA itself runs in float64 up to
@@ -51,6 +54,7 @@ from bodyspace.atomic import atomic_path
 from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.encoding.rotations import quaternion_exp
 from bodyspace.errors import BodyspaceError, ParameterError
+from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX, MeasurementMapping
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import KRYLOV_DEPTH, mean_and_scatter, pca_block_krylov, pca_full
 
@@ -149,7 +153,7 @@ class BodyModel:
 
     def __init__(self, template_vertices, faces, encoder, space: ShapeSpace, *, encoding: str,
                  template_id: str = "unknown", selection: str = "all", fitted_scans=None,
-                 encoder_params: dict | None = None, provenance: dict | None = None):
+                 encoder_params: dict | None = None, provenance: dict | None = None, mapping=None):
         if encoding not in ENCODINGS:
             raise ParameterError(f"encoding={encoding!r}, expected one of {', '.join(ENCODINGS)}")
         self.template_vertices = np.asarray(template_vertices, dtype=float)
@@ -162,6 +166,9 @@ class BodyModel:
         self.fitted_scans = np.asarray([] if fitted_scans is None else fitted_scans, dtype=np.int64)
         self.encoder_params = dict(encoder_params or {})
         self.provenance = dict(provenance or {})
+        # The fitted measurements-to-shape mapping (``mapping.bundle.MeasurementMapping``), or
+        # None; ``fit_mapping`` makes one, ``save`` stores it in the same file.
+        self.mapping = mapping
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -320,9 +327,19 @@ class BodyModel:
         components, truncated to ``sigma_range`` standard deviations (s or (lo, hi))."""
         return self.space.sample(n, n_components, sigma_range, rng)
 
+    def fit_mapping(self, samples: int | None = None, k: int = 25, seed: int = 0, n_trees: int = 50,
+                    progress=None) -> "BodyModel":
+        """Fit the measurements-to-shape mapping (forest, linear baseline; Rupprecht et al.) on a
+        training set drawn from this model, keep it as ``self.mapping`` (saved with the model);
+        returns self. See ``mapping.bundle.fit_mapping``."""
+        from bodyspace.mapping.bundle import fit_mapping
+        self.mapping = fit_mapping(self, samples, k, seed=seed, n_trees=n_trees, progress=progress)
+        return self
+
     def __repr__(self) -> str:
         return (f"BodyModel({self.encoding}, {self.n_components} components, fitted on {len(self.fitted_scans)} "
-                f"{self.selection} scans, template={self.template_id!r})")
+                f"{self.selection} scans, template={self.template_id!r}"
+                + (f", mapping from {len(self.mapping.names)} measurements" if self.mapping is not None else "") + ")")
 
     # ------------------------------------------------------------------ files
     def _arrays(self) -> dict[str, np.ndarray]:
@@ -341,6 +358,8 @@ class BodyModel:
         if self.encoding == "rre":
             arrays["rre_mean_rotvecs"] = np.asarray(self.encoder.mean_rotvecs_, dtype=np.float64)
             arrays["rre_mean_stretch"] = np.asarray(self.encoder.mean_stretch_, dtype=np.float64)
+        if self.mapping is not None:
+            arrays.update(self.mapping.to_arrays(MAPPING_PREFIX))
         return arrays
 
     def save(self, path) -> Path:
@@ -356,6 +375,8 @@ class BodyModel:
             "units": {"length": "m", "rre_code": "rotation vectors (rad) and stretch (1) per triangle",
                       "vertex_code": "m"},
             "provenance": self.provenance,
+            "mapping": None if self.mapping is None else {"names": list(self.mapping.names), "k": self.mapping.k,
+                                                          "samples": self.mapping.samples, "units": "cm"},
             "arrays": {name: {"shape": list(a.shape), "dtype": a.dtype.str} for name, a in arrays.items()},
         }
         arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
@@ -439,6 +460,12 @@ class BodyModel:
         for name, value in a.items():
             if value.dtype.kind == "f" and not np.isfinite(value).all():
                 raise ModelError(f"{path}: field '{name}' contains NaN or infinity")
+        mapping = None
+        if any(name.startswith(MAPPING_PREFIX) for name in a):
+            try:
+                mapping = MeasurementMapping.from_arrays(a, MAPPING_PREFIX)
+            except BodyspaceError as exc:
+                raise ModelError(f"{path}: the stored mapping does not load ({exc})") from None
         params = dict(header.get("encoder_params") or {})
         try:
             if encoding == "rre":
@@ -454,7 +481,7 @@ class BodyModel:
                                        a["pca_singular_values"], header.get("n_samples", 0))
         return cls(v, f, encoder, space, encoding=encoding, template_id=header.get("template_id", "unknown"),
                    selection=header.get("selection", "all"), fitted_scans=a["fitted_scans"],
-                   encoder_params=params, provenance=header.get("provenance"))
+                   encoder_params=params, provenance=header.get("provenance"), mapping=mapping)
 
 
 # ----------------------------------------------------------------------------------- helpers

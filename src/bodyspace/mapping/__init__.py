@@ -5,6 +5,7 @@ single affine map of the related work (its baseline). Both are scikit-learn-styl
 (``fit(X, Y)``, ``predict(X)``) that store themselves as flat arrays (``to_arrays`` /
 ``from_arrays``) for the model bundle, never pickle. ``DecoderLinearization`` is the affine
 stand-in for the RRE decoder that exact refinement of RRE models steps with (linearize.py).
+``MeasurementMapping`` (bundle.py) holds the fitted ones a ``BodyModel`` saves in its file.
 """
 
 from bodyspace.mapping.forest import LinearLeafForest, grow_tree
