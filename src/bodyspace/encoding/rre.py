@@ -73,7 +73,7 @@ import scipy.sparse.linalg as sla
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
 from bodyspace.encoding.rotations import _planar, _qconj, _qexp, _qfrom_matrix, project_to_rotations, quaternion_exp
 from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
-from bodyspace.errors import MeshError
+from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 from bodyspace.mesh.operators import dual_laplacian, triangle_frames
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints, single_threaded_blas
@@ -108,6 +108,8 @@ SMOOTH_ROUNDS = 1
 # single thread, under load: 10-12 ms of CPU a body for blocks of 4096 to 32768 faces, 14 ms
 # for 2048 (per-call overhead), against 24 ms for the previous whole-body Newton iteration.
 ENCODE_BLOCK = 8192
+# The mean model sums the scans' codes in this many fixed chunks (one thread task each).
+FIT_CHUNKS = 4
 _STRETCH_ROWS = np.array([0, 0, 0, 1, 1, 2])
 _STRETCH_COLS = np.array([0, 1, 2, 1, 2, 2])
 
@@ -896,22 +898,28 @@ class RelativeRotationEncoder:
         """
         x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
         blocks = self._encoding_blocks()
-        sum_rot = np.zeros((3, 3, self.n_faces))  # component, slot, face
-        sum_str = np.zeros((self.n_faces, 6))
-        lock = threading.Lock()
+        # Sums per fixed, contiguous chunk of scans, added in chunk order: the mean model is the
+        # same to the last bit whatever the thread count or timing.
+        chunks = np.array_split(np.arange(len(x)), min(FIT_CHUNKS, len(x)))
+        sum_rot = np.zeros((len(chunks), 3, 3, self.n_faces))  # chunk, component, slot, face
+        sum_str = np.zeros((len(chunks), self.n_faces, 6))
 
-        def work(m):
-            q, stretch = self._rotations(x[m], "scans", m)
-            rot = np.empty_like(sum_rot)
-            for sl, _, _, nbr, _ in blocks:
-                rot[:, :, sl] = _relative_rotvecs(q[:, sl], q[:, nbr])
-            with lock:
-                np.add(sum_rot, rot, out=sum_rot)
-                np.add(sum_str, stretch, out=sum_str)
+        def work(k):
+            rot = np.empty(sum_rot.shape[1:])
+            for m in chunks[k]:
+                q, stretch = self._rotations(x[m], "scans", m)
+                for sl, _, _, nbr, _ in blocks:
+                    rot[:, :, sl] = _relative_rotvecs(q[:, sl], q[:, nbr])
+                sum_rot[k] += rot
+                sum_str[k] += stretch
 
-        self._run(work, range(len(x)))
-        self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], sum_rot.transpose(2, 1, 0) / len(x), 0.0)
-        self.mean_stretch_ = sum_str / len(x)
+        self._run(work, range(len(chunks)))
+        total_rot, total_str = sum_rot[0].copy(), sum_str[0].copy()
+        for k in range(1, len(chunks)):
+            total_rot += sum_rot[k]
+            total_str += sum_str[k]
+        self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], total_rot.transpose(2, 1, 0) / len(x), 0.0)
+        self.mean_stretch_ = total_str / len(x)
         self._mean_q = _qexp(_planar(self.mean_rotvecs_, 3))  # (4, F, 3)
         self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0][0]
         return self
@@ -932,8 +940,8 @@ class RelativeRotationEncoder:
             out = np.empty(shape)
         elif (out.shape != shape or out.dtype not in (np.float64, np.float32)
               or not out.flags.c_contiguous):
-            raise ValueError(f"out: {out.dtype} array of shape {out.shape}, expected a C-contiguous float64 or "
-                             f"float32 array of shape {shape}")
+            raise ParameterError(f"out: {out.dtype} array of shape {out.shape}, expected a C-contiguous float64 or "
+                                 f"float32 array of shape {shape}")
         codes = out.reshape(len(x), self.n_faces, FEATURES_PER_FACE)
         blocks = self._encoding_blocks()
         conj_mean = np.ascontiguousarray(_qconj(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
