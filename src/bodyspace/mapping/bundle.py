@@ -20,9 +20,9 @@ from bodyspace.mapping.gradients import RUPPRECHT_SIX
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.linearize import DecoderLinearization
 from bodyspace.mapping.refine import RefineResult, refine
-from bodyspace.mapping.training import make_training_set
+from bodyspace.mapping.training import default_sizes, make_training_set
 
-__all__ = ["MeasurementMapping", "fit_mapping", "PREFIX"]
+__all__ = ["MeasurementMapping", "fit_mapping", "forest_for", "PREFIX"]
 
 # Key prefix of the mapping's arrays inside a BodyModel file.
 PREFIX = "mapping_"
@@ -122,6 +122,12 @@ class MeasurementMapping:
         return cls(names, k, forest, linear, linearization, int(np.asarray(arrays[prefix + "samples"])))
 
 
+def forest_for(n_samples: int, seed: int = 0, n_trees: int = 50, n_jobs: int | None = None) -> LinearLeafForest:
+    """The unfitted forest for a training set of ``n_samples``: the paper's defaults, leaves of at
+    least 30 samples, or of one for tiny (test) training sets."""
+    return LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
+
+
 def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, seed: int = 0,
                 n_trees: int = 50, n_jobs: int | None = None, progress=None) -> MeasurementMapping:
     """Fit the mapping of ``model`` (a ``BodyModel``) from a training set drawn from it.
@@ -129,8 +135,6 @@ def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_
     ``samples`` defaults to 10,000 for vertex models and 1,000 for RRE models (every RRE body is
     decoded; see docs/mapping.md). Deterministic given ``seed``. ``progress(message, fraction)``.
     """
-    from bodyspace.mapping.evaluate import default_sizes
-
     samples = default_sizes(model)[0] if samples is None else int(samples)
     report = progress or (lambda msg, frac: None)
     train = make_training_set(model, samples, k, rng=seed, names=names,
@@ -138,8 +142,6 @@ def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_
     X, Y = train.measurements, train.coefficients[:, :train.k]
     report("linear mapping and forest", 0.8)
     linear = LinearMapping().fit(X, Y)
-    # min_samples_leaf: the paper's 30, or one leaf for tiny training sets
-    forest = LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs,
-                              min_samples_leaf=min(30, len(X))).fit(X, Y)
+    forest = forest_for(len(X), seed, n_trees, n_jobs).fit(X, Y)
     report("done", 1.0)
     return MeasurementMapping(tuple(train.names), train.k, forest, linear, train.linearization, samples)

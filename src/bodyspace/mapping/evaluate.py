@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from bodyspace.atomic import atomic_path
-from bodyspace.mapping.forest import LinearLeafForest
+from bodyspace.mapping.bundle import forest_for
 from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import refine
-from bodyspace.mapping.training import make_training_set
+from bodyspace.mapping.training import default_sizes, make_training_set
 
 METHODS = ("linear", "forest", "forest + refinement")
 SWEEP_CM = (100.0, 110.0, 120.0, 130.0, 140.0)
@@ -98,12 +98,6 @@ def _pad(z: np.ndarray, K: int) -> np.ndarray:
     return out
 
 
-def default_sizes(model) -> tuple[int, int]:
-    """(training samples, held-out requests) by encoding: the paper's 10,000 / 1,000 for vertex
-    models; 1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each)."""
-    return (10000, 1000) if model.encoding == "vertex" else (1000, 100)
-
-
 def decode_seconds(model, n: int = 4, k: int = 25, seed: int = 0) -> float:
     """Seconds per decoded body of ``model`` (wall clock, batched as in training), timed on ``n``
     uniform ±3 sigma samples; 0 for the vertex encoding (nothing is decoded)."""
@@ -165,9 +159,7 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     timings["linear_fit_s"] = time.perf_counter() - t
     report("forest", f_held)
     t = time.perf_counter()
-    # min_samples_leaf: the paper's 30, or one leaf for tiny (test) training sets
-    forest = LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs,
-                              min_samples_leaf=min(30, len(X))).fit(X, Y)
+    forest = forest_for(len(X), seed, n_trees, n_jobs).fit(X, Y)
     timings["forest_fit_s"] = time.perf_counter() - t
     measurer = LinearBodyMeasures.from_model(model, names=RUPPRECHT_SIX, k=kk, linearization=train.linearization)
     req = held.measurements

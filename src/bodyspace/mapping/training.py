@@ -52,6 +52,12 @@ class TrainingSet:
         return self.measurements[:, self.names.index(name)]
 
 
+def default_sizes(model) -> tuple[int, int]:
+    """(training samples, held-out requests) by encoding: the paper's 10,000 / 1,000 for vertex
+    models; 1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each)."""
+    return (10000, 1000) if model.encoding == "vertex" else (1000, 100)
+
+
 def sample_uniform(model, n: int, k: int = 25, sigma_range: float = 3.0, rng=None) -> np.ndarray:
     """Coefficients (n, K): the first ``min(k, K)`` uniform in ±sigma_range standard deviations, rest 0."""
     K = model.n_components
