@@ -1,16 +1,12 @@
-"""Decoding of modified RRE codes on the 13,380-vertex template: the fast path (tree gauge,
-smoothed, Laplacian-preconditioned block CG, exact fallback) against the exact Eq. 9 decode."""
+"""Decoding of modified RRE codes on the 13,380-vertex template: the per-body block Cholesky
+factorization of Eq. 9 (``FixedPatternRotationSolver``) against the SuperLU baseline."""
 
 import numpy as np
 import pytest
 
-import bodyspace.encoding.rre as rre
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace
 from test_encoding import aligned, height, pose_arm, young_shapes
-
-# The stated accuracy of the fast decode: 0.1 mm (max vertex distance) from the exact decode.
-ACCURACY_M = 1e-4
 
 
 @pytest.fixture(scope="module")
@@ -38,58 +34,31 @@ def modified_codes(enc, codes):
             "pose+shape": both.inverse_transform(both.sample_coefficients(3, sigma_range=2.0, rng=0))}
 
 
-def test_fast_decode_matches_exact_on_modified_codes(coded):
+def test_decode_matches_the_superlu_baseline_on_modified_codes(coded):
+    """One body at a time (two lanes) and a batch (a body per thread) both equal the baseline
+    that assembles and factors the whole system with SuperLU, to round-off."""
     enc, codes, scans = coded
-    cg_bodies = 0
     for name, c in modified_codes(enc, codes).items():
+        enc.rotation_solver = "direct"
+        ref = enc.decode(c)
         enc.rotation_solver = "exact"
-        exact = enc.decode(c)
-        enc.rotation_solver = "pcg"
-        fast = np.concatenate([enc.decode(row) for row in c])
-        cg_bodies += len(c) - enc.last_factorized_
-        assert np.abs(fast - exact).max() < ACCURACY_M, name
-    assert cg_bodies > 0  # the CG path itself was exercised, not only the fallback
-    # Round trips stay exact (consistent codes: the tree rotations, no CG step).
+        one = np.concatenate([enc.decode(row) for row in c])
+        assert enc.last_factorized_ == 1
+        batch = enc.decode(c)
+        assert enc.last_factorized_ == len(c)
+        assert np.abs(one - ref).max() < 1e-9, name
+        assert np.abs(batch - ref).max() < 1e-9, name
+    # Round trips: consistent codes, solved by the tree rotations without a factorization.
     out = enc.decode(codes)
-    assert enc.last_iterations_ == 0 and enc.last_factorized_ == 0
+    assert enc.last_factorized_ == 0
     assert np.abs(out - aligned(scans, enc.mean_vertices_)).max() < 1e-6 * height(scans)
 
 
-def test_cg_alone_reaches_the_stated_accuracy(coded, monkeypatch):
-    """With the routing to the factorization off, CG alone meets the accuracy on every modified
-    code, the ones with defects included (it only takes more steps there)."""
+def test_solve_rotations_in_mesh_order(coded):
+    """``solve_rotations`` (mesh face order in and out) agrees between the exact path, which
+    works in the graph's own face order, and the baseline."""
     enc, codes, _ = coded
-    monkeypatch.setattr(rre, "DEFECT_SLOTS", 1.0)
-    monkeypatch.setattr(enc, "max_iter", 400)
-    for name, c in modified_codes(enc, codes).items():
-        enc.rotation_solver = "exact"
-        exact = enc.decode(c)
-        enc.rotation_solver = "pcg"
-        fast = enc.decode(c)
-        assert enc.last_factorized_ == 0
-        assert np.abs(fast - exact).max() < ACCURACY_M, name
-    enc.rotation_solver = "pcg"
-
-
-def test_step_budget_falls_back_to_exact(coded, monkeypatch):
-    """A code CG does not finish within ``max_iter`` is solved exactly, not returned half done."""
-    enc, codes, _ = coded
-    c = modified_codes(enc, codes)["pose+shape"][:1]
-    enc.rotation_solver = "exact"
-    exact = enc.decode(c)
-    enc.rotation_solver = "pcg"
-    monkeypatch.setattr(rre, "DEFECT_SLOTS", 1.0)
-    monkeypatch.setattr(enc, "max_iter", 1)
-    out = enc.decode(c)
-    assert enc.last_factorized_ == 1
-    assert np.abs(out - exact).max() < 1e-9
-
-
-def test_solve_rotations_pcg_in_mesh_order(coded):
-    """``solve_rotations`` (mesh face order in and out) agrees between the CG path, which works
-    in the graph's own face order, and the exact path."""
-    enc, codes, _ = coded
-    rel = enc.relative_rotations(modified_codes(enc, codes)["shape-only"][:1])
-    fast = enc.solve_rotations(rel, "pcg")
-    assert enc.last_factorized_ == 0 and enc.last_iterations_ > 0
-    np.testing.assert_allclose(fast, enc.solve_rotations(rel, "exact"), atol=1e-4)
+    rel = enc.relative_rotations(modified_codes(enc, codes)["pose+shape"][:2])
+    exact = enc.solve_rotations(rel, "exact")
+    assert enc.last_factorized_ == 2
+    np.testing.assert_allclose(exact, enc.solve_rotations(rel, "direct"), atol=1e-9)

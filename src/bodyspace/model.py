@@ -91,7 +91,7 @@ def rre_from_state(template_vertices, faces, mean_rotvecs, mean_stretch, mean_ve
         mean_rotvecs: (F, 3, 3) mean rotation vector per face and edge slot (radians).
         mean_stretch: (F, 6) mean stretch per face.
         mean_vertices: (V, 3) the mean model's mesh.
-        params: constructor keywords (rotation_solver, tol, max_iter, on_flipped, n_jobs).
+        params: constructor keywords (rotation_solver, on_flipped, n_jobs).
     """
     enc = RelativeRotationEncoder(template_vertices, faces, **params)
     rot = np.asarray(mean_rotvecs, dtype=float)
@@ -223,7 +223,7 @@ class BodyModel:
         if template_vertices is None:
             template_vertices = _template_for(db, faces)
         if encoding == "rre":
-            params = {"rotation_solver": "pcg", "on_flipped": on_flipped}
+            params = {"rotation_solver": "exact", "on_flipped": on_flipped}
             encoder = RelativeRotationEncoder(template_vertices, faces, n_jobs=n_jobs, **params).fit(fit_scans)
         else:
             params = {}

@@ -33,28 +33,28 @@ Decoding, two sparse solves (Sec. 3):
    trip ``decode(encode(x))`` returns ``x`` rigidly aligned to the mean model. The mean
    model's own vertices ``mean_vertices_`` are placed the same way onto the template.
 
-How step 1 avoids a factorization per body (its matrix changes with every code): the normal
-matrix of Eq. 9 is a *connection Laplacian*, diagonal blocks ``2 deg_i I`` (relative rotations
-are orthogonal) and off-diagonal blocks ``-(Q_ij + Q_ji^T)``. In the gauge of the rotations
-``T_i`` chained from the anchor along a breadth-first spanning tree, it becomes ``2 L (x) I``
-(L: the dual graph's uniform Laplacian, fixed per template) plus a perturbation that vanishes
-wherever the code is consistent. So ``2 L`` is factored once per template, and each body is
-solved by block conjugate gradients preconditioned with it. An unmodified code (a round trip)
-is consistent: the tree rotations solve it exactly and no step runs. For a modified code the
-tree gauge piles the code's holonomy onto the edges that close tree loops; a Gauss-Newton
-step in the Lie algebra (a solve with the same ``2 L``) first spreads it, after which
-shape-only PCA samples and mild interpolations converge in 1-9 steps to ``tol``. Every step of
-the chain (relative rotations, tree, smoothing, the gauged system and its products, the
-projection and ``U = R S``) is a compiled kernel (numba) over the faces of one body, and the
-``2 L`` solves are triangular solves of its LDL^T factor over all 9 columns at once
-(``mesh.solver.ldl_solve``). Codes with vortices (more than ``DEFECT_SLOTS`` of the slots
-still turned by more than ``DEFECT_ANGLE`` after smoothing: pose+shape PCA samples and
-interpolations across LBS fold-overs), where the least-squares Q_i collapse towards 0 and CG
-needs 15-110 steps, and codes not converged in ``max_iter`` steps, are solved exactly by
-``FixedPatternRotationSolver``: the system's pattern is analysed once per template and each
-body costs a numeric LDL^T refactorization (qdldl).
-``rotation_solver="exact"`` uses that for every body; ``"direct"`` assembles and factors the
-full system with SuperLU for every body (the baseline the benchmark compares against).
+How step 1 is made fast (its matrix changes with every code): the normal matrix of Eq. 9 is a
+*connection Laplacian*, diagonal blocks ``2 deg_i I`` (relative rotations are orthogonal) and
+off-diagonal blocks ``-(Q_ij + Q_ji^T)``: its values change with the code, its pattern (one
+3x3 block per pair of adjacent faces) never. So
+
+* a consistent code (every round trip) is recognised and solved without any factorization:
+  the rotations ``T_i`` chained from the anchor along a breadth-first spanning tree satisfy
+  Eq. 9 exactly, which one pass over the edges checks;
+* every other code (interpolations, PCA samples, edited codes) is solved exactly by
+  ``FixedPatternRotationSolver``: the ordering and the symbolic factorization of the pattern
+  are made once per template (``mesh.block_cholesky``) and each body pays the compiled numeric
+  factorization on whole 3x3 blocks and three triangular solves, the two halves of the
+  elimination tree on two threads when one body is decoded.
+
+An iterative method was used before (block CG preconditioned by the fixed dual Laplacian in the
+tree gauge): it took 1-9 steps on mild codes but 15-110 on codes with rotation vortices
+(pose+shape PCA samples), where partly converged rotations put limbs up to 1 m off, so those
+codes needed a factorization anyway. The block factorization is faster than that CG was on
+every kind of code and is exact. Every step of the chain (relative rotations, tree, system,
+the projection and ``U = R S``) is a compiled kernel (numba) over the faces of one body.
+``rotation_solver="direct"`` assembles and factors the full system with SuperLU for every body
+(the baseline the benchmark compares against).
 See docs/encoding.md for the measurements behind these choices.
 """
 
@@ -76,15 +76,12 @@ from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 from bodyspace.mesh.operators import dual_laplacian, triangle_frames
+from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints, single_threaded_blas
 from bodyspace.mesh.topology import (check_topology, dual_graph, face_components, spanning_forest,
                                      vertex_components)
+from bodyspace.parallel import halves, run_both
 from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
-
-try:  # LDL^T with a reusable symbolic analysis (Apache-2.0); without it SuperLU per body.
-    import qdldl as _qdldl
-except ImportError:  # pragma: no cover - depends on the environment
-    _qdldl = None
 
 FEATURES_PER_FACE = 15
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:
@@ -94,20 +91,15 @@ DEGENERATE_AREA_RATIO = 1e-8
 # bodies at once fall out of cache and were slower per body (measured: 29 ms at 1, 47 at 8), so
 # batches gain from threads (``n_jobs``), not from wider arrays.
 DECODE_CHUNK = 1
-# A slot of the smoothed gauge turned by more than DEFECT_ANGLE (radians) marks a defect of
-# the code (a vortex of the rotation field: typically where near-180-degree relative rotations
-# of an LBS fold-over were combined). Codes with more than DEFECT_SLOTS of their slots so
-# turned need 15-70 CG steps (measured): they are factored at once.
-DEFECT_ANGLE = 0.3
-DEFECT_SLOTS = 0.001
-# Gauss-Newton rounds smoothing the tree gauge before CG (see solve_rotations_pcg).
-SMOOTH_ROUNDS = 1
 # Encoding works on one body per task and on its faces in blocks of this many, so that the
 # temporaries of the closed-form polar decomposition and of the relative rotations (up to
 # 3 x 8192 float64, 196 KB each) stay in the L2 cache. Measured on the 26,756-face template,
 # single thread, under load: 10-12 ms of CPU a body for blocks of 4096 to 32768 faces, 14 ms
 # for 2048 (per-call overhead), against 24 ms for the previous whole-body Newton iteration.
 ENCODE_BLOCK = 8192
+# A code whose tree rotations leave Eq. 9 a residual this small (as a bound on the change of
+# any rotation entry) is consistent: the tree rotations are its solution, no factorization.
+CONSISTENT_TOL = 1e-7
 # The mean model sums the scans' codes in this many fixed chunks (one thread task each).
 FIT_CHUNKS = 4
 _STRETCH_ROWS = np.array([0, 0, 0, 1, 1, 2])
@@ -138,11 +130,11 @@ _kernel = numba.njit(cache=True, nogil=True)
 
 
 @_kernel
-def _relative_kernel(code, mean_q, faces, out):
+def _relative_kernel(code, mean_q, out, lo, hi):
     """Relative rotation matrices ``exp(r_ik) M_ik`` (F, 3, 3, 3) of one code (F, 15) and the
-    mean model's quaternions (F, 3, 4); out[i] is for face ``faces[i]`` of the code."""
-    for i in range(len(faces)):
-        f = faces[i]
+    mean model's quaternions (F, 3, 4), all in one face order. Faces ``lo:hi`` only (as every
+    kernel below: one lane's share, see ``_lanes``)."""
+    for f in range(lo, hi):
         for k in range(3):
             r0, r1, r2 = code[f, 3 * k], code[f, 3 * k + 1], code[f, 3 * k + 2]
             th = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
@@ -153,7 +145,7 @@ def _relative_kernel(code, mean_q, faces, out):
             x = pw * qx + px * qw + py * qz - pz * qy
             y = pw * qy - px * qz + py * qw + pz * qx
             z = pw * qz + px * qy - py * qx + pz * qw
-            m = out[i, k]
+            m = out[f, k]
             m[0, 0] = 1 - 2 * (y * y + z * z)
             m[0, 1] = 2 * (x * y - w * z)
             m[0, 2] = 2 * (x * z + w * y)
@@ -181,10 +173,10 @@ def _tree_kernel(rel, order, parent, parent_slot, n_roots, t):
 
 
 @_kernel
-def _mismatch_kernel(rel, t, nbr, valid):
-    """Largest Eq. 9 residual ``|Q_ij T_j - T_i|_F`` over the edge slots."""
+def _mismatch_kernel(rel, t, nbr, valid, lo, hi):
+    """Largest Eq. 9 residual ``|Q_ij T_j - T_i|_F`` over the edge slots of faces lo:hi."""
     mx = 0.0
-    for i in range(rel.shape[0]):
+    for i in range(lo, hi):
         for k in range(3):
             if valid[i, k]:
                 j, s = nbr[i, k], 0.0
@@ -198,187 +190,32 @@ def _mismatch_kernel(rel, t, nbr, valid):
 
 
 @_kernel
-def _gauged(rel, t, i, k, j, e):
-    """``e = T_i^T Q_ik T_j`` (3, 3)."""
-    for c in range(3):
-        m0 = rel[i, k, 0, 0] * t[j, 0, c] + rel[i, k, 0, 1] * t[j, 1, c] + rel[i, k, 0, 2] * t[j, 2, c]
-        m1 = rel[i, k, 1, 0] * t[j, 0, c] + rel[i, k, 1, 1] * t[j, 1, c] + rel[i, k, 1, 2] * t[j, 2, c]
-        m2 = rel[i, k, 2, 0] * t[j, 0, c] + rel[i, k, 2, 1] * t[j, 1, c] + rel[i, k, 2, 2] * t[j, 2, c]
-        for r in range(3):
-            e[r, c] = t[i, 0, r] * m0 + t[i, 1, r] * m1 + t[i, 2, r] * m2
-
-
-@_kernel
-def _rotvec(e, out):
-    """Rotation vector (angle in [0, pi]) of a rotation matrix (3, 3): Shepperd's quaternion
-    (largest pivot), then ``2 atan2(|v|, w)``."""
-    tr = e[0, 0] + e[1, 1] + e[2, 2]
-    if tr >= e[0, 0] and tr >= e[1, 1] and tr >= e[2, 2]:
-        w, x, y, z = 1 + tr, e[2, 1] - e[1, 2], e[0, 2] - e[2, 0], e[1, 0] - e[0, 1]
-    elif e[0, 0] >= e[1, 1] and e[0, 0] >= e[2, 2]:
-        w, x, y, z = e[2, 1] - e[1, 2], 1 + e[0, 0] - e[1, 1] - e[2, 2], e[0, 1] + e[1, 0], e[0, 2] + e[2, 0]
-    elif e[1, 1] >= e[2, 2]:
-        w, x, y, z = e[0, 2] - e[2, 0], e[0, 1] + e[1, 0], 1 - e[0, 0] + e[1, 1] - e[2, 2], e[1, 2] + e[2, 1]
-    else:
-        w, x, y, z = e[1, 0] - e[0, 1], e[0, 2] + e[2, 0], e[1, 2] + e[2, 1], 1 - e[0, 0] - e[1, 1] + e[2, 2]
-    if w < 0:
-        w, x, y, z = -w, -x, -y, -z
-    s = np.sqrt(x * x + y * y + z * z)
-    f = 2.0 * np.arctan2(s, w) / s if s > 1e-300 else 0.0
-    out[0], out[1], out[2] = x * f, y * f, z * f
-
-
-@_kernel
-def _smooth_rhs_kernel(rel, t, nbr, bk, valid, is_root, b):
-    """Right-hand side (F, 3) of the Gauss-Newton gauge step: ``sum_k eps_ik - eps_jk'`` with
-    ``eps_ik = log(T_i^T Q_ik T_j)``; zero at the roots. Each edge is visited once (from its
-    lower face), both directions together."""
-    e = np.empty((3, 3))
-    v = np.empty(3)
-    w = np.empty(3)
-    b[:] = 0.0
-    for i in range(rel.shape[0]):
+def _system_kernel(rel, nbr, bk, pair_of_slot, off, lo, hi):
+    """Off-diagonal blocks ``-(Q_ik + Q_jk'^T)`` (E, 3, 3) of the Eq. 9 normal matrix, one per
+    pair of free faces, from the slot of its lower face (``pair_of_slot[i, k] >= 0``)."""
+    for i in range(lo, hi):
         for k in range(3):
-            j = nbr[i, k]
-            if valid[i, k] and i < j:
-                _gauged(rel, t, i, k, j, e)
-                _rotvec(e, v)
-                _gauged(rel, t, j, bk[i, k], i, e)
-                _rotvec(e, w)
-                for c in range(3):
-                    b[i, c] += v[c] - w[c]
-                    b[j, c] += w[c] - v[c]
-    for i in range(rel.shape[0]):
-        if is_root[i]:
-            b[i] = 0.0
-
-
-@_kernel
-def _turn_gauge_kernel(t, phi):
-    """``T_i <- T_i exp([phi_i])`` (Rodrigues)."""
-    for i in range(t.shape[0]):
-        x, y, z = phi[i, 0], phi[i, 1], phi[i, 2]
-        th2 = x * x + y * y + z * z
-        th = np.sqrt(th2)
-        if th < 1e-4:
-            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-        else:
-            a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
-        g00, g01, g02 = 1 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z
-        g10, g11, g12 = a * z + b * x * y, 1 - b * (x * x + z * z), -a * x + b * y * z
-        g20, g21, g22 = -a * y + b * x * z, a * x + b * y * z, 1 - b * (x * x + y * y)
-        for r in range(3):
-            t0, t1, t2 = t[i, r, 0], t[i, r, 1], t[i, r, 2]
-            t[i, r, 0] = t0 * g00 + t1 * g10 + t2 * g20
-            t[i, r, 1] = t0 * g01 + t1 * g11 + t2 * g21
-            t[i, r, 2] = t0 * g02 + t1 * g12 + t2 * g22
-
-
-@_kernel
-def _gauged_system_kernel(rel, t, nbr, bk, valid, is_root, deg2, defect_trace, blocks, r0):
-    """Off-diagonal blocks ``E_ik + E_jk'^T`` (F, 3, 3, 3) of the gauged normal matrix
-    (``E_ik = T_i^T Q_ik T_j``; zero on boundary slots) and the residual ``-A I`` (F, 3, 3) of
-    Y = I. Returns how many slots have ``trace E < defect_trace`` (turned by more than the
-    defect angle). Each edge is visited once, from its lower face."""
-    nf = rel.shape[0]
-    e = np.empty((3, 3))
-    f = np.empty((3, 3))
-    defects = 0
-    for i in range(nf):
-        for r in range(3):
-            for c in range(3):
-                r0[i, r, c] = -deg2[i] if r == c else 0.0
-    for i in range(nf):
-        for k in range(3):
-            j = nbr[i, k]
-            if not valid[i, k]:
-                blocks[i, k] = 0.0
-            elif i < j:
-                kb = bk[i, k]
-                _gauged(rel, t, i, k, j, e)
-                _gauged(rel, t, j, kb, i, f)
-                if e[0, 0] + e[1, 1] + e[2, 2] < defect_trace:
-                    defects += 1
-                if f[0, 0] + f[1, 1] + f[2, 2] < defect_trace:
-                    defects += 1
+            e = pair_of_slot[i, k]
+            if e >= 0:
+                j, kb = nbr[i, k], bk[i, k]
                 for r in range(3):
                     for c in range(3):
-                        v = e[r, c] + f[c, r]
-                        blocks[i, k, r, c] = v
-                        blocks[j, kb, c, r] = v
-                        r0[i, r, c] += v
-                        r0[j, c, r] += v
-    for i in range(nf):
-        if is_root[i]:
-            r0[i] = 0.0
-    return defects
+                        off[e, r, c] = -(rel[i, k, r, c] + rel[j, kb, c, r])
 
 
 @_kernel
-def _apply_kernel(blocks, nbr, deg2, is_root, y, out):
-    """``out = A y`` for the gauged normal matrix (diagonal ``deg2 I``, off-diagonal
-    ``-blocks``), root rows zero; y, out (F, 3, 3)."""
-    for i in range(y.shape[0]):
-        if is_root[i]:
-            out[i] = 0.0
-            continue
-        for r in range(3):
-            for c in range(3):
-                out[i, r, c] = deg2[i] * y[i, r, c]
-        for k in range(3):
-            j = nbr[i, k]
-            for r in range(3):
-                b0, b1, b2 = blocks[i, k, r, 0], blocks[i, k, r, 1], blocks[i, k, r, 2]
-                for c in range(3):
-                    out[i, r, c] -= b0 * y[j, 0, c] + b1 * y[j, 1, c] + b2 * y[j, 2, c]
-
-
-@_kernel
-def _gram_kernel(a, b):
-    """``a^T b`` (3, 3) of block vectors (F, 3, 3) flattened to (3F, 3)."""
-    g = np.zeros((3, 3))
-    for i in range(a.shape[0]):
-        for r in range(3):
-            for c in range(3):
-                g[r, c] += a[i, 0, r] * b[i, 0, c] + a[i, 1, r] * b[i, 1, c] + a[i, 2, r] * b[i, 2, c]
-    return g
-
-
-@_kernel
-def _cg_update_kernel(y, r, p, q, alpha):
-    """``y += p alpha``, ``r -= q alpha`` (block vectors (F, 3, 3), alpha (3, 3))."""
-    for i in range(y.shape[0]):
-        for a in range(3):
-            p0, p1, p2 = p[i, a, 0], p[i, a, 1], p[i, a, 2]
-            q0, q1, q2 = q[i, a, 0], q[i, a, 1], q[i, a, 2]
-            for c in range(3):
-                y[i, a, c] += p0 * alpha[0, c] + p1 * alpha[1, c] + p2 * alpha[2, c]
-                r[i, a, c] -= q0 * alpha[0, c] + q1 * alpha[1, c] + q2 * alpha[2, c]
-
-
-@_kernel
-def _cg_direction_kernel(z, p, beta):
-    """``p <- z + p beta``."""
-    for i in range(z.shape[0]):
-        for a in range(3):
-            p0, p1, p2 = p[i, a, 0], p[i, a, 1], p[i, a, 2]
-            for c in range(3):
-                p[i, a, c] = z[i, a, c] + p0 * beta[0, c] + p1 * beta[1, c] + p2 * beta[2, c]
-
-
-@_kernel
-def _gradients_kernel(t, y, stretch, mean_stretch, faces, u, bad):
-    """Deformation gradients ``U_f = R_f S_f`` (F, 3, 3) of the mesh faces ``f = faces[i]``:
-    ``R_f`` the transposed polar factor of ``Q_i = T_i Y_i`` (scaled Newton iteration, as
-    ``_polar9``), ``S_f`` from the code's stretch (F, 6) plus the mean's. ``bad[i]`` where
-    det(Q_i) <= 0 (U_f left unset)."""
+def _gradients_kernel(q, stretch, mean_stretch, u, bad, lo, hi):
+    """Deformation gradients ``U_i = R_i S_i`` (F, 3, 3): ``R_i`` the transposed polar factor
+    of ``Q_i`` (q (F, 3, 3), scaled Newton iteration, as ``_polar9``), ``S_i`` from the code's
+    stretch (F, 6) plus the mean's, all in one face order. ``bad[i]`` where det(Q_i) <= 0
+    (U_i left unset)."""
     x = np.empty((3, 3))
     c = np.empty((3, 3))
-    for i in range(t.shape[0]):
+    for i in range(lo, hi):
         scale = 0.0
         for r in range(3):
             for cc in range(3):
-                x[r, cc] = t[i, r, 0] * y[i, 0, cc] + t[i, r, 1] * y[i, 1, cc] + t[i, r, 2] * y[i, 2, cc]
+                x[r, cc] = q[i, r, cc]
                 scale = max(scale, abs(x[r, cc]))
         bad[i] = False
         finishing = False
@@ -411,15 +248,14 @@ def _gradients_kernel(t, y, stretch, mean_stretch, faces, u, bad):
             finishing = change < 1e-7
         if bad[i]:
             continue
-        f = faces[i]
-        s, m = stretch[f], mean_stretch[f]
+        s, m = stretch[i], mean_stretch[i]
         s00, s01, s02 = s[0] + m[0], s[1] + m[1], s[2] + m[2]
         s11, s12, s22 = s[3] + m[3], s[4] + m[4], s[5] + m[5]
         for r in range(3):  # row r of R = column r of the polar factor
             a0, a1, a2 = x[0, r], x[1, r], x[2, r]
-            u[f, r, 0] = a0 * s00 + a1 * s01 + a2 * s02
-            u[f, r, 1] = a0 * s01 + a1 * s11 + a2 * s12
-            u[f, r, 2] = a0 * s02 + a1 * s12 + a2 * s22
+            u[i, r, 0] = a0 * s00 + a1 * s01 + a2 * s02
+            u[i, r, 1] = a0 * s01 + a1 * s11 + a2 * s12
+            u[i, r, 2] = a0 * s02 + a1 * s12 + a2 * s22
 
 
 class RotationGraph:
@@ -457,100 +293,26 @@ class RotationGraph:
         self.n_faces = nf
 
 
-def _pcg_one(rel: np.ndarray, graph: RotationGraph, preconditioner: FactorizedSolver, inverse_norm: float,
-             tol: float, max_iter: int) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """One body of ``solve_rotations_pcg``: ``(T (F, 3, 3), Y (F, 3, 3), steps, converged)``
-    with the least-squares ``Q = T Y``."""
-    nf = graph.n_faces
-    t = np.empty((nf, 3, 3))
-    _tree_kernel(rel, graph.sweep, graph.parent, graph.parent_slot, len(graph.roots), t)
-    y = np.zeros((nf, 3, 3))
-    y[:, 0, 0] = y[:, 1, 1] = y[:, 2, 2] = 1.0
-    # The starting CG residual has entries <= 6 max|Q_ij T_j - T_i| (two terms per slot, three
-    # slots): if even |P^-1|_inf times that is below tol, the code is consistent up to
-    # round-off and the tree rotations are the answer (every round trip).
-    if 6.0 * _mismatch_kernel(rel, t, graph.nbr, graph.valid) * inverse_norm < tol:
-        return t, y, 0, True
-    b = np.empty((nf, 3))
-    for _ in range(SMOOTH_ROUNDS):
-        _smooth_rhs_kernel(rel, t, graph.nbr, graph.bk, graph.valid, graph.is_root, b)
-        _turn_gauge_kernel(t, preconditioner.solve(b))
-    blocks = np.empty((nf, 3, 3, 3))
-    r = np.empty((nf, 3, 3))
-    defects = _gauged_system_kernel(rel, t, graph.nbr, graph.bk, graph.valid, graph.is_root, graph.deg2,
-                                    1.0 + 2.0 * np.cos(DEFECT_ANGLE), blocks, r)
-    if defects > DEFECT_SLOTS * graph.valid.sum():
-        return t, y, 0, False
-
-    def precondition(v):
-        return preconditioner.solve(v.reshape(nf, 9)).reshape(nf, 3, 3)
-
-    # Block preconditioned CG (O'Leary 1980): the three columns of Y are three right-hand
-    # sides of one matrix sharing one Krylov space (3x3 step sizes), so the slow directions,
-    # common to all three, are removed together. pinv: once the columns have (nearly)
-    # converged the Gram matrices lose rank.
-    z = precondition(r)
-    p, zr, q = z.copy(), _gram_kernel(z, r), np.empty_like(z)
-    steps = 0
-    while np.abs(z).max() >= tol:
-        if steps == max_iter:
-            return t, y, steps, False
-        _apply_kernel(blocks, graph.nbr, graph.deg2, graph.is_root, p, q)
-        alpha = np.linalg.pinv(_gram_kernel(p, q), rcond=1e-13) @ zr
-        _cg_update_kernel(y, r, p, q, alpha)
-        z = precondition(r)
-        zr_new = _gram_kernel(z, r)
-        beta = np.linalg.pinv(zr, rcond=1e-13) @ zr_new
-        zr = zr_new
-        _cg_direction_kernel(z, p, beta)
-        steps += 1
-    return t, y, steps, True
+def _lanes(lanes: int, n: int, fn) -> tuple:
+    """Results of ``fn(lo, hi)`` over rows ``0:n``: one call, or (``lanes == 2``) the two
+    halves side by side (``bodyspace.parallel``)."""
+    if lanes == 1:
+        return (fn(0, n),)
+    (a0, a1), (b0, b1) = halves(n)
+    return run_both(lambda: fn(a0, a1), lambda: fn(b0, b1))
 
 
-def solve_rotations_pcg(relative: np.ndarray, graph: RotationGraph, preconditioner: FactorizedSolver,
-                        inverse_norm: float, tol: float = 1e-5,
-                        max_iter: int = 20) -> tuple[np.ndarray, int, np.ndarray]:
-    """Least-squares rotations of Eq. 9 by tree-gauged, Laplacian-preconditioned block CG.
+_workspaces = threading.local()
 
-    The gauge is the tree rotations (``_tree_kernel``): they solve a consistent code exactly,
-    so an unmodified code (a round trip) needs no CG step at all. A modified code (an
-    interpolation, a PCA sample) leaves its inconsistency on the edges that close loops of the
-    tree; ``SMOOTH_ROUNDS`` Gauss-Newton steps in the Lie algebra spread it over the mesh
-    (``T_i <- T_i exp([phi_i])``, ``2 L phi_i = sum_j (eps_ij - eps_ji)``,
-    ``eps_ij = log(T_i^T Q_ij T_j)``), and block CG on ``E_ij Y_j - Y_i = 0``
-    (``E_ij = T_i^T Q_ij T_j``, normal matrix ``2 L (x) I`` plus a perturbation that vanishes
-    where the code is consistent) removes the rest. Any gauge gives the same least-squares
-    solution; it only changes the number of steps.
 
-    Codes CG would not finish quickly are given up, with ``converged`` False so that the caller
-    solves them exactly: more than ``DEFECT_SLOTS`` of the slots still turned by more than
-    ``DEFECT_ANGLE`` after smoothing (vortices of the rotation field, where the least-squares
-    Q_i collapse towards 0 and 2 L is a poor model of the matrix), or not converged in
-    ``max_iter`` steps.
-
-    Args:
-        relative: (N, F, 3, 3, 3) relative rotations per face and edge slot (boundary slots
-            are ignored), mesh face order.
-        graph: ``RotationGraph`` of the template.
-        preconditioner: factorization of ``2 L`` (dual-graph Laplacian, the graph's face
-            order) with identity rows and columns at the roots.
-        inverse_norm: ``|preconditioner^-1|_inf``, to skip the solves when the starting
-            residual is round-off.
-        tol: stop when the preconditioned residual, an estimate of the remaining correction of
-            the rotation entries, is below this everywhere.
-        max_iter: block-CG step budget.
-    Returns:
-        ``(Q (N, F, 3, 3), steps, converged (N,) bool)``; Q is not yet projected onto rotations.
-    """
-    out = np.empty(relative.shape[:2] + (3, 3))
-    converged = np.zeros(len(relative), dtype=bool)
-    steps = 0
-    for m in range(len(relative)):
-        rel = np.ascontiguousarray(relative[m][graph.order], dtype=float)
-        t, y, k, converged[m] = _pcg_one(rel, graph, preconditioner, inverse_norm, tol, max_iter)
-        out[m] = (t @ y)[graph.rank]
-        steps = max(steps, k)
-    return out, steps, converged
+def _workspace(nf: int) -> dict:
+    """This thread's arrays for one body's rotations (reused: fresh arrays of ~10 MB per body
+    cost their page faults again every time)."""
+    w = getattr(_workspaces, "arrays", None)
+    if w is None or w["t"].shape[0] != nf:
+        w = {"rel": np.empty((nf, 3, 3, 3)), "t": np.empty((nf, 3, 3))}
+        _workspaces.arrays = w
+    return w
 
 
 def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
@@ -587,103 +349,59 @@ def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np
 
 
 class FixedPatternRotationSolver:
-    """Exact least-squares rotations of Eq. 9 with a sparsity pattern analysed once per template.
+    """Exact least-squares rotations of Eq. 9, the pattern analysed once per template.
 
-    The normal matrix of Eq. 9 changes its values with every code but never its pattern (3x3
-    blocks on the dual graph). Anchor rows and columns are eliminated (their known identity
-    moves to the right-hand side), which keeps the matrix symmetric, and only its upper
-    triangle is stored: a precomputed map sends every (face, slot, 3x3 entry) of an upper
-    off-diagonal block straight to its place in the CSC data array, so each body only writes
-    values. With ``qdldl`` (LDL^T, Apache-2.0) the ordering and symbolic analysis are done at
-    the first solve and every later body costs a numeric refactorization with the same pattern
-    (``Solver.update``), which releases the GIL, so ``n_jobs`` threads factor bodies side by
-    side. Without qdldl each body is factored by SuperLU (the same matrix, slower).
-    One qdldl solver object per concurrent thread is kept in a small pool.
+    The normal matrix of Eq. 9 changes its values with every code but never its pattern (one
+    3x3 block per pair of adjacent faces). Anchor rows and columns are eliminated (their
+    known identity moves to the right-hand side), which keeps it symmetric positive definite,
+    and ``mesh.block_cholesky`` orders and analyses that pattern once; each body then costs
+    the compiled numeric block Cholesky factorization and three triangular solves, on two
+    threads for a single body. Everything is in the ``RotationGraph``'s face order.
+    One numeric factorization per concurrent thread is kept in a small pool.
     """
 
-    def __init__(self, neighbors: np.ndarray, back: np.ndarray, roots: np.ndarray):
-        nf = len(neighbors)
-        self.n_faces = nf
-        valid = neighbors >= 0
-        self.nbr = np.where(valid, neighbors, 0)
-        self.bk = np.where(valid, back, 0)
-        self.roots = np.asarray(roots)
-        is_root = np.zeros(nf, dtype=bool)
-        is_root[self.roots] = True
-        self.valid = valid
-        i_idx = np.broadcast_to(np.arange(nf)[:, None], (nf, 3))
-        # Upper off-diagonal blocks: face i < neighbour j, neither an anchor.
-        upper = valid & (i_idx < self.nbr) & ~is_root[:, None] & ~is_root[self.nbr]
-        self.upper = upper
-        # Anchor columns: rows i (not anchors) whose neighbour is an anchor; their block times
-        # the anchor's identity goes to the right-hand side.
-        self.to_root = valid & ~is_root[:, None] & is_root[self.nbr]
-        a3 = np.arange(3)
-        bi, bj = i_idx[upper], self.nbr[upper]
-        rows = (3 * bi[:, None, None] + a3[None, :, None] + 0 * a3[None, None, :]).ravel()
-        cols = (3 * bj[:, None, None] + 0 * a3[None, :, None] + a3[None, None, :]).ravel()
-        diag = np.arange(3 * nf)
-        rows = np.concatenate([rows, diag])
-        cols = np.concatenate([cols, diag])
-        n = 3 * nf
-        # Place index k+1 at each entry; CSC conversion then tells where entry k lands.
-        tag = sp.csc_matrix((np.arange(1, len(rows) + 1, dtype=np.float64), (rows, cols)), shape=(n, n))
-        tag.sum_duplicates()
-        if tag.nnz != len(rows):
-            raise MeshError("rotation system: repeated face pair in the adjacency, expected a manifold mesh")
-        self.indices, self.indptr = tag.indices.copy(), tag.indptr.copy()
-        pos = np.empty(len(rows), dtype=np.int64)
-        pos[tag.data.astype(np.int64) - 1] = np.arange(len(rows))
-        n_off = len(rows) - n
-        self.pos_off, self.pos_diag = pos[:n_off], pos[n_off:]
-        self.diag_values = np.repeat(np.where(is_root, 1.0, 2.0 * valid.sum(axis=1)), 3)
-        self.shape = (n, n)
+    def __init__(self, graph: RotationGraph):
+        self.graph = graph
+        nf = graph.n_faces
+        free = ~graph.is_root
+        self.free = np.flatnonzero(free)
+        index = np.full(nf, -1, dtype=np.int64)
+        index[self.free] = np.arange(len(self.free))
+        face = np.broadcast_to(np.arange(nf)[:, None], (nf, 3))
+        pairs = graph.valid & (face < graph.nbr) & free[:, None] & free[graph.nbr]
+        self.pair_of_slot = np.full((nf, 3), -1, dtype=np.int64)
+        self.pair_of_slot[pairs] = np.arange(int(pairs.sum()))
+        self.pattern = BlockPattern(len(self.free), index[face[pairs]], index[graph.nbr[pairs]])
+        self.diag = graph.deg2[self.free][:, None, None] * np.eye(3)
+        # Slots from a free face to an anchor: their block times the anchor's identity goes
+        # to the right-hand side.
+        self.to_root = np.nonzero(graph.valid & free[:, None] & graph.is_root[graph.nbr])
         self._pool: list = []
         self._lock = threading.Lock()
 
-    def matrix(self, relative: np.ndarray) -> sp.csc_matrix:
-        """Upper triangle (CSC) of the anchored normal matrix for one body's relative rotations
-        (F, 3, 3, 3); off-diagonal blocks ``-(Q_ij + Q_ji^T)``."""
-        up = self.upper
-        blocks = -(relative[up] + np.swapaxes(relative[self.nbr[up], self.bk[up]], -1, -2))
-        data = np.empty(len(self.indices))
-        data[self.pos_off] = blocks.ravel()
-        data[self.pos_diag] = self.diag_values
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
-
-    def rhs(self, relative: np.ndarray) -> np.ndarray:
-        """Right-hand sides (3F, 3): identity at the anchors, ``(Q_ij + Q_ji^T) I`` moved from
-        the eliminated anchor columns."""
-        out = np.zeros((self.n_faces, 3, 3))
-        out[self.roots] = np.eye(3)
-        tr = self.to_root
-        if tr.any():
-            i = np.broadcast_to(np.arange(self.n_faces)[:, None], tr.shape)[tr]
-            blocks = relative[tr] + np.swapaxes(relative[self.nbr[tr], self.bk[tr]], -1, -2)
-            np.add.at(out, i, blocks)
-        return out.reshape(3 * self.n_faces, 3)
-
-    def solve(self, relative: np.ndarray) -> np.ndarray:
-        """Least-squares ``Q_i`` (N, F, 3, 3), not projected, of relative rotations (N, F, 3, 3, 3)."""
-        out = np.empty((len(relative),) + (self.n_faces, 3, 3))
-        for m, rel in enumerate(relative):
-            a, b = self.matrix(rel), self.rhs(rel)
-            if _qdldl is None:
-                full = a + sp.triu(a, k=1).T
-                x = sla.splu(full.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                             options={"SymmetricMode": True}).solve(b)
-            else:
-                with self._lock:
-                    solver = self._pool.pop() if self._pool else None
-                if solver is None:
-                    solver = _qdldl.Solver(a, upper=True)  # ordering + symbolic + numeric
-                else:
-                    solver.update(a, upper=True)  # numeric only, same pattern
-                x = np.stack([solver.solve(b[:, k]) for k in range(3)], axis=1)
-                with self._lock:
-                    self._pool.append(solver)
-            out[m] = x.reshape(self.n_faces, 3, 3)
-        return out
+    def solve(self, rel: np.ndarray, lanes: int = 1) -> np.ndarray:
+        """Least-squares ``Q_i`` (F, 3, 3), not projected, of one body's relative rotations
+        (F, 3, 3, 3), both in the graph's face order. ``lanes=2``: on two threads."""
+        g = self.graph
+        off = np.empty((self.pattern.n_pairs, 3, 3))
+        _lanes(lanes, g.n_faces, lambda lo, hi: _system_kernel(rel, g.nbr, g.bk, self.pair_of_slot, off, lo, hi))
+        b = np.zeros((g.n_faces, 3, 3))
+        i, k = self.to_root
+        np.add.at(b, i, rel[i, k] + np.swapaxes(rel[g.nbr[i, k], g.bk[i, k]], -1, -2))
+        with self._lock:
+            chol = self._pool.pop() if self._pool else None
+        if chol is None:
+            chol = BlockCholesky(self.pattern)
+        try:
+            chol.factor(self.diag, off, lanes)
+            x = chol.solve(b[self.free], lanes)
+        finally:
+            with self._lock:
+                self._pool.append(chol)
+        q = np.empty((g.n_faces, 3, 3))
+        q[g.roots] = np.eye(3)
+        q[self.free] = x
+        return q
 
 
 # ---------------------------------------------------------------------------- the encoder
@@ -709,18 +427,11 @@ class RelativeRotationEncoder:
     Args:
         template_vertices: (V, 3) the rest mesh whose triangles the deformations are relative to.
         faces: (F, 3) int, shared by every scan.
-        rotation_solver: "pcg" (tree gauge, smoothed, Laplacian-preconditioned block CG with a
-            factorization made once per template; the codes CG would not finish go to the exact
-            path), "exact" (the Eq. 9 system refactorized for every body on a pattern analysed
-            once: ``FixedPatternRotationSolver``) or "direct" (assemble and factor with SuperLU
-            for every body; slow, the reference).
-        tol: CG stops when the estimated remaining correction of every rotation entry is below
-            this. The default keeps decoded vertices within 0.05 mm of the exact least-squares
-            decode on the 1.7 m template even for codes with vortices (measured,
-            docs/encoding.md; the stated accuracy is 0.1 mm); consistent codes (round trips)
-            are exact.
-        max_iter: block-CG step budget (~3-5 ms a step on the template, against ~130 ms for
-            the exact refactorization); a code not converged within it is solved exactly.
+        rotation_solver: "exact" (the default: the Eq. 9 system factored for every body that
+            needs it, on a pattern analysed once per template: ``FixedPatternRotationSolver``)
+            or "direct" (assemble and factor with SuperLU for every body; slow, the reference
+            the benchmark compares against). "pcg", the name of an earlier iterative method
+            that model files written before 0.4 still carry, is read as "exact".
         on_flipped: what ``encode``/``fit`` do with a flipped triangle, one whose normal points
             against the vertex normals of its corners while the template's does not (a
             fold-over): "raise" (MeshError), "warn" or "ignore". Such triangles round-trip
@@ -734,28 +445,27 @@ class RelativeRotationEncoder:
         mean_vertices_: (V, 3) the mean model's mesh (decoded zero code), placed on the template.
         n_features_: D = 15 F (available before fit).
         slot_mask_: (F, 3) bool, True where the edge slot has a neighbour.
-        last_iterations_: most block-CG steps any body of the last decode call took (0 for
-            consistent codes, and for bodies sent straight to the factorization).
-        last_factorized_: how many bodies of the last decode call were solved by a
-            factorization instead of CG (all of them with "exact" or "direct").
+        last_factorized_: how many bodies of the last decode call needed a factorization
+            (the others were consistent codes, solved exactly by the tree rotations; with
+            "direct", all of them).
     """
 
-    def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "pcg",
-                 tol: float = 1e-5, max_iter: int = 20, on_flipped: str = "raise", n_jobs: int | None = None):
+    def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "exact",
+                 on_flipped: str = "raise", n_jobs: int | None = None):
         check_mesh(template_vertices, faces, name="template")
         tv = np.asarray(template_vertices, dtype=float)
         if tv.ndim != 2:
             raise MeshError(f"template: vertices have shape {tv.shape}, expected (V, 3)")
-        if rotation_solver not in ("pcg", "exact", "direct"):
-            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'pcg', 'exact' or 'direct'")
+        if rotation_solver == "pcg":
+            rotation_solver = "exact"
+        if rotation_solver not in ("exact", "direct"):
+            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'exact' or 'direct'")
         self.template_vertices = tv
         self.faces = np.asarray(faces, dtype=np.int64)
         if on_flipped not in ("raise", "warn", "ignore"):
             raise ValueError(f"on_flipped={on_flipped!r}, expected 'raise', 'warn' or 'ignore'")
         self.rotation_solver = rotation_solver
         self.on_flipped = on_flipped
-        self.tol = tol
-        self.max_iter = max_iter
         self.n_jobs = n_jobs
         self.n_vertices, self.n_faces = len(tv), len(self.faces)
         self.n_features_ = FEATURES_PER_FACE * self.n_faces
@@ -785,18 +495,16 @@ class RelativeRotationEncoder:
         graph = dual_graph(self.neighbors)
         self.anchor_faces = np.array([_central_face(graph, int(np.flatnonzero(labels == c)[0]))
                                       for c in range(n_parts)])
-        # CG path: the graph's own face order (RotationGraph), its 2 L factored once.
+        # The graph's own face order (RotationGraph): the tree, the kernels and the exact solver.
         self._graph = RotationGraph(self.neighbors, self.back, self.anchor_faces)
-        self._all_faces = np.arange(self.n_faces)
         roots = self._graph.roots
         lap = dual_laplacian(self._graph.neighbors).tolil()
         lap[roots, :] = 0.0
         lap[:, roots] = 0.0
         lap[roots, roots] = 0.5
-        # Single precision: it only preconditions (CG residuals stay in double), and its
-        # triangular solves move half the memory (measured ~25% faster for 9 columns).
-        self._preconditioner = FactorizedSolver(2.0 * lap.tocsr(), dtype=np.float32)
-        # |P^-1|_inf = max row sum of P^-1 = max of P^-1 1, since P^-1 >= 0 (P is an M-matrix).
+        # For the consistency test (``_solve_one``): |(2 L)^-1|_inf = max row sum = max of
+        # (2 L)^-1 1, since (2 L)^-1 >= 0 (2 L is an M-matrix); for a consistent code the
+        # Eq. 9 matrix is 2 L (x) I up to the tree's orthogonal change of basis.
         self._inverse_norm = float(FactorizedSolver(2.0 * lap.tocsr()).solve(np.ones(self.n_faces)).max())
 
         self._poisson = PoissonSolver(tv, self.faces)
@@ -804,9 +512,8 @@ class RelativeRotationEncoder:
         n_comp, self._vertex_part = vertex_components(self.faces, self.n_vertices)
         self._part_vertices = [np.flatnonzero(self._vertex_part == c) for c in range(n_comp)]
         self._face_part = self._vertex_part[self.faces[:, 0]]
-        # Exact path: the Eq. 9 pattern analysed once, a numeric refactorization per body.
-        self._exact = FixedPatternRotationSolver(self.neighbors, self.back, self.anchor_faces)
-        self.last_iterations_ = 0
+        # The Eq. 9 pattern analysed once, a numeric factorization per body.
+        self._exact = FixedPatternRotationSolver(self._graph)
         self.last_factorized_ = 0
 
     # ------------------------------------------------------------------ validation
@@ -970,7 +677,9 @@ class RelativeRotationEncoder:
         self._require_fit()
         c = self._check_codes(codes)
         out = np.empty((len(c), self.n_vertices, 3))
-        steps = []
+        factorized = []
+        # One body: split its kernels over two threads; a batch already has a body per thread.
+        lanes = 2 if len(c) == 1 and (self.n_jobs or os.cpu_count() or 1) > 1 else 1
 
         def work(s):
             chunk_constraints = constraints
@@ -978,13 +687,12 @@ class RelativeRotationEncoder:
                 chunk_constraints = PositionConstraints(constraints.indices,
                                                         np.asarray(constraints.positions)[s:s + DECODE_CHUNK],
                                                         constraints.weight)
-            out[s:s + DECODE_CHUNK], n_steps, n_fact = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints,
-                                                                     self.mean_vertices_)
-            steps.append((n_steps, n_fact))
+            out[s:s + DECODE_CHUNK], n_fact = self._decode(c[s:s + DECODE_CHUNK], chunk_constraints,
+                                                            self.mean_vertices_, lanes)
+            factorized.append(n_fact)
 
         self._run(work, range(0, len(c), DECODE_CHUNK))
-        self.last_iterations_ = max(k for k, _ in steps)
-        self.last_factorized_ = sum(f for _, f in steps)
+        self.last_factorized_ = sum(factorized)
         return out
 
     def _run(self, work, starts) -> None:
@@ -1008,7 +716,7 @@ class RelativeRotationEncoder:
         out = np.empty((len(c), self.n_faces, 3, 3, 3))
         mean_q = self._mean_quaternions()
         for m in range(len(c)):
-            _relative_kernel(c[m], mean_q, self._all_faces, out[m])
+            _relative_kernel(c[m], mean_q, out[m], 0, self.n_faces)
         return out
 
     def _mean_quaternions(self) -> np.ndarray:
@@ -1021,63 +729,63 @@ class RelativeRotationEncoder:
 
     def solve_rotations(self, relative: np.ndarray, solver: str | None = None) -> np.ndarray:
         """Per-face rotations R_i (N, F, 3, 3) from relative rotations (N, F, 3, 3, 3) by Eq. 9,
-        projected onto SO(3). ``solver``: "pcg", "exact" or "direct" (default:
-        ``rotation_solver``)."""
-        rot, self.last_iterations_, self.last_factorized_ = self._solve_rotations(
-            relative, solver or self.rotation_solver)
-        return rot
-
-    def _solve_rotations(self, relative: np.ndarray, solver: str) -> tuple[np.ndarray, int, int]:
-        """(R (N, F, 3, 3), most CG steps, number of bodies solved by a factorization)."""
-        steps, factorized = 0, len(relative)
+        projected onto SO(3). ``solver``: "exact" or "direct" (default: ``rotation_solver``)."""
+        solver = solver or self.rotation_solver
         if solver == "direct":
-            rot = solve_rotations_direct(relative, self.neighbors, self.back, self.anchor_faces)
-        elif solver == "exact":
-            rot = self._exact.solve(relative)
+            q = solve_rotations_direct(relative, self.neighbors, self.back, self.anchor_faces)
+            self.last_factorized_ = len(relative)
         else:
-            rot, steps, converged = solve_rotations_pcg(relative, self._graph, self._preconditioner,
-                                                        self._inverse_norm, self.tol, self.max_iter)
-            factorized = int((~converged).sum())
-            if factorized:
-                # Strongly inconsistent codes: CG would not pay off, factor their systems (fixed
-                # pattern, numeric refactorization only).
-                rot[~converged] = self._exact.solve(relative[~converged])
+            g, q, self.last_factorized_ = self._graph, np.empty(relative.shape[:2] + (3, 3)), 0
+            for m in range(len(relative)):
+                rel = np.ascontiguousarray(relative[m][g.order], dtype=float)
+                qm, factored = self._solve_one(rel, np.empty((self.n_faces, 3, 3)))
+                q[m] = qm[g.rank]
+                self.last_factorized_ += factored
         # Eq. 9 solves for Q_i = R_i^T; return the rotations R_i of U_i = R_i S_i.
-        return np.swapaxes(project_to_rotations(rot), -1, -2), steps, factorized
+        return np.swapaxes(project_to_rotations(q), -1, -2)
 
-    def _decode(self, c: np.ndarray, constraints, reference: np.ndarray):
+    def _solve_one(self, rel: np.ndarray, t: np.ndarray, lanes: int = 1) -> tuple[np.ndarray, bool]:
+        """Least-squares ``Q`` (F, 3, 3) of Eq. 9 for one body's relative rotations (F, 3, 3, 3),
+        graph order, and whether it needed a factorization. First the rotations ``T`` chained
+        from the anchors along the spanning tree (into ``t``): they solve a consistent code
+        exactly (every round trip), so such a body pays no factorization."""
+        g = self._graph
+        _tree_kernel(rel, g.sweep, g.parent, g.parent_slot, len(g.roots), t)
+        # Eq. 9's residual at T has entries <= 6 max|Q_ij T_j - T_i| (two terms per slot, three
+        # slots), so T is within |A^-1|_inf times that of the least-squares solution.
+        mismatch = max(_lanes(lanes, self.n_faces, lambda lo, hi: _mismatch_kernel(rel, t, g.nbr, g.valid, lo, hi)))
+        if 6.0 * mismatch * self._inverse_norm < CONSISTENT_TOL:
+            return t, False
+        return self._exact.solve(rel, lanes), True
+
+    def _decode(self, c: np.ndarray, constraints, reference: np.ndarray, lanes: int = 1):
         n = len(c)
         c = np.ascontiguousarray(c, dtype=float).reshape(n, self.n_faces, FEATURES_PER_FACE)
-        if self.rotation_solver == "pcg":
-            # Fused per body: relative rotations, tree gauge, CG or the exact fallback, and the
-            # gradients U = R S straight from Q = T Y (no intermediate batches).
-            u, steps, factorized = np.empty((n, self.n_faces, 3, 3)), 0, 0
-            rel = np.empty((self.n_faces, 3, 3, 3))
-            order, rank = self._graph.order, self._graph.rank
+        u, factorized = np.empty((n, self.n_faces, 3, 3)), 0
+        if self.rotation_solver == "exact":
+            # Fused per body: relative rotations, the rotation solve and the gradients U = R S,
+            # in the graph's face order (one gather of the code in, one of U out), where the
+            # kernels walk their arrays in order: reading the mesh's order through an index
+            # instead made the relative rotations 2.6x and the gradients 7x slower (measured).
+            w = _workspace(self.n_faces)
+            rel, order, rank = w["rel"], self._graph.order, self._graph.rank
             mean_q, mean_stretch = self._graph_order_means()
             for m in range(n):
-                # Into the graph's face order once (a plain gather), so every kernel below
-                # walks its arrays in order.
                 code = c[m][order]
-                _relative_kernel(code, mean_q, self._all_faces, rel)
-                t, y, k, ok = _pcg_one(rel, self._graph, self._preconditioner, self._inverse_norm, self.tol,
-                                       self.max_iter)
-                steps = max(steps, k)
-                if not ok:  # see solve_rotations_pcg: factor this body's system instead
-                    t = self._exact.solve(rel[rank][None])[0][order]
-                    y = np.broadcast_to(np.eye(3), t.shape).copy()
-                    factorized += 1
-                u[m] = self._gradients(t, y, code[:, 9:], mean_stretch)[rank]
+                _lanes(lanes, self.n_faces, lambda lo, hi: _relative_kernel(code, mean_q, rel, lo, hi))
+                q, factored = self._solve_one(rel, w["t"], lanes)
+                factorized += factored
+                u[m] = self._gradients(q, code[:, 9:], mean_stretch, lanes)[rank]
         else:
-            rot, steps, factorized = self._solve_rotations(self.relative_rotations(c), self.rotation_solver)
-            u = rot @ unpack_stretch(c[..., 9:] + self.mean_stretch_)
+            rot = self.solve_rotations(self.relative_rotations(c), self.rotation_solver)
+            u, factorized = rot @ unpack_stretch(c[..., 9:] + self.mean_stretch_), n
         x = self._poisson.solve(u)
         placed, part_rot = self._place(x, reference)
         if constraints is None:
-            return placed, steps, factorized
+            return placed, factorized
         # Keep the placed orientation: rotate each part's gradients as the placement rotated it.
         u = part_rot[:, self._face_part] @ u
-        return self._poisson.solve(u, constraints, pinned_positions=placed), steps, factorized
+        return self._poisson.solve(u, constraints, pinned_positions=placed), factorized
 
     def _graph_order_means(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean relative rotations as quaternions (F, 3, 4) and mean stretches (F, 6), in the
@@ -1090,15 +798,15 @@ class RelativeRotationEncoder:
             self._graph_means_cache = cache
         return cache[2], cache[3]
 
-    def _gradients(self, t: np.ndarray, y: np.ndarray, stretch: np.ndarray, mean_stretch: np.ndarray) -> np.ndarray:
+    def _gradients(self, q: np.ndarray, stretch: np.ndarray, mean_stretch: np.ndarray, lanes: int = 1) -> np.ndarray:
         """Deformation gradients (F, 3, 3) ``U_i = R_i S_i``: ``R_i^T`` the rotation nearest to
-        ``Q_i = T_i Y_i`` (``project_to_rotations``), S_i from the code's stretch (F, 6) plus the
-        mean's (F, 6); all in one face order."""
+        ``Q_i`` (q (F, 3, 3), ``project_to_rotations``), S_i from the code's stretch (F, 6)
+        plus the mean's (F, 6); all in one face order."""
         u = np.empty((self.n_faces, 3, 3))
         bad = np.empty(self.n_faces, dtype=bool)
-        _gradients_kernel(t, y, stretch, mean_stretch, self._all_faces, u, bad)
+        _lanes(lanes, self.n_faces, lambda lo, hi: _gradients_kernel(q, stretch, mean_stretch, u, bad, lo, hi))
         if bad.any():  # det(Q) <= 0: the SVD projection of project_to_rotations
-            rot = np.swapaxes(project_to_rotations(t[bad] @ y[bad]), -1, -2)
+            rot = np.swapaxes(project_to_rotations(q[bad]), -1, -2)
             u[bad] = rot @ unpack_stretch(stretch[bad] + mean_stretch[bad])
         return u
 
