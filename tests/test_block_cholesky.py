@@ -111,3 +111,14 @@ def test_bad_patterns_and_values_are_refused():
     chol.factor(np.broadcast_to(4 * np.eye(3), (4, 3, 3)), np.zeros((2, 3, 3)))
     with pytest.raises(MeshError, match="right-hand side"):
         chol.solve(np.zeros((4, 3, 2)))
+
+
+@pytest.mark.parametrize("lanes", [1, 2])
+def test_factor_solve_equals_factor_then_solve(lanes):
+    n, rows, cols = tube_pairs()
+    diag, off, full = random_spd(n, rows, cols, RNG)
+    b = RNG.normal(size=(n, 3, 3))
+    chol = BlockCholesky(BlockPattern(n, rows, cols))
+    fused = chol.factor_solve(diag, off, b, lanes)
+    np.testing.assert_allclose(fused, chol.solve(b, lanes), atol=1e-12)
+    np.testing.assert_allclose(fused, sla.spsolve(full, b.reshape(-1, 3)).reshape(n, 3, 3), atol=1e-10)

@@ -393,8 +393,7 @@ class FixedPatternRotationSolver:
         if chol is None:
             chol = BlockCholesky(self.pattern)
         try:
-            chol.factor(self.diag, off, lanes)
-            x = chol.solve(b[self.free], lanes)
+            x = chol.factor_solve(self.diag, off, b[self.free], lanes)
         finally:
             with self._lock:
                 self._pool.append(chol)
