@@ -76,6 +76,22 @@ def test_save_load_round_trip_is_bit_exact(model, db, tmp_path):
     np.testing.assert_allclose(back.reconstruct(z), model.reconstruct(z), atol=1e-9)
 
 
+def test_model_files_of_the_iterative_decoder_still_load(model, tmp_path):
+    """Files written while the default decoder was block CG name it "pcg" and may carry its step
+    settings; they load, with the exact decoder."""
+    path = model.save(tmp_path / "old.npz")
+    with np.load(path, allow_pickle=False) as f:
+        arrays = dict(f)
+    header = json.loads(arrays["header"].tobytes().decode("utf-8"))
+    header["encoder_params"] = {"rotation_solver": "pcg", "tol": 1e-5, "max_iter": 20, "on_flipped": "ignore"}
+    arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
+    np.savez(tmp_path / "old.npz", **arrays)
+    back = BodyModel.load(tmp_path / "old.npz")
+    assert back.encoder.rotation_solver == "exact"
+    z = model.sample_coefficients(2, n_components=3, rng=2)
+    np.testing.assert_allclose(back.reconstruct(z), model.reconstruct(z), atol=1e-9)
+
+
 def test_vertex_model_rest_selection_and_sampling(db, template, tmp_path):
     m = BodyModel.fit(db, "vertex", "rest", n_components=2, template=template)
     assert m.selection == "rest" and len(m.fitted_scans) == 4 and m.n_components == 2

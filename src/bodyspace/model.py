@@ -93,6 +93,8 @@ def rre_from_state(template_vertices, faces, mean_rotvecs, mean_stretch, mean_ve
         mean_vertices: (V, 3) the mean model's mesh.
         params: constructor keywords (rotation_solver, on_flipped, n_jobs).
     """
+    # Files written while the default decoder was iterative also carry its step settings.
+    params = {k: v for k, v in params.items() if k not in ("tol", "max_iter")}
     enc = RelativeRotationEncoder(template_vertices, faces, **params)
     rot = np.asarray(mean_rotvecs, dtype=float)
     stretch = np.asarray(mean_stretch, dtype=float)

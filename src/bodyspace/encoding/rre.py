@@ -430,7 +430,7 @@ class RelativeRotationEncoder:
             needs it, on a pattern analysed once per template: ``FixedPatternRotationSolver``)
             or "direct" (assemble and factor with SuperLU for every body; slow, the reference
             the benchmark compares against). "pcg", the name of an earlier iterative method
-            that model files written before 0.4 still carry, is read as "exact".
+            that older model files carry in their header, is read as "exact".
         on_flipped: what ``encode``/``fit`` do with a flipped triangle, one whose normal points
             against the vertex normals of its corners while the template's does not (a
             fold-over): "raise" (MeshError), "warn" or "ignore". Such triangles round-trip
