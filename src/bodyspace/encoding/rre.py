@@ -74,9 +74,9 @@ from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
 from bodyspace.encoding.rotations import _planar, _qconj, _qexp, _qfrom_matrix, project_to_rotations, quaternion_exp
 from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
 from bodyspace.errors import MeshError, ParameterError
+from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 from bodyspace.mesh.operators import dual_laplacian, triangle_frames
-from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints, single_threaded_blas
 from bodyspace.mesh.topology import (check_topology, dual_graph, face_components, spanning_forest,
                                      vertex_components)
