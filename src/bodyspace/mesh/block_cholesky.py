@@ -37,6 +37,29 @@ _kernel = numba.njit(cache=True, nogil=True, fastmath={"contract"})
 
 
 @_kernel
+def _subtract_column_update(p0, end, li, lx, loc, w, base):
+    """``w -= L_ik L_jk^T`` for the entries ``p0:end`` of source column k, whose first is its
+    block in row j: the pivot's lower triangle at ``w[base]``, row i's block at
+    ``w[base + loc[i]]``. The inner loop of the factorization (27 multiply-adds a block)."""
+    a00, a01, a02 = lx[p0, 0, 0], lx[p0, 0, 1], lx[p0, 0, 2]
+    a10, a11, a12 = lx[p0, 1, 0], lx[p0, 1, 1], lx[p0, 1, 2]
+    a20, a21, a22 = lx[p0, 2, 0], lx[p0, 2, 1], lx[p0, 2, 2]
+    w[base, 0, 0] -= a00 * a00 + a01 * a01 + a02 * a02
+    w[base, 1, 0] -= a10 * a00 + a11 * a01 + a12 * a02
+    w[base, 1, 1] -= a10 * a10 + a11 * a11 + a12 * a12
+    w[base, 2, 0] -= a20 * a00 + a21 * a01 + a22 * a02
+    w[base, 2, 1] -= a20 * a10 + a21 * a11 + a22 * a12
+    w[base, 2, 2] -= a20 * a20 + a21 * a21 + a22 * a22
+    for p in range(p0 + 1, end):
+        m = base + loc[li[p]]
+        for r in range(3):
+            b0, b1, b2 = lx[p, r, 0], lx[p, r, 1], lx[p, r, 2]
+            w[m, r, 0] -= b0 * a00 + b1 * a01 + b2 * a02
+            w[m, r, 1] -= b0 * a10 + b1 * a11 + b2 * a12
+            w[m, r, 2] -= b0 * a20 + b1 * a21 + b2 * a22
+
+
+@_kernel
 def _factor_columns(cols, lp, li, rp, rk, rpos, diag, lx, linv, w, loc, lane_of, only, done, done_start,
                     x, top_pos, acc):
     """Factor the block columns ``cols`` (increasing) of L in place.
@@ -45,8 +68,8 @@ def _factor_columns(cols, lp, li, rp, rk, rpos, diag, lx, linv, w, loc, lane_of,
     return (columns ``cols`` only); ``diag`` (n, 3, 3) A's diagonal blocks; ``linv`` (n, 3, 3)
     receives the inverse of each lower-triangular pivot factor. With ``only >= 0``, updates
     come only from columns k with ``lane_of[k] == only``; the others' were summed beforehand
-    by ``_top_updates`` into ``done`` (2, S, 3, 3), column ``cols[jj]``'s from slot
-    ``done_start[jj]`` on, and are subtracted here. Scratch: ``w`` (m + 1, 3, 3)
+    (negated) by ``_top_updates`` into ``done`` (2, S, 3, 3), column ``cols[jj]``'s from slot
+    ``done_start[jj]`` on, and are added here. Scratch: ``w`` (m + 1, 3, 3)
     with m the longest column, the column being built (slot 0 its pivot, then its rows in
     order), and ``loc`` (n,) int, each row's slot in w: a compact w stays in the L1 cache
     where one indexed by row (n blocks) did not (measured 1.3x slower).
@@ -72,28 +95,11 @@ def _factor_columns(cols, lp, li, rp, rk, rpos, diag, lx, linv, w, loc, lane_of,
             for m in range(lp[j + 1] - start + 1):
                 for r in range(3):
                     for c in range(3):
-                        w[m, r, c] -= done[0, base + m, r, c] + done[1, base + m, r, c]
+                        w[m, r, c] += done[0, base + m, r, c] + done[1, base + m, r, c]
         for q in range(rp[j], rp[j + 1]):
-            k, p0 = rk[q], rpos[q]
-            if only >= 0 and lane_of[k] != only:
-                continue
-            a00, a01, a02 = lx[p0, 0, 0], lx[p0, 0, 1], lx[p0, 0, 2]
-            a10, a11, a12 = lx[p0, 1, 0], lx[p0, 1, 1], lx[p0, 1, 2]
-            a20, a21, a22 = lx[p0, 2, 0], lx[p0, 2, 1], lx[p0, 2, 2]
-            # w_jj -= L_jk L_jk^T (its lower triangle is all the pivot needs)
-            w[0, 0, 0] -= a00 * a00 + a01 * a01 + a02 * a02
-            w[0, 1, 0] -= a10 * a00 + a11 * a01 + a12 * a02
-            w[0, 1, 1] -= a10 * a10 + a11 * a11 + a12 * a12
-            w[0, 2, 0] -= a20 * a00 + a21 * a01 + a22 * a02
-            w[0, 2, 1] -= a20 * a10 + a21 * a11 + a22 * a12
-            w[0, 2, 2] -= a20 * a20 + a21 * a21 + a22 * a22
-            for p in range(p0 + 1, lp[k + 1]):  # rows below j in column k: w_i -= L_ik L_jk^T
-                m = loc[li[p]]
-                for r in range(3):
-                    b0, b1, b2 = lx[p, r, 0], lx[p, r, 1], lx[p, r, 2]
-                    w[m, r, 0] -= b0 * a00 + b1 * a01 + b2 * a02
-                    w[m, r, 1] -= b0 * a10 + b1 * a11 + b2 * a12
-                    w[m, r, 2] -= b0 * a20 + b1 * a21 + b2 * a22
+            k = rk[q]
+            if only < 0 or lane_of[k] == only:
+                _subtract_column_update(rpos[q], lp[k + 1], li, lx, loc, w, 0)
         # 3x3 Cholesky of the pivot, then its inverse (lower triangular)
         d0 = w[0, 0, 0]
         if not d0 > 0.0:
@@ -132,8 +138,8 @@ def _factor_columns(cols, lp, li, rp, rk, rpos, diag, lx, linv, w, loc, lane_of,
 
 @_kernel
 def _top_updates(top, lane, lane_of, lp, li, rp, rk, rpos, lx, done_start, done, loc):
-    """Sum, for each top column j, the updates ``L_ik L_jk^T`` from this lane's columns k
-    (factored already) into ``done`` (S, 3, 3) from slot ``done_start[jj]`` on (slot 0 the
+    """Sum, for each top column j, minus the updates ``L_ik L_jk^T`` from this lane's columns
+    k (factored already) into ``done`` (S, 3, 3) from slot ``done_start[jj]`` on (slot 0 the
     pivot's lower triangle, then j's rows in order). Run by both lanes side by side, so the
     work leaving a column is done in its own lane and the top's factorization is left with the
     updates among top columns only."""
@@ -144,25 +150,9 @@ def _top_updates(top, lane, lane_of, lp, li, rp, rk, rpos, lx, done_start, done,
         for m in range(lp[j + 1] - start + 1):
             done[base + m] = 0.0
         for q in range(rp[j], rp[j + 1]):
-            k, p0 = rk[q], rpos[q]
-            if lane_of[k] != lane:
-                continue
-            a00, a01, a02 = lx[p0, 0, 0], lx[p0, 0, 1], lx[p0, 0, 2]
-            a10, a11, a12 = lx[p0, 1, 0], lx[p0, 1, 1], lx[p0, 1, 2]
-            a20, a21, a22 = lx[p0, 2, 0], lx[p0, 2, 1], lx[p0, 2, 2]
-            done[base, 0, 0] += a00 * a00 + a01 * a01 + a02 * a02
-            done[base, 1, 0] += a10 * a00 + a11 * a01 + a12 * a02
-            done[base, 1, 1] += a10 * a10 + a11 * a11 + a12 * a12
-            done[base, 2, 0] += a20 * a00 + a21 * a01 + a22 * a02
-            done[base, 2, 1] += a20 * a10 + a21 * a11 + a22 * a12
-            done[base, 2, 2] += a20 * a20 + a21 * a21 + a22 * a22
-            for p in range(p0 + 1, lp[k + 1]):
-                m = base + loc[li[p]]
-                for r in range(3):
-                    b0, b1, b2 = lx[p, r, 0], lx[p, r, 1], lx[p, r, 2]
-                    done[m, r, 0] += b0 * a00 + b1 * a01 + b2 * a02
-                    done[m, r, 1] += b0 * a10 + b1 * a11 + b2 * a12
-                    done[m, r, 2] += b0 * a20 + b1 * a21 + b2 * a22
+            k = rk[q]
+            if lane_of[k] == lane:
+                _subtract_column_update(rpos[q], lp[k + 1], li, lx, loc, done, base)
 
 
 @_kernel
