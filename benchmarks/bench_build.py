@@ -34,13 +34,18 @@ except ImportError:  # run from a source checkout without installing
 
 import numpy as np
 
-from bodyspace.data.population import build_population
 from bodyspace.data.template import load_template
-from bodyspace.encoding.rotations import (polar_decomposition, quaternion_conjugate, quaternion_from_matrix,
-                                          quaternion_log, quaternion_multiply)
+from bodyspace.encoding.rotations import (
+    polar_decomposition,
+    quaternion_conjugate,
+    quaternion_from_matrix,
+    quaternion_log,
+    quaternion_multiply,
+)
 from bodyspace.mesh.operators import triangle_frames
 from bodyspace.model import BodyModel
 from bodyspace.shape.solvers import pca_block_krylov, pca_randomized
+from bodyspace.synth.population import build_population
 
 
 def peak_rss_gb() -> float:

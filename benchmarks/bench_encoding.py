@@ -15,7 +15,7 @@ Prints, in one run:
 - batch decode: 100 bodies at once vs one at a time, ms per body;
 - the halfway-pose distortion (edge length, volume) of both encodings.
 
-Data: a synthetic population (``bodyspace.data.population``) built in a temporary folder.
+Data: a synthetic population (``bodyspace.synth.population``) built in a temporary folder.
 Usage: ``python benchmarks/bench_encoding.py [--subjects 25] [--poses 3] [--repeat 5]``.
 """
 
@@ -35,10 +35,10 @@ except ImportError:  # run from a source checkout without installing
 
 import numpy as np
 
-from bodyspace.data.population import build_population
 from bodyspace.data.template import load_template
 from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.shape import ShapeSpace, interpolation_distortion
+from bodyspace.synth.population import build_population
 
 
 def timed(fn, repeat: int) -> tuple[float, object]:

@@ -31,7 +31,6 @@ from threadpoolctl import threadpool_limits
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import report  # noqa: E402
 
-from bodyspace.data.population import build_population  # noqa: E402
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.mapping.evaluate import evaluate_mapping  # noqa: E402
 from bodyspace.mapping.gradients import RUPPRECHT_SIX, subset  # noqa: E402
@@ -39,6 +38,7 @@ from bodyspace.mapping.refine import refine  # noqa: E402
 from bodyspace.mapping.training import make_training_set, sample_uniform  # noqa: E402
 from bodyspace.measure import load_measurement_set, measure  # noqa: E402
 from bodyspace.model import BodyModel  # noqa: E402
+from bodyspace.synth.population import build_population
 
 
 def naive_measure(model, z, mset):

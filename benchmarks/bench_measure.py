@@ -12,9 +12,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import report  # noqa: E402
 
-from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel  # noqa: E402
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.measure import evaluate, load_measurement_set  # noqa: E402
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel
 
 N = 1000
 N_LOOP = 100   # the per-body baseline is timed on a subset and scaled

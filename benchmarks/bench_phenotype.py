@@ -13,8 +13,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import best_time, report  # noqa: E402
 
-from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel  # noqa: E402
 from bodyspace.data.template import load_template  # noqa: E402
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel
 
 
 def per_target_loop(model: PhenotypeModel, phenotypes: np.ndarray) -> np.ndarray:

@@ -13,9 +13,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import best_time, report  # noqa: E402
 
-from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel  # noqa: E402
 from bodyspace.data.template import load_template  # noqa: E402
-from bodyspace.rig.poses import load_pose_library, pose_bodies  # noqa: E402
+from bodyspace.rig.posing import pose_bodies
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel
+from bodyspace.synth.poses import load_pose_library
 
 
 def main(n: int = 100) -> None:

@@ -8,8 +8,8 @@ from threadpoolctl import threadpool_limits
 # (a kernel-ridge fit measured 31 s threaded against 1.2 s single-threaded under load).
 threadpool_limits(1)
 
-from bodyspace.data.phenotype import PhenotypeModel
 from bodyspace.data.template import load_template
+from bodyspace.synth.phenotype import PhenotypeModel
 
 
 @pytest.fixture(scope="session")

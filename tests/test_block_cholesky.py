@@ -4,11 +4,15 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
+from _meshes import open_tube
 
 from bodyspace.errors import MeshError
-from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern, split_elimination_tree
+from bodyspace.mesh.block_cholesky import (
+    BlockCholesky,
+    BlockPattern,
+    split_elimination_tree,
+)
 from bodyspace.mesh.topology import face_adjacency
-from _meshes import open_tube
 
 RNG = np.random.default_rng(7)
 

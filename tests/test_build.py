@@ -8,14 +8,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bodyspace.data.population import build_population
 from bodyspace.encoding import RelativeRotationEncoder
-from bodyspace.encoding.deformation import polar_decomposition_svd, polar_deformation, rest_triangles
+from bodyspace.encoding.deformation import (
+    polar_decomposition_svd,
+    polar_deformation,
+    rest_triangles,
+)
 from bodyspace.encoding.rre import pack_stretch
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.operators import triangle_frames
 from bodyspace.model import BodyModel
 from bodyspace.shape.solvers import pca_block_krylov
+from bodyspace.synth.population import build_population
 
 
 @pytest.fixture(scope="module")

@@ -65,6 +65,7 @@ def test_measure_command_json_csv_png(phenotype_model, template, tmp_path):
 
 def test_measure_command_rejects_wrong_topology(tmp_path):
     import trimesh
+
     from bodyspace.mesh.io import save_mesh
     sphere = trimesh.creation.icosphere(2)
     path = tmp_path / "sphere.obj"

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyspace.data.database import FORMAT_VERSION, ScanDatabase, unit_of_label, write_database
+from bodyspace.data.database import (
+    FORMAT_VERSION,
+    ScanDatabase,
+    unit_of_label,
+    write_database,
+)
 from bodyspace.errors import DatabaseError
 from bodyspace.mesh.io import save_mesh
 

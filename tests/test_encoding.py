@@ -4,14 +4,25 @@ constraints, bad input."""
 import numpy as np
 import pytest
 import trimesh
+from _meshes import open_tube
 from scipy.spatial.transform import Rotation
 
-from bodyspace.encoding import PositionConstraints, RelativeRotationEncoder, VertexEncoder, rigid_procrustes
-from bodyspace.encoding.rotations import (polar_decomposition, project_to_rotations, quaternion_from_matrix,
-                                          quaternion_log, rotation_exp, rotation_log)
+from bodyspace.encoding import (
+    PositionConstraints,
+    RelativeRotationEncoder,
+    VertexEncoder,
+)
+from bodyspace.encoding.rotations import (
+    polar_decomposition,
+    project_to_rotations,
+    quaternion_from_matrix,
+    quaternion_log,
+    rotation_exp,
+    rotation_log,
+)
 from bodyspace.errors import MeshError
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.shape.compare import interpolation_distortion
-from _meshes import open_tube
 
 RNG = np.random.default_rng(7)
 

@@ -7,8 +7,15 @@ import pytest
 
 from bodyspace.errors import ParameterError
 from bodyspace.mapping import LinearLeafForest, LinearMapping
-from bodyspace.mapping.gradients import (RUPPRECHT_SIX, LinearBodyMeasures, distance_grad, loop_length_grad,
-                                         path_length_grad, subset, unit_vector_grad)
+from bodyspace.mapping.gradients import (
+    RUPPRECHT_SIX,
+    LinearBodyMeasures,
+    distance_grad,
+    loop_length_grad,
+    path_length_grad,
+    subset,
+    unit_vector_grad,
+)
 from bodyspace.mapping.refine import refine
 from bodyspace.mapping.training import make_training_set
 from bodyspace.measure import load_measurement_set, measure
@@ -16,7 +23,7 @@ from bodyspace.measure import load_measurement_set, measure
 
 @pytest.fixture(scope="module")
 def db(template, tmp_path_factory):
-    from bodyspace.data.population import build_population
+    from bodyspace.synth.population import build_population
     return build_population(template, tmp_path_factory.mktemp("mapping") / "db", 24, 0, rng=0)
 
 

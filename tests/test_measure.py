@@ -2,13 +2,25 @@
 
 import json
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 
-from bodyspace.measure import (MeasurementError, evaluate, load_measurement_set,
-                               measurement_set_from_dict, with_landmarks)
-from bodyspace.measure.slicing import mesh_edges, pick_contours, contour_girths, slice_contours
+from bodyspace.measure import (
+    MeasurementError,
+    evaluate,
+    load_measurement_set,
+    measurement_set_from_dict,
+    with_landmarks,
+)
+from bodyspace.measure.slicing import (
+    contour_girths,
+    mesh_edges,
+    pick_contours,
+    slice_contours,
+)
 
 TOL_TAPE = 1e-4  # 0.1 mm
 
@@ -121,8 +133,9 @@ def test_batch_equals_single(mset, phenotype_model, template):
 def _subjects_posed(phenotype_model, template, poses):
     """Two subjects of the synthetic database (``sample_subjects``, as ``build_population``
     draws them) posed with ``poses`` on the ground: (2, P, V, 3)."""
-    from bodyspace.data.population import sample_subjects
-    from bodyspace.rig.poses import load_pose_library, pose_bodies
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.population import sample_subjects
+    from bodyspace.synth.poses import load_pose_library
     lib = load_pose_library()
     rig = template.rigs["default"]
     subjects = sample_subjects(phenotype_model, 2, rng=0)
@@ -181,8 +194,13 @@ def test_pose_robustness_on_database_subjects(mset, phenotype_model, template):
 def test_joint_landmarks_follow_the_skeleton(mset, mean_body, template):
     """The joint landmarks land on the posed rig joints (forward kinematics) in every library
     pose, where the plain joint-cube regressor rows drift by centimetres."""
-    from bodyspace.data.measurements.make_hm08 import JOINTS
-    from bodyspace.rig.poses import load_pose_library, pose_bodies
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("make_hm08", Path(__file__).parents[1] / "tools" / "make_hm08.py")
+    make_hm08 = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_hm08)
+    JOINTS = make_hm08.JOINTS
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.poses import load_pose_library
     lib = load_pose_library()
     rig = template.rigs["default"]
     n = len(lib.names)
@@ -204,7 +222,8 @@ def test_joint_landmarks_follow_the_skeleton(mset, mean_body, template):
 
 
 def test_stature_not_upright_is_reported(mset, mean_body, template):
-    from bodyspace.rig.poses import load_pose_library, pose_bodies
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.poses import load_pose_library
     lib = load_pose_library()
     rig = template.rigs["default"]
     v = pose_bodies(mean_body[None], rig, lib.rotations("squat", rig)[None], on_ground=True)[0]
@@ -273,9 +292,10 @@ def test_other_meshings_agree_within_iso(mset, mean_body, phenotype_model, templ
     midpoint-subdivided (same vertex ids), a centroid split, and a decimated copy (15 % of the
     vertices collapsed) whose landmarks are carried to the nearest surviving vertices through a
     user landmark file. Every measurement but the template-only loops agrees within ISO 20685-1."""
-    from bodyspace.data.population import sample_subjects
-    from bodyspace.measure import load_landmarks
     from scipy.spatial import cKDTree
+
+    from bodyspace.measure import load_landmarks
+    from bodyspace.synth.population import sample_subjects
     bodies = [mean_body, phenotype_model.vertices(sample_subjects(phenotype_model, 1, rng=3).phenotypes)[0]]
     f = template.faces
     free = with_landmarks(mset, mset.landmarks, None, "carried landmarks")
@@ -417,7 +437,12 @@ def _canonical(c, group):
 def test_band_contours_equal_per_plane_cuts(mset, mean_body, phenotype_model, template):
     """The batched band (all planes in one Contours, crossings linked through the faces, edges
     pruned with approximate heights) gives every plane's contours exactly as one plane at a time."""
-    from bodyspace.measure.slicing import approx_heights, band_contours, edge_neighbours, slice_band
+    from bodyspace.measure.slicing import (
+        approx_heights,
+        band_contours,
+        edge_neighbours,
+        slice_band,
+    )
     v = np.concatenate([mean_body[None], phenotype_model.vertices({"weight": np.array([0.1, 0.9])})])
     f = template.faces
     edges, ef = mesh_edges(f)

@@ -10,14 +10,19 @@ import pytest
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
-from bodyspace.data.population import build_population
-from bodyspace.encoding import VertexEncoder, rigid_procrustes
+from bodyspace.encoding import VertexEncoder
 from bodyspace.errors import BodyspaceError
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.model import BodyModel, ModelError
-from bodyspace.shape.solvers import pca_full, pca_randomized
-from bodyspace.report.shape_report import (generalization_study, interpolation_study, write_generalization_report,
-                                           write_interpolation_report)
+from bodyspace.report.shape_report import (
+    generalization_study,
+    interpolation_study,
+    write_generalization_report,
+    write_interpolation_report,
+)
 from bodyspace.shape import ShapeSpace
+from bodyspace.shape.solvers import pca_full, pca_randomized
+from bodyspace.synth.population import build_population
 
 runner = CliRunner()
 

@@ -1,10 +1,15 @@
 import numpy as np
 import pytest
 
-from bodyspace.data.phenotype import (PARAMETERS, age_to_years, category_weights, phenotype_array,
-                                      years_to_age)
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.geometry import capped_volume
+from bodyspace.synth.phenotype import (
+    PARAMETERS,
+    age_to_years,
+    category_weights,
+    phenotype_array,
+    years_to_age,
+)
 
 
 def stature(v):

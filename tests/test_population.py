@@ -3,10 +3,14 @@ import json
 import numpy as np
 import pytest
 
-from bodyspace.data.composition import body_density, body_fat_percent, mass_from_volume
 from bodyspace.data.database import ScanDatabase
-from bodyspace.data.population import build_population, load_survey, sample_subjects
 from bodyspace.errors import ParameterError
+from bodyspace.measure.composition import (
+    body_density,
+    body_fat_percent,
+    mass_from_volume,
+)
+from bodyspace.synth.population import build_population, load_survey, sample_subjects
 
 
 def test_composition_formulas():

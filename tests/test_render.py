@@ -21,7 +21,6 @@ except ModuleNotFoundError:  # not installed: run from the source tree
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.report import render as R
 
-
 # ------------------------------------------------------------------------------------ helpers
 
 def sphere(radius=1.0, center=(0.0, 0.0, 0.0), subdivisions=3):

@@ -17,11 +17,17 @@ except ModuleNotFoundError:  # not installed: run from the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from bodyspace.errors import AssetError, ParameterError
-from bodyspace.rig.kinematics import (bone_rest_frames, dual_quaternion_skinning, forward_kinematics,
-                                      linear_blend_skinning, matrix_to_rotvec, rotvec_to_matrix,
-                                      topological_order)
-from bodyspace.rig.poses import (LIBRARY_PATH, count_folded_triangles, load_pose_library, place_on_ground,
-                                 pose_bodies)
+from bodyspace.rig.kinematics import (
+    bone_rest_frames,
+    dual_quaternion_skinning,
+    forward_kinematics,
+    linear_blend_skinning,
+    matrix_to_rotvec,
+    rotvec_to_matrix,
+    topological_order,
+)
+from bodyspace.rig.posing import count_folded_triangles, place_on_ground, pose_bodies
+from bodyspace.synth.poses import LIBRARY_PATH, load_pose_library
 
 FLIP_X = np.array([-1.0, 1.0, 1.0])
 
@@ -45,7 +51,7 @@ def rig(template):
 @pytest.fixture(scope="module")
 def body(template):
     """A symmetric male body (the phenotype model is exactly left/right symmetric)."""
-    from bodyspace.data.phenotype import PhenotypeModel
+    from bodyspace.synth.phenotype import PhenotypeModel
     return PhenotypeModel(template).vertices({"gender": 1.0, "height": 0.6})[0]
 
 
@@ -424,7 +430,7 @@ MAX_NEW_FOLDS = 24
 
 
 def test_library_poses_fold_little_with_smoothed_weights(template, rig, library):
-    from bodyspace.data.phenotype import PhenotypeModel
+    from bodyspace.synth.phenotype import PhenotypeModel
     bodies = PhenotypeModel(template).vertices({"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0],
                                                 "muscle": [0.5, 0.5, 0.0], "height": [0.6, 0.4, 0.5]})
     R = library.stack(library.names, rig)

@@ -3,10 +3,10 @@ factorization of Eq. 9 (``FixedPatternRotationSolver``) against the SuperLU base
 
 import numpy as np
 import pytest
+from test_encoding import aligned, height, pose_arm, young_shapes
 
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace
-from test_encoding import aligned, height, pose_arm, young_shapes
 
 
 @pytest.fixture(scope="module")

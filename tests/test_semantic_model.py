@@ -8,11 +8,16 @@ import typer
 from typer.testing import CliRunner
 
 from bodyspace.cli_semantics import crowd, evaluate, generate, morph
-from bodyspace.data.population import build_population
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
-from bodyspace.semantics.model import (MaskedBlend, SemanticModel, TargetError, semantics_path,
-                                       tolerance)
+from bodyspace.semantics.model import (
+    MaskedBlend,
+    SemanticModel,
+    TargetError,
+    semantics_path,
+    tolerance,
+)
+from bodyspace.synth.population import build_population
 from bodyspace.units import UnitError, parse_assignment, parse_target
 
 

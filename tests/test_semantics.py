@@ -5,10 +5,21 @@ import numpy as np
 import pytest
 
 from bodyspace.errors import ParameterError
-from bodyspace.semantics import (ComparisonRegressor, FilteredLinearRegressor, KernelRegressor, SemanticBasis,
-                                 SimpleLinearRegressor, comparison_direction, cross_validated_rmse,
-                                 direction_angles, format_angle_table, format_rmse_table, gram_schmidt, morph,
-                                 morph_directions)
+from bodyspace.semantics import (
+    ComparisonRegressor,
+    FilteredLinearRegressor,
+    KernelRegressor,
+    SemanticBasis,
+    SimpleLinearRegressor,
+    comparison_direction,
+    cross_validated_rmse,
+    direction_angles,
+    format_angle_table,
+    format_rmse_table,
+    gram_schmidt,
+    morph,
+    morph_directions,
+)
 
 
 def shape_like(n, d, seed=0, label_noise=0.5):

@@ -5,9 +5,14 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder, rigid_procrustes
+from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.errors import ParameterError
-from bodyspace.shape import ShapeSpace, mean_relative_edge_change, relative_volume_change
+from bodyspace.mesh.alignment import rigid_procrustes
+from bodyspace.shape import (
+    ShapeSpace,
+    mean_relative_edge_change,
+    relative_volume_change,
+)
 
 
 @pytest.fixture(scope="module")

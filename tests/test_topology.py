@@ -4,14 +4,26 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import trimesh
+from _meshes import open_tube
 
 from bodyspace.errors import MeshError
-from bodyspace.mesh.operators import (cotangent_laplacian, deformation_gradients, dual_laplacian,
-                                      gradient_operator, triangle_frames)
+from bodyspace.mesh.operators import (
+    cotangent_laplacian,
+    deformation_gradients,
+    dual_laplacian,
+    gradient_operator,
+    triangle_frames,
+)
 from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints
-from bodyspace.mesh.topology import (check_same_topology, check_topology, edges, face_adjacency,
-                                     face_components, spanning_forest, vertex_components)
-from _meshes import open_tube
+from bodyspace.mesh.topology import (
+    check_same_topology,
+    check_topology,
+    edges,
+    face_adjacency,
+    face_components,
+    spanning_forest,
+    vertex_components,
+)
 
 
 def tube(rings=6, around=8, length=1.0, radius=0.2):

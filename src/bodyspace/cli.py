@@ -79,8 +79,8 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
                force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
                assets: Optional[Path] = AssetsOption):
     """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."""
-    from bodyspace.data.population import build_population
     from bodyspace.data.template import load_template
+    from bodyspace.synth.population import build_population
     try:
         template = load_template(assets)
         with _progress("population") as cb:

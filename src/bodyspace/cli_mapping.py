@@ -12,7 +12,13 @@ from bodyspace.errors import BodyspaceError
 
 
 def _progress_bar(console):
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
     return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                     TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
                     TextColumn("{task.fields[message]}"), console=console)
@@ -102,8 +108,13 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
     from rich.console import Console
     from rich.table import Table
 
-    from bodyspace.mapping.evaluate import (decode_seconds, default_sizes, estimate_seconds, evaluate_mapping,
-                                            write_report)
+    from bodyspace.mapping.evaluate import (
+        decode_seconds,
+        default_sizes,
+        estimate_seconds,
+        evaluate_mapping,
+        write_report,
+    )
     from bodyspace.model import BodyModel
 
     console = Console()

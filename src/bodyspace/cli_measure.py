@@ -22,7 +22,13 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit."),
             png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to a PNG.")):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
-    from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
+    from bodyspace.measure import (
+        evaluate,
+        load_landmarks,
+        load_measurement_set,
+        to_json,
+        with_landmarks,
+    )
     from bodyspace.mesh.io import load_mesh
     try:
         mset = load_measurement_set()

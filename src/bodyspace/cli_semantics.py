@@ -126,7 +126,11 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              seed: int = typer.Option(0, "--seed", help="Fold shuffle seed.")):
     """Table 1 (10-fold cross-validated RMSE per label and regressor) and Table 2 (angles between
     the non-linear model's morphing directions at every subject)."""
-    from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+    from bodyspace.semantics.evaluation import (
+        RegressionTable,
+        format_angle_table,
+        format_rmse_table,
+    )
     from bodyspace.units import kind_of
     try:
         sm = _load(model_file, database, refit, False)

@@ -43,8 +43,8 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -54,9 +54,15 @@ from bodyspace.atomic import atomic_path
 from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.encoding.rotations import quaternion_exp
 from bodyspace.errors import BodyspaceError, ParameterError
-from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX, MeasurementMapping
+from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
+from bodyspace.mapping.bundle import MeasurementMapping
 from bodyspace.shape import ShapeSpace
-from bodyspace.shape.solvers import KRYLOV_DEPTH, mean_and_scatter, pca_block_krylov, pca_full
+from bodyspace.shape.solvers import (
+    KRYLOV_DEPTH,
+    mean_and_scatter,
+    pca_block_krylov,
+    pca_full,
+)
 
 FORMAT = "bodyspace.BodyModel"
 FORMAT_VERSION = 1

@@ -14,7 +14,8 @@ Both: ``Encoder(template_vertices, faces).fit(scans)``, ``encode(vertices) -> (N
 """
 
 from bodyspace.encoding.rre import RelativeRotationEncoder
-from bodyspace.encoding.vertex import VertexEncoder, rigid_procrustes
+from bodyspace.encoding.vertex import VertexEncoder
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.solver import PositionConstraints
 
 __all__ = ["RelativeRotationEncoder", "VertexEncoder", "PositionConstraints", "rigid_procrustes"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def _planar(a: np.ndarray, n: int) -> np.ndarray:
     """(..., n) -> contiguous (n, ...)."""
     return np.ascontiguousarray(np.moveaxis(a, -1, 0))

@@ -69,19 +69,37 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
+from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
-from bodyspace.encoding.rotations import _planar, _qconj, _qexp, _qfrom_matrix, project_to_rotations, quaternion_exp
-from bodyspace.encoding.vertex import check_codes, check_scans, rigid_procrustes
+from bodyspace.encoding.rotations import (
+    _planar,
+    _qconj,
+    _qexp,
+    _qfrom_matrix,
+    project_to_rotations,
+    quaternion_exp,
+)
+from bodyspace.encoding.vertex import check_codes, check_scans
 from bodyspace.errors import MeshError, ParameterError
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 from bodyspace.mesh.operators import dual_laplacian, triangle_frames
-from bodyspace.mesh.solver import FactorizedSolver, PoissonSolver, PositionConstraints, single_threaded_blas
-from bodyspace.mesh.topology import (check_topology, dual_graph, face_components, spanning_forest,
-                                     vertex_components)
+from bodyspace.mesh.solver import (
+    FactorizedSolver,
+    PoissonSolver,
+    PositionConstraints,
+    single_threaded_blas,
+)
+from bodyspace.mesh.topology import (
+    check_topology,
+    dual_graph,
+    face_components,
+    spanning_forest,
+    vertex_components,
+)
 from bodyspace.parallel import halves, run_both
-from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 
 FEATURES_PER_FACE = 15
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:

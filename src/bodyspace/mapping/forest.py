@@ -82,7 +82,14 @@ except ImportError:  # pragma: no cover
     threadpool_limits = None
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.linear import FORMAT_VERSION, check_arrays, check_ridge, check_X, check_Y, solve_ridge
+from bodyspace.mapping.linear import (
+    FORMAT_VERSION,
+    check_arrays,
+    check_ridge,
+    check_X,
+    check_Y,
+    solve_ridge,
+)
 
 LEAF_MODELS = ("linear", "constant")
 

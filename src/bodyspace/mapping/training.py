@@ -24,7 +24,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.gradients import DIFFERENTIABLE, RUPPRECHT_SIX, LinearBodyMeasures, subset
+from bodyspace.mapping.gradients import (
+    DIFFERENTIABLE,
+    RUPPRECHT_SIX,
+    LinearBodyMeasures,
+    subset,
+)
 
 CHUNK = 256
 # RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.

@@ -15,7 +15,7 @@ Landmarks come in two kinds. A *surface* landmark is one vertex id (head top, ac
 *weighted* landmark is a convex combination of vertices (``weights`` non-negative, summing to
 1; omitted: equal weights): a barycentric point on a face, or a point inside the body such as a
 joint centre (``shoulder_joint_l``: the skinning-consistent joint regressor of
-``data/measurements/make_hm08.py``, which follows the joint through posing). Either kind may
+``tools/make_hm08.py``, which follows the joint through posing). Either kind may
 be given for any name, so a user landmark file can put a plain vertex id where the default set
 has a joint centre (a cruder but valid choice; docs/measurements.md).
 

@@ -17,10 +17,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from bodyspace.data.composition import mass_from_volume
+from bodyspace.measure.composition import mass_from_volume
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
-from bodyspace.measure.slicing import (approx_heights, band_contours, contour_girths, edge_neighbours,
-                                      mesh_edges, pick_contours, support_perimeters)
+from bodyspace.measure.slicing import (
+    approx_heights,
+    band_contours,
+    contour_girths,
+    edge_neighbours,
+    mesh_edges,
+    pick_contours,
+    support_perimeters,
+)
 from bodyspace.mesh.geometry import boundary_loops, capped_volume, check_mesh
 
 CHUNK = 64

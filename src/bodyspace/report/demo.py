@@ -16,13 +16,17 @@ import numpy as np
 
 from bodyspace.atomic import write_json
 from bodyspace.data import assets
-from bodyspace.data.population import build_population, load_survey
 from bodyspace.data.template import load_template
 from bodyspace.encoding import VertexEncoder
 from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet, histogram_figure
-from bodyspace.report.shape_report import (generalization_study, interpolation_study, write_generalization_report,
-                                           write_interpolation_report)
+from bodyspace.report.shape_report import (
+    generalization_study,
+    interpolation_study,
+    write_generalization_report,
+    write_interpolation_report,
+)
+from bodyspace.synth.population import build_population, load_survey
 
 # Shape-space part of the demo: components of the pose+shape model, bodies sampled, subjects in
 # the interpolation study and held-out subjects in the generalization study (cost: ~0.3 s per
@@ -226,7 +230,11 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
     (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``)."""
     from bodyspace.atomic import atomic_path
     from bodyspace.report.semantic_report import request_study, write_request_report
-    from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+    from bodyspace.semantics.evaluation import (
+        RegressionTable,
+        format_angle_table,
+        format_rmse_table,
+    )
     from bodyspace.semantics.model import SemanticModel
     from bodyspace.units import kind_of
 

@@ -58,8 +58,8 @@ def landmark_figure(path: str | os.PathLike, mset: MeasurementSet | None = None,
 
     mset = load_measurement_set() if mset is None else mset
     if vertices is None or faces is None:
-        from bodyspace.data.phenotype import PhenotypeModel
         from bodyspace.data.template import load_template
+        from bodyspace.synth.phenotype import PhenotypeModel
         template = load_template()
         vertices = PhenotypeModel(template).vertices({})[0] if vertices is None else vertices
         faces = template.faces if faces is None else faces

@@ -219,7 +219,7 @@ def format_request_report(study: dict) -> str:
     if split and study.get("joint_quantile") is None:
         q = 100 * split["quantile"]
         lines += ["", "## Inside and outside the population", "",
-                  f"| requests | n | within tolerance |", "|---|---:|---:|",
+                  "| requests | n | within tolerance |", "|---|---:|---:|",
                   f"| inside the population's {q:g}% joint region | {split['inside']['n']} | "
                   f"{split['inside']['successes']} |",
                   f"| outside it (combinations few or no subjects have) | {split['outside']['n']} | "

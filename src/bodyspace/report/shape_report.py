@@ -40,12 +40,12 @@ from matplotlib.figure import Figure
 from scipy.cluster.vq import kmeans2
 
 from bodyspace.atomic import atomic_path, write_json
-from bodyspace.encoding import rigid_procrustes
 from bodyspace.errors import ParameterError
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
-from bodyspace.shape.solvers import pca_full
 from bodyspace.report.render import contact_sheet
 from bodyspace.shape.compare import edge_lengths
+from bodyspace.shape.solvers import pca_full
 
 DEFAULT_COMPONENTS = (1, 2, 4, 8, 16)
 # Regions of the local error (k-means clusters of the mean scan's vertices).

@@ -11,11 +11,26 @@
 """
 
 from bodyspace.semantics.basis import SemanticBasis, gram_schmidt
-from bodyspace.semantics.evaluation import (RegressionTable, cross_validated_rmse, default_regressors,
-                                            direction_angles, format_angle_table, format_rmse_table)
-from bodyspace.semantics.morph import ComparisonRegressor, comparison_direction, morph, morph_directions
-from bodyspace.semantics.regressors import (FilteredLinearRegressor, KernelRegressor, SimpleLinearRegressor,
-                                            kfold_indices)
+from bodyspace.semantics.evaluation import (
+                                            RegressionTable,
+                                            cross_validated_rmse,
+                                            default_regressors,
+                                            direction_angles,
+                                            format_angle_table,
+                                            format_rmse_table,
+)
+from bodyspace.semantics.morph import (
+                                            ComparisonRegressor,
+                                            comparison_direction,
+                                            morph,
+                                            morph_directions,
+)
+from bodyspace.semantics.regressors import (
+                                            FilteredLinearRegressor,
+                                            KernelRegressor,
+                                            SimpleLinearRegressor,
+                                            kfold_indices,
+)
 
 __all__ = [
     "SimpleLinearRegressor", "FilteredLinearRegressor", "KernelRegressor", "ComparisonRegressor", "kfold_indices",

@@ -17,8 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.semantics.regressors import (FilteredLinearRegressor, KernelRegressor, SimpleLinearRegressor,
-                                            _as_matrix, kfold_indices)
+from bodyspace.semantics.regressors import (
+    FilteredLinearRegressor,
+    KernelRegressor,
+    SimpleLinearRegressor,
+    _as_matrix,
+    kfold_indices,
+)
 
 __all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
            "format_rmse_table", "format_angle_table"]

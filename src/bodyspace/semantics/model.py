@@ -43,7 +43,6 @@ rebuilds the surface, spreading the seam with no step (``MaskedBlend``).
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import time
 import warnings
@@ -56,7 +55,10 @@ import scipy.sparse as sp
 from bodyspace.atomic import atomic_path
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.semantics.morph import morph_directions
-from bodyspace.semantics.regressors import FilteredLinearRegressor, SimpleLinearRegressor
+from bodyspace.semantics.regressors import (
+    FilteredLinearRegressor,
+    SimpleLinearRegressor,
+)
 from bodyspace.units import Target, format_value, kind_of
 
 __all__ = ["SemanticModel", "GenerationResult", "TargetError", "MaskedBlend", "REGIONS", "TOLERANCES",
@@ -628,7 +630,10 @@ class SemanticModel:
     def evaluate(self, folds: int = 10, rng=0) -> tuple:
         """(Table 1 ``RegressionTable``, Table 2 dict label -> (mean, sd) degrees) on the model's
         subjects (one row per subject)."""
-        from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
+        from bodyspace.semantics.evaluation import (
+            cross_validated_rmse,
+            direction_angles,
+        )
         from bodyspace.semantics.regressors import KernelRegressor
         labels = {n: self.Y_[:, j] for j, n in enumerate(self.labels_)}
         table1 = cross_validated_rmse(self.X_, labels, folds=folds, rng=rng)

@@ -1,6 +1,6 @@
 """Regenerate ``hm08.json``: pick the landmarks and Rupprecht loops on the mean body.
 
-Run once (``python -m bodyspace.data.measurements.make_hm08``); the ids and weights are stored
+Run once (``python tools/make_hm08.py``); the ids and weights are stored
 in the JSON so measuring never depends on this script. The measurement definitions in the JSON
 are hand-written data; this script rewrites only the landmarks and the loop rings. Two kinds of
 landmark, each rule a comment below; left landmarks are picked on the left and mirrored with
@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel
 from bodyspace.data.template import load_template
 from bodyspace.measure.slicing import mesh_edges, pick_contours, slice_contours
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel
 
-OUT = Path(__file__).with_name("hm08.json")
+OUT = Path(__file__).resolve().parents[1] / "src" / "bodyspace" / "data" / "measurements" / "hm08.json"
 
 # Joint landmarks: (name, hm08 joint cube, rig bone whose head the cube is, candidate radius m).
 JOINTS = (
@@ -106,7 +106,8 @@ def training_bodies(template, model: PhenotypeModel, rng=0):
     """Rest bodies (S, V, 3) of the mean and ``N_SHAPES`` random adult phenotypes, the training
     pose names (the library minus ``HELD_OUT_POSES`` and their mirrors), and the bodies posed
     with them (S*P, V, 3) with their posed bone heads (S*P, B, 3)."""
-    from bodyspace.rig.poses import load_pose_library, pose_bodies
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.poses import load_pose_library
 
     rng = np.random.default_rng(rng)
     phen = rng.uniform(0.1, 0.9, (N_SHAPES, len(PARAMETERS)))

