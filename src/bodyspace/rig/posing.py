@@ -11,7 +11,9 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-from bodyspace.data.template import Rig
+from bodyspace.atomic import atomic_path
+from bodyspace.data.assets import cache_dir
+from bodyspace.data.template import Rig, load_template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.rig.kinematics import (
     dual_quaternion_skinning,
@@ -111,7 +113,6 @@ def smoothed_weights(rig: Rig, faces: np.ndarray | None = None, mirror: np.ndarr
     mirror-image meshes.
     """
     if faces is None or mirror is None:
-        from bodyspace.data.template import load_template
         t = load_template()
         faces = t.faces if faces is None else faces
         mirror = t.mirror if mirror is None else mirror
@@ -129,9 +130,6 @@ def smoothed_weights(rig: Rig, faces: np.ndarray | None = None, mirror: np.ndarr
 
 def _smoothed_from_disk_or_compute(rig: Rig, faces: np.ndarray, mirror: np.ndarray) -> sp.csr_matrix:
     """The smoothed weights, cached on disk beside the compiled template (they take ~6 s)."""
-    from bodyspace.atomic import atomic_path
-    from bodyspace.data.assets import cache_dir
-
     W0 = rig.weights.tocsr(copy=True)
     W0.sum_duplicates()  # canonical form, so the key does not depend on index order
     digest = hashlib.sha256(b"".join([np.ascontiguousarray(a).tobytes() for a in
