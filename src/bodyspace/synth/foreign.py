@@ -1,0 +1,594 @@
+"""Foreign test bodies: the template's bodies as a user's data would come, never as ours.
+
+Our own data is one topology (hm08, 13,380 vertices), metres, +Y up, the floor at y = 0 and
+mostly population phenotypes. A user's meshes differ in all of that. This module makes bodies
+that differ in every way we can control, each with its exact ground truth, so every feature can
+be tested on data it has never seen (issue 12 §5; docs/foreign.md):
+
+- ``remesh``: another triangulation and vertex count, with a ``Correspondence`` (source face and
+  barycentric coordinates of every new vertex) that carries any per-vertex quantity of the
+  template (landmarks, joints, skin weights, groups) over exactly;
+- ``shuffle_vertices``: the same surface, the vertices in another order;
+- ``to_frame`` / ``from_frame``: another up axis, unit, heading and origin (floor not at zero);
+- ``add_noise``, ``punch_holes``, ``reverse_winding``: scanner damage;
+- ``foreign_topology`` + ``foreign_body``: one call for a body the model never saw, with the true
+  landmark and joint positions and a landmark file for its topology that
+  ``bodyspace.measure.load_landmarks`` reads.
+
+Remeshing method: quadric-error decimation (Garland & Heckbert 1997, through
+``fast-simplification``, MIT, numpy-only wheels, ~20 ms for the template) down to the requested
+count (for a finer mesh: to a quarter of it, then every triangle split in four at random points
+of its edges), then every vertex is moved onto its closest point of the source surface.
+The last step makes the correspondence exact: a new vertex *is* a barycentric point of a source
+face, so ``transfer`` reproduces the remeshed body from any template body (another phenotype, a
+pose) without a second projection, and bodies of one foreign topology form a database.
+Quadric decimation was chosen over isotropic remeshing because it is ~100x faster, keeps the
+surface within ~1 mm at 5,000 vertices, and is available under a permissive licence without
+VTK or MeshLab (pymeshlab is GPL).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import fast_simplification
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from bodyspace.data.template import Template
+from bodyspace.errors import MeshError, ParameterError
+from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
+from bodyspace.mesh.geometry import face_normals
+from bodyspace.rig.posing import pose_bodies
+from bodyspace.synth.phenotype import PARAMETERS, years_to_age
+from bodyspace.synth.poses import load_pose_library
+
+CANDIDATE_FACES = 24          # source faces searched per point (by centroid) in closest_points
+SPLIT_RANGE = (0.3, 0.7)      # where split_edges cuts each edge (fraction from its first vertex)
+UP_AXES = ("y", "z", "-y")
+
+# Frame matrices: internal (+Y up, +Z front) to the user's frame. "z": Z up, the person facing
+# -Y (Blender's convention); "-y": upside down (a mesh exported with the wrong up axis).
+_UP_MATRIX = {
+    "y": np.eye(3),
+    "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "-y": np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]),
+}
+
+
+# ------------------------------------------------------------------------------ correspondence
+
+@dataclass(frozen=True)
+class Correspondence:
+    """Where each vertex of a new mesh lies on a source mesh.
+
+    face: (V2,) source face index of each new vertex.
+    barycentric: (V2, 3) its barycentric coordinates in that face (non-negative, rows sum to 1).
+    """
+
+    face: np.ndarray
+    barycentric: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.face)
+
+    def matrix(self, source_faces: np.ndarray, n_source: int) -> sp.csr_matrix:
+        """Sparse (V2, V) matrix ``M``: ``M @ source_values`` are the values on the new vertices."""
+        rows = np.repeat(np.arange(len(self.face)), 3)
+        cols = np.asarray(source_faces)[self.face].ravel()
+        return sp.csr_matrix((self.barycentric.ravel(), (rows, cols)), shape=(len(self.face), n_source))
+
+    def permuted(self, permutation: np.ndarray) -> "Correspondence":
+        """The correspondence of the mesh whose vertex i is this mesh's vertex ``permutation[i]``."""
+        return Correspondence(self.face[permutation], self.barycentric[permutation])
+
+
+def transfer(correspondence: Correspondence, source_faces: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Carry per-vertex values of the source to the new vertices, exactly.
+
+    values: (V, ...) or (N, V, 3) (a batch of bodies: vertex axis second to last).
+    Returns (V2, ...) or (N, V2, 3): each new vertex's barycentric mix of its source face.
+    """
+    values = np.asarray(values, dtype=float)
+    corners = np.asarray(source_faces)[correspondence.face]          # (V2, 3)
+    w = correspondence.barycentric
+    if values.ndim == 3 and values.shape[-1] == 3 and values.shape[1] != len(corners):
+        # (N, V, 3) batch of bodies
+        return np.einsum("vk,nvkd->nvd", w, values[:, corners, :])
+    return np.einsum("vk,vk...->v...", w, values[corners])
+
+
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (..., 3) of the closest point of triangles (a, b, c) to points p.
+
+    All inputs (..., 3). Ericson, *Real-Time Collision Detection* §5.1.5 (ClosestPtPointTriangle),
+    vectorized: the Voronoi regions are tested in reverse order so that the first match wins.
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    bp, cp = p - b, p - c
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v_in, w_in = vb / denom, vc / denom
+        bary = np.stack([1 - v_in - w_in, v_in, w_in], axis=-1)
+        w_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        w_ac = d2 / (d2 - d6)
+        v_ab = d1 / (d1 - d3)
+    regions = [  # (mask, barycentric), lowest priority first
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), np.stack([0 * w_bc, 1 - w_bc, w_bc], -1)),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - w_ac, 0 * w_ac, w_ac], -1)),
+        ((d6 >= 0) & (d5 <= d6), np.broadcast_to([0.0, 0.0, 1.0], bary.shape)),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.stack([1 - v_ab, v_ab, 0 * v_ab], -1)),
+        ((d3 >= 0) & (d4 <= d3), np.broadcast_to([0.0, 1.0, 0.0], bary.shape)),
+        ((d1 <= 0) & (d2 <= 0), np.broadcast_to([1.0, 0.0, 0.0], bary.shape)),
+    ]
+    for mask, value in regions:
+        bary = np.where(mask[..., None], value, bary)
+    bary = np.nan_to_num(bary, nan=1.0 / 3.0)   # degenerate triangle: its centroid
+    return np.clip(bary, 0.0, 1.0) / np.clip(bary, 0.0, 1.0).sum(-1, keepdims=True)
+
+
+def closest_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                   point_normals: np.ndarray | None = None) -> tuple[Correspondence, np.ndarray]:
+    """Closest point of a surface to each point.
+
+    points: (P, 3); vertices (V, 3), faces (F, 3): the surface.
+    point_normals: (P, 3) optional unit normals of the points' own surface: a face facing the
+        other way (the far side of a thin part, the neighbouring finger) is only taken when no
+        candidate faces the same way.
+    Returns the correspondence (face (P,), barycentric (P, 3)) and the distances (P,).
+    Candidates are the ``CANDIDATE_FACES`` faces with the nearest centroids: exact for points
+    within about one edge length of the surface, which is what it is used for.
+    """
+    points = np.asarray(points, dtype=float)
+    tri = vertices[faces]                                              # (F, 3, 3)
+    k = min(CANDIDATE_FACES, len(faces))
+    _, cand = cKDTree(tri.mean(axis=1)).query(points, k=k)
+    cand = cand.reshape(len(points), k)
+    t = tri[cand]                                                      # (P, k, 3, 3)
+    p = np.broadcast_to(points[:, None, :], t.shape[:2] + (3,))
+    bary = _closest_on_triangles(p, t[..., 0, :], t[..., 1, :], t[..., 2, :])
+    q = np.einsum("pkc,pkcd->pkd", bary, t)
+    dist = np.linalg.norm(q - p, axis=-1)
+    score = dist
+    if point_normals is not None:
+        fn = face_normals(vertices, faces)[cand]                       # (P, k, 3)
+        facing = (fn * point_normals[:, None, :]).sum(-1) > 0
+        score = np.where(facing, dist, dist + 1e3)
+    best = np.argmin(score, axis=1)
+    rows = np.arange(len(points))
+    return Correspondence(cand[rows, best], bary[rows, best]), dist[rows, best]
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) of a mesh (V, 3), (F, 3)."""
+    fn = face_normals(vertices, faces, normalize=False)
+    n = np.zeros_like(vertices, dtype=float)
+    for corner in range(3):
+        np.add.at(n, faces[:, corner], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+# ------------------------------------------------------------------------------ remeshing
+
+def _edge_keys(faces: np.ndarray) -> np.ndarray:
+    """(3F,) one integer per half-edge, equal for both halves of an edge (lo * n + hi); rows in
+    the order of faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]."""
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    n = int(faces.max()) + 1
+    return half.min(axis=1) * n + half.max(axis=1)
+
+
+def edge_face_counts(faces: np.ndarray) -> np.ndarray:
+    """Number of faces on each undirected edge (E,): 2 everywhere on a closed manifold."""
+    return np.unique(_edge_keys(faces), return_counts=True)[1]
+
+
+def euler_characteristic(faces: np.ndarray) -> int:
+    """V - E + F of the vertices the faces use (2 for a closed genus-0 surface)."""
+    return int(np.unique(faces).size - np.unique(_edge_keys(faces)).size + len(faces))
+
+
+def split_edges(vertices: np.ndarray, faces: np.ndarray, rng=None) -> tuple[np.ndarray, np.ndarray]:
+    """Every triangle split in four, every edge cut at a random point of it.
+
+    vertices (V, 3), faces (F, 3) → vertices (V + E, 3), faces (4F, 3). The new vertices lie on
+    the source edges (so on the surface) at ``SPLIT_RANGE`` fractions drawn from ``rng``.
+    """
+    rng = np.random.default_rng(rng)
+    keys, inverse = np.unique(_edge_keys(faces), return_inverse=True)
+    n = int(faces.max()) + 1
+    lo, hi = keys // n, keys % n
+    t = rng.uniform(*SPLIT_RANGE, len(keys))[:, None]
+    new = (1 - t) * vertices[lo] + t * vertices[hi]
+    mid = len(vertices) + inverse.reshape(3, len(faces)).T                        # (F, 3): ab, bc, ca
+    a, b, c = faces.T
+    mab, mbc, mca = mid.T
+    out = np.concatenate([np.c_[a, mab, mca], np.c_[mab, b, mbc], np.c_[mca, mbc, c], np.c_[mab, mbc, mca]])
+    return np.concatenate([vertices, new]), out
+
+
+def _decimate(vertices: np.ndarray, faces: np.ndarray, target_vertices: int, closed: bool, chi: int,
+              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric decimation (fast-simplification) of a copy whose vertices are moved along their
+    normals by 0.3 mm of noise from ``rng`` (it breaks the ties of flat regions, so each seed
+    collapses other edges); the positions are put back on the true surface by the caller.
+    Tries gentler settings while the result is not a closed manifold like the source."""
+    noisy = vertices + vertex_normals(vertices, faces) * rng.normal(0.0, 3e-4, (len(vertices), 1))
+    target_faces = 2 * target_vertices - 2 * chi if closed else int(len(faces) * target_vertices / len(vertices))
+    reason = ""
+    for agg in (3.0, 2.0, 1.5):
+        v2, f2 = fast_simplification.simplify(noisy, faces, target_count=target_faces, agg=agg)
+        f2 = np.asarray(f2, dtype=np.int64)
+        used = np.unique(f2)
+        if len(used) < len(v2):                       # drop vertices the decimation orphaned
+            remap = np.full(len(v2), -1)
+            remap[used] = np.arange(len(used))
+            v2, f2 = v2[used], remap[f2]
+        if not closed:
+            return v2, f2
+        counts = edge_face_counts(f2)
+        if not (counts == 2).all():
+            reason = f"{int((counts != 2).sum())} edge(s) not shared by exactly two faces"
+        elif euler_characteristic(f2) != chi:
+            reason = f"Euler characteristic {euler_characteristic(f2)}, expected {chi}"
+        else:
+            return v2, f2
+    raise MeshError(f"remesh to {target_vertices} vertices: {reason}; expected a closed manifold like "
+                    "the source. Ask for more vertices")
+
+
+def _onto_surface(points: np.ndarray, faces2: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                  keep: np.ndarray | None = None) -> tuple[np.ndarray, Correspondence, int]:
+    """Move the new mesh's vertices onto the source surface without folding a face.
+
+    points (V2, 3), faces2 (F2, 3): the new mesh near the surface. A face whose normal turns
+    over (or whose area vanishes) when its corners are projected gets its corners moved to
+    their 1-ring centroid first (uniform Laplacian smoothing, up to 8 rounds).
+    keep: (K,) source vertex ids: the new vertex nearest to each (one new vertex per id) is put
+    exactly on it and never smoothed.
+    Returns vertices (V2, 3) on the surface, their correspondence, and the faces still folded.
+    """
+    source_normals = face_normals(vertices, faces)
+    ring = sp.csr_matrix((np.ones(6 * len(faces2)),
+                          (faces2[:, [0, 1, 2, 1, 2, 0]].ravel(), faces2[:, [1, 2, 0, 0, 1, 2]].ravel())),
+                         shape=(len(points),) * 2)
+    ring.data[:] = 1.0
+    degree = np.asarray(ring.sum(axis=1)).ravel()
+    p = points.copy()
+    corr, _ = closest_points(p, vertices, faces, vertex_normals(p, faces2))
+    pinned = np.zeros(len(p), dtype=bool)
+    if keep is not None and len(keep):
+        tree = cKDTree(p)
+        corner_of = {}
+        for f_id, tri in enumerate(faces):          # a face of each kept vertex, and its corner
+            for c, j in enumerate(tri):
+                corner_of.setdefault(int(j), (f_id, c))
+        for j in np.asarray(keep, dtype=np.int64):
+            near = tree.query(vertices[j], k=min(16, len(p)))[1]
+            k = int(near[~pinned[near]][0])
+            pinned[k] = True
+            f_id, c = corner_of[int(j)]
+            corr.face[k], corr.barycentric[k] = f_id, np.eye(3)[c]
+    for _ in range(8):
+        on = transfer(corr, faces, vertices)
+        n = face_normals(on, faces2, normalize=False)
+        ref = source_normals[corr.face][faces2].sum(axis=1)        # the surface's normal under the face
+        bad = ((n * ref).sum(1) <= 0) | (np.linalg.norm(n, axis=1) < 1e-12)
+        if not bad.any():
+            return on, corr, 0
+        move = np.unique(faces2[bad])
+        move = move[~pinned[move]]
+        p[move] = (ring[move] @ p) / degree[move, None]
+        c2, _ = closest_points(p[move], vertices, faces, vertex_normals(p, faces2)[move])
+        corr = Correspondence(corr.face.copy(), corr.barycentric.copy())
+        corr.face[move], corr.barycentric[move] = c2.face, c2.barycentric
+    return on, corr, int(bad.sum())
+
+
+def remesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int, rng=None,
+           keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, Correspondence]:
+    """Another triangulation of the same surface with ``target_vertices`` vertices.
+
+    vertices (V, 3), faces (F, 3): the source. Coarser than the source: quadric decimation
+    (``_decimate``). Finer: decimation to a quarter of the target, then every triangle split in
+    four at random points of its edges (``split_edges``), which gives exactly 4 V' - 6 vertices
+    on a closed genus-0 surface (the target rounded to that). Then every vertex is put on its
+    closest point of the source surface (``_onto_surface``); ``keep`` (K,) source vertex ids
+    (surface landmarks) are each reproduced exactly by one new vertex.
+    Returns vertices (V2, 3) on the source surface, faces (F2, 3) and the ``Correspondence`` of
+    every new vertex (exact: ``transfer(corr, faces, vertices)`` equals the returned vertices).
+    A closed manifold source gives a closed manifold result with the same Euler characteristic
+    and orientation, with no folded face; else ``MeshError``.
+    """
+    rng = np.random.default_rng(rng)
+    vertices = np.asarray(vertices, dtype=float)
+    faces = np.asarray(faces, dtype=np.int64)
+    target_vertices = int(target_vertices)
+    if not 100 <= target_vertices <= 4 * len(vertices):
+        raise ParameterError(f"target_vertices={target_vertices}; expected 100 to {4 * len(vertices)} "
+                             f"for a source of {len(vertices)} vertices")
+    closed = bool((edge_face_counts(faces) == 2).all())
+    chi = euler_characteristic(faces)
+    for _attempt in range(4):                         # a fold left after smoothing: decimate anew
+        if target_vertices < 0.9 * len(vertices):
+            v2, f2 = _decimate(vertices, faces, target_vertices, closed, chi, rng)
+        else:
+            coarse_v, coarse_f = _decimate(vertices, faces, (target_vertices + 2 * chi) // 4, closed, chi, rng)
+            v2, f2 = split_edges(coarse_v, coarse_f, rng)
+        on_surface, corr, folded = _onto_surface(v2, f2, vertices, faces, keep)
+        if not folded:
+            break
+    else:
+        raise MeshError(f"remesh to {target_vertices} vertices: {folded} face(s) fold over on the source "
+                        "surface; expected none. Try another rng or more vertices")
+    return on_surface, f2, corr
+
+
+def shuffle_vertices(vertices: np.ndarray, faces: np.ndarray, rng=None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The same surface with its vertices (and faces, and each face's first corner) reordered.
+
+    vertices (V, 3) or (N, V, 3), faces (F, 3) → vertices2, faces2 (F, 3), permutation (V,):
+    ``vertices2[..., i, :] == vertices[..., permutation[i], :]``. Orientation is kept (corners are
+    rotated cyclically, never swapped).
+    """
+    rng = np.random.default_rng(rng)
+    faces = np.asarray(faces)
+    n = np.shape(vertices)[-2]
+    perm = rng.permutation(n)
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[perm] = np.arange(n)
+    f = inverse[faces][rng.permutation(len(faces))]
+    shift = rng.integers(0, 3, len(f))
+    f = np.take_along_axis(f, (np.arange(3)[None, :] + shift[:, None]) % 3, axis=1)
+    return np.asarray(vertices)[..., perm, :], f, perm
+
+
+# ------------------------------------------------------------------------------ frames and units
+
+def _frame_matrix(up: str, yaw_degrees: float) -> np.ndarray:
+    if up not in _UP_MATRIX:
+        raise ParameterError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
+    c, s = np.cos(np.radians(yaw_degrees)), np.sin(np.radians(yaw_degrees))
+    yaw = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])      # about +Y (internal up)
+    return _UP_MATRIX[up] @ yaw
+
+
+def to_frame(vertices: np.ndarray, up: str = "z", scale: float = 1000.0,
+             translation=(0.42, -0.17, 0.93), yaw_degrees: float = 25.0) -> np.ndarray:
+    """Internal bodies (metres, +Y up, +Z front) in a user's frame.
+
+    vertices: (..., 3). ``x' = scale * (U @ R_yaw @ x + translation)``: turned by ``yaw_degrees``
+    about the vertical, the up axis mapped to ``up`` ("y", "z": Z up and facing -Y, "-y": upside
+    down), moved by ``translation`` (metres, in the new axes: the floor is then not at zero and
+    the body off the origin) and scaled (1000: millimetres). Returns (..., 3).
+    """
+    if not np.isfinite(scale) or scale <= 0:
+        raise ParameterError(f"scale={scale}; expected a positive number (1000 for millimetres)")
+    M = _frame_matrix(up, yaw_degrees)
+    return scale * (np.asarray(vertices, dtype=float) @ M.T + np.asarray(translation, dtype=float))
+
+
+def from_frame(vertices: np.ndarray, up: str = "z", scale: float = 1000.0,
+               translation=(0.42, -0.17, 0.93), yaw_degrees: float = 25.0) -> np.ndarray:
+    """The inverse of ``to_frame`` with the same arguments: (..., 3) back to metres, +Y up."""
+    if not np.isfinite(scale) or scale <= 0:
+        raise ParameterError(f"scale={scale}; expected a positive number (1000 for millimetres)")
+    M = _frame_matrix(up, yaw_degrees)
+    return (np.asarray(vertices, dtype=float) / scale - np.asarray(translation, dtype=float)) @ M
+
+
+# ------------------------------------------------------------------------------ damage
+
+def add_noise(vertices: np.ndarray, sigma: float, rng=None, faces: np.ndarray | None = None) -> np.ndarray:
+    """Scanner noise: Gaussian offsets of standard deviation ``sigma`` (the vertices' unit).
+
+    vertices (V, 3). With ``faces`` (F, 3) each vertex moves along its normal (depth noise of a
+    range scanner: the surface gets rough, its vertices stay evenly spread); without, each
+    coordinate gets independent noise (isotropic, per-axis SD ``sigma``). Returns (V, 3).
+    """
+    rng = np.random.default_rng(rng)
+    v = np.asarray(vertices, dtype=float)
+    if faces is None:
+        return v + rng.normal(0.0, sigma, v.shape)
+    return v + rng.normal(0.0, sigma, (len(v), 1)) * vertex_normals(v, np.asarray(faces))
+
+
+def punch_holes(vertices: np.ndarray, faces: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Faces (F2, 3) left after removing every face with a corner within ``radius`` of a centre.
+
+    vertices (V, 3), faces (F, 3), centres (K, 3) (e.g. ``hole_sites``: head top, soles,
+    armpits, crotch: where a scanner sees nothing). The vertices stay as they are (the mesh
+    then has unused vertices, as many scans do).
+    """
+    centres = np.atleast_2d(np.asarray(centres, dtype=float))
+    near = cKDTree(centres).query(vertices, distance_upper_bound=radius)[0] <= radius   # (V,)
+    return np.asarray(faces)[~near[faces].any(axis=1)]
+
+
+def reverse_winding(faces: np.ndarray) -> np.ndarray:
+    """Faces (F, 3) with every triangle's orientation flipped (normals pointing inwards)."""
+    return np.asarray(faces)[:, ::-1].copy()
+
+
+def hole_sites(vertices: np.ndarray, landmarks: dict[str, np.ndarray]) -> np.ndarray:
+    """Where scanners leave holes (K=6, 3) on an upright body (V, 3), internal frame.
+
+    landmarks: name → (3,) positions of the hm08 set (``ForeignBody.true_landmarks``). Head top,
+    both soles (the lowest vertex near each ankle), both armpits (6 cm below the shoulder joint,
+    at the torso's side) and the crotch.
+    """
+    v = np.asarray(vertices)
+    sites = [landmarks["head_top"], landmarks["crotch"]]
+    for side in ("l", "r"):
+        ankle = landmarks[f"ankle_joint_{side}"]
+        near = np.linalg.norm((v - ankle)[:, [0, 2]], axis=1) < 0.12
+        sites.append(v[near][np.argmin(v[near, 1])])
+        joint = landmarks[f"shoulder_joint_{side}"]
+        sites.append(joint + np.array([-0.03 * np.sign(joint[0]), -0.06, 0.0]))
+    return np.array(sites)
+
+
+# ------------------------------------------------------------------------------ foreign bodies
+
+def foreign_phenotype(rng=None) -> np.ndarray:
+    """A phenotype (11,) at or beyond the edges of the synthetic population (population.py).
+
+    The population draws muscle in [0.1, 0.6], proportions [0.3, 0.8], cup size and firmness
+    [0.2, 0.8], ages 18-50 and solves height/weight for survey targets. Here each of those is
+    drawn from the ends of MakeHuman's [0, 1] range instead (muscle, proportions, cup, firmness
+    in [0, 0.1] or [0.8, 1]; height and weight in [0.05, 0.2] or [0.8, 0.95]; age 55-85 years or
+    18-20), the sex is 0 or 1 and the race mix one-sided. Returns (11,) in ``PARAMETERS`` order.
+    """
+    rng = np.random.default_rng(rng)
+
+    def edge(lo_band, hi_band):
+        band = lo_band if rng.random() < 0.5 else hi_band
+        return rng.uniform(*band)
+
+    p = {"gender": float(rng.integers(0, 2)),
+         "age": float(years_to_age(np.array(rng.uniform(55, 85) if rng.random() < 0.7 else rng.uniform(18, 20)))),
+         "muscle": edge((0.0, 0.1), (0.8, 1.0)), "proportions": edge((0.0, 0.1), (0.8, 1.0)),
+         "cupsize": edge((0.0, 0.1), (0.8, 1.0)), "firmness": edge((0.0, 0.1), (0.8, 1.0)),
+         "height": edge((0.05, 0.2), (0.8, 0.95)), "weight": edge((0.05, 0.2), (0.8, 0.95))}
+    race = rng.dirichlet([0.3, 0.3, 0.3])
+    p["african"], p["asian"], p["caucasian"] = race
+    return np.array([p[name] for name in PARAMETERS])
+
+
+@dataclass(frozen=True)
+class ForeignTopology:
+    """A remeshed, reordered topology of the template that many bodies can share.
+
+    faces: (F2, 3) faces of the new mesh.
+    correspondence: new vertex → template face + barycentric (V2 entries, in the new order).
+    landmarks: the measurement set's landmarks as weighted sets of new vertices:
+        name → (vertex ids (k,), convex weights (k,)), built on the template's mean body.
+    """
+
+    faces: np.ndarray
+    correspondence: Correspondence
+    landmarks: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.correspondence)
+
+    def landmark_file(self) -> dict:
+        """The landmarks as a document ``bodyspace.measure.load_landmarks`` reads (json.dump it)."""
+        out = {}
+        for name, (ids, w) in self.landmarks.items():
+            out[name] = int(ids[0]) if len(ids) == 1 else {"vertices": [int(i) for i in ids],
+                                                           "weights": [float(x) for x in w]}
+        return {"landmarks": out, "n_vertices": self.n_vertices}
+
+
+def carry_landmarks(mset: MeasurementSet, source_vertices: np.ndarray, source_faces: np.ndarray,
+                    vertices: np.ndarray, faces: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """A measurement set's landmarks (on the source topology) as weighted sets of another mesh.
+
+    source_vertices (V, 3), source_faces (F, 3): a body of the set's topology; vertices (V2, 3), faces (F2, 3): the same
+    body remeshed. Each source vertex a landmark uses is replaced by its closest point of the new
+    surface (three vertices with barycentric weights), and the landmark's weights are mixed
+    accordingly, so the new set stays convex and reproduces the position up to the distance
+    between the two surfaces (< 1 mm at 5,000 vertices). Returns name → (ids (k,), weights (k,)).
+    """
+    normals = vertex_normals(source_vertices, source_faces)
+    out = {}
+    for name, (ids, w) in mset.landmarks.items():
+        corr, _ = closest_points(source_vertices[ids], vertices, faces, normals[ids])
+        new_ids = faces[corr.face].ravel()
+        new_w = (w[:, None] * corr.barycentric).ravel()
+        keep = new_w > 1e-12
+        uniq, inv = np.unique(new_ids[keep], return_inverse=True)
+        merged = np.bincount(inv, new_w[keep])
+        out[name] = (uniq, merged / merged.sum())
+    return out
+
+
+def foreign_topology(template: Template, target_vertices: int = 6000, rng=None,
+                     mset: MeasurementSet | None = None) -> ForeignTopology:
+    """Remesh the template's mean body to ``target_vertices``, shuffle the order, carry landmarks.
+
+    The set's surface landmarks (one vertex each) are kept as vertices of the new mesh, so they
+    are exact on every body of the topology; the weighted ones (joint centres) are carried by
+    ``carry_landmarks`` (within ~1.5 mm on posed bodies).
+
+    mset: the measurement set whose landmarks are carried (default: the shipped hm08 set).
+    Any template body goes onto the topology with ``transfer(topology.correspondence,
+    template.faces, body)``.
+    """
+    rng = np.random.default_rng(rng)
+    mset = mset if mset is not None else load_measurement_set()
+    surface_landmarks = [int(ids[0]) for ids, _ in mset.landmarks.values() if len(ids) == 1]
+    v2, f2, corr = remesh(template.vertices, template.faces, target_vertices, rng, keep=surface_landmarks)
+    v2, f2, perm = shuffle_vertices(v2, f2, rng)
+    corr = corr.permuted(perm)
+    landmarks = carry_landmarks(mset, template.vertices, template.faces, v2, f2)
+    return ForeignTopology(f2, corr, landmarks)
+
+
+@dataclass(frozen=True)
+class ForeignBody:
+    """A body the model never saw, with its ground truth.
+
+    vertices: (V2, 3) in the foreign frame (``frame``: the ``to_frame`` arguments; units
+        ``frame["scale"]`` per metre). faces: (F2, 3).
+    landmark_file: a ``load_landmarks`` document for this topology (vertex ids of ``vertices``).
+    true_landmarks: name → (3,) exact landmark positions (the hm08 set on the template body),
+        in the foreign frame.
+    true_joints: (B, 3) the rig's bone heads of the posed body (``pose_bodies``), foreign frame.
+    template_vertices: (V, 3) the same body on the template topology, metres, +Y up, on the
+        ground (y = 0 at its lowest point).
+    phenotype: (11,); pose: its library name; topology: the shared ``ForeignTopology``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    landmark_file: dict
+    true_landmarks: dict[str, np.ndarray]
+    true_joints: np.ndarray
+    template_vertices: np.ndarray
+    phenotype: np.ndarray
+    pose: str
+    frame: dict
+    topology: ForeignTopology
+
+    def internal_vertices(self) -> np.ndarray:
+        """(V2, 3) the mesh back in metres, +Y up (``from_frame``)."""
+        return from_frame(self.vertices, **self.frame)
+
+
+def foreign_body(template, phenotype_model, topology: ForeignTopology | None = None, rng=None, *,
+                 phenotype: np.ndarray | None = None, pose: str | None = None,
+                 target_vertices: int = 6000, frame: dict | None = None,
+                 mset: MeasurementSet | None = None) -> ForeignBody:
+    """One body the model never saw: edge-of-population phenotype, posed, remeshed, moved.
+
+    template: the ``Template``; phenotype_model: its ``PhenotypeModel``.
+    topology: a shared ``ForeignTopology`` (default: a new one of ``target_vertices``).
+    phenotype: (11,) (default ``foreign_phenotype(rng)``); pose: a library name ("rest" is
+    MakeHuman's A-pose, "t_pose" the T-pose; default: drawn from the library).
+    frame: ``to_frame`` arguments (default: millimetres, Z up, turned 25°, floor at -170 mm).
+    """
+    rng = np.random.default_rng(rng)
+    mset = mset if mset is not None else load_measurement_set()
+    topology = topology if topology is not None else foreign_topology(template, target_vertices, rng, mset)
+    phenotype = foreign_phenotype(rng) if phenotype is None else np.asarray(phenotype, dtype=float)
+    library = load_pose_library()
+    pose = pose if pose is not None else str(rng.choice(library.names))
+    rig = template.rigs["default"]
+    rest = phenotype_model.vertices(phenotype[None])[0]
+    body, joints = pose_bodies(rest, rig, library.rotations(pose, rig), on_ground=True, return_joints=True)
+    frame = dict(up="z", scale=1000.0, translation=(0.42, -0.17, 0.93), yaw_degrees=25.0) | (frame or {})
+    lm_matrix = mset.landmark_matrix(template.n_vertices)
+    true_lm = to_frame(lm_matrix @ body, **frame)
+    vertices = to_frame(transfer(topology.correspondence, template.faces, body), **frame)
+    return ForeignBody(vertices, topology.faces, topology.landmark_file(),
+                       dict(zip(mset.landmark_names, true_lm)), to_frame(joints, **frame), body,
+                       phenotype, pose, frame, topology)
