@@ -29,9 +29,21 @@ import typer
 import typer.exceptions
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
-from bodyspace.atomic import SIGNATURES, atomic_dir, check_replaceable_folder, is_own_file, temporary_name
+from bodyspace.atomic import (
+    SIGNATURES,
+    atomic_dir,
+    check_replaceable_folder,
+    is_own_file,
+    temporary_name,
+)
 from bodyspace.errors import BodyspaceError, OutputError
 
 console = Console(stderr=True)  # progress, warnings, errors, "wrote ..." lines
@@ -47,7 +59,7 @@ ForceOption = typer.Option(False, "--force", help="Replace an existing output, b
                                                   "(a folder with its .bodyspace marker, a file with its signature).")
 
 
-def SeedOption(help: str = "Random seed (an integer >= 0).", default: int = 0):  # noqa: N802 - an Option factory
+def SeedOption(help: str = "Random seed (an integer >= 0).", default: int = 0):
     """A ``--seed`` option: integers >= 0 (numpy refuses negative seeds)."""
     return typer.Option(default, "--seed", min=0, help=help)
 

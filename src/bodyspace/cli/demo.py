@@ -9,7 +9,14 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from bodyspace.cli.common import AssetsOption, ForceOption, SeedOption, check_folder_output, out_console, progress
+from bodyspace.cli.common import (
+    AssetsOption,
+    ForceOption,
+    SeedOption,
+    check_folder_output,
+    out_console,
+    progress,
+)
 from bodyspace.cli.population import check_poses
 from bodyspace.report.demo import DEMO_KIND, run_demo
 

@@ -15,7 +15,13 @@ from rich.table import Table
 
 from bodyspace.cli.common import ForceOption, check_file_output
 from bodyspace.errors import BodyspaceError
-from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
+from bodyspace.measure import (
+    evaluate,
+    load_landmarks,
+    load_measurement_set,
+    to_json,
+    with_landmarks,
+)
 from bodyspace.mesh.io import load_mesh
 from bodyspace.report.render import contact_sheet
 

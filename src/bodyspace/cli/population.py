@@ -7,7 +7,14 @@ from typing import Optional
 
 import typer
 
-from bodyspace.cli.common import AssetsOption, ForceOption, SeedOption, check_folder_output, console, progress
+from bodyspace.cli.common import (
+    AssetsOption,
+    ForceOption,
+    SeedOption,
+    check_folder_output,
+    console,
+    progress,
+)
 from bodyspace.data.database import DATABASE_KIND
 from bodyspace.data.template import load_template
 from bodyspace.errors import ParameterError

@@ -39,9 +39,20 @@ from bodyspace.measure import to_json
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet
-from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+from bodyspace.semantics.evaluation import (
+    RegressionTable,
+    format_angle_table,
+    format_rmse_table,
+)
 from bodyspace.semantics.model import SemanticModel, semantics_path, tolerance
-from bodyspace.units import ALIASES, UnitError, example, format_value, kind_of, parse_assignment
+from bodyspace.units import (
+    ALIASES,
+    UnitError,
+    example,
+    format_value,
+    kind_of,
+    parse_assignment,
+)
 
 CROWD_KIND = "crowd"
 
