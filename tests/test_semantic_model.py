@@ -7,7 +7,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from bodyspace.cli_semantics import crowd, evaluate, generate, morph
+from bodyspace.cli.semantics import crowd, evaluate, generate, morph
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.semantics.model import (

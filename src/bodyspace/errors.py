@@ -27,3 +27,7 @@ class ParameterError(BodyspaceError):
 
 class MeasurementError(BodyspaceError):
     """A measurement set, a landmark file, or a measurement on a given mesh is invalid."""
+
+
+class OutputError(BodyspaceError):
+    """An output path exists, is not bodyspace's to replace, or cannot be written."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from bodyspace.errors import ParameterError
 
 __all__ = ["UnitError", "Target", "UNITS", "KINDS", "ALIASES", "kind_of", "parse_quantity", "parse_target",
-           "parse_assignment", "format_value"]
+           "parse_assignment", "format_value", "example"]
 
 
 class UnitError(ParameterError):
@@ -93,6 +93,14 @@ def parse_quantity(name: str, text: str, default_unit: str | None = None) -> flo
             raise UnitError(f"{name}: {text!r} has no unit; expected one of {accepted} (e.g. {_example(kind)})")
         raise UnitError(f"{name}: unit {m.group(2)!r} in {text!r} is not a {kind} unit; expected one of {accepted}")
     return value * units[unit]
+
+
+def example(name: str) -> str:
+    """A valid value of variable ``name`` for messages: ``example('mass')`` is ``'80kg'``."""
+    name, kind = ALIASES.get(name, name), kind_of(name)
+    if kind == "length":
+        return "180cm" if name in ("stature", "height") else "90cm"
+    return "female" if kind == "sex" else _example(kind)
 
 
 def _example(kind: str) -> str:

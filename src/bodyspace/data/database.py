@@ -29,7 +29,7 @@ from typing import Mapping
 
 import numpy as np
 
-from bodyspace.atomic import atomic_dir, atomic_path
+from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
 from bodyspace.errors import DatabaseError
 from bodyspace.mesh.io import load_mesh
 
@@ -60,6 +60,8 @@ SUBJECTS_FILE = "subjects.csv"
 SCANS_FILE = "scans.csv"
 ROTATIONS_FILE = "rotations.npy"
 META_FILE = "meta.json"
+# Kind in the .bodyspace marker of a database folder (bodyspace.atomic): --force replaces only these.
+DATABASE_KIND = "database"
 
 # Scans checked for NaN per step while loading: bounds the memory the check touches at once
 # (256 scans of 13k vertices are 40 MB) while the result stays a lazy memmap.
@@ -325,8 +327,10 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
     ``joints`` (J names). Returns the folder path.
     """
     folder = Path(folder)
-    if folder.exists() and not overwrite:
-        raise DatabaseError(f"{folder}: already exists; pass overwrite=True to replace it")
+    if folder.exists():
+        if not overwrite:
+            raise DatabaseError(f"{folder}: already exists; pass overwrite=True to replace it")
+        check_replaceable_folder(folder, DATABASE_KIND)  # refused before the work, not after
     vertices, faces, subjects, scans, meta, rotations = validate_database(
         vertices, faces, subjects, scans, meta, rotations, joints)
     if meta["units"].get("length") != "m":
@@ -335,7 +339,7 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
         meta_text = json.dumps(meta, indent=2) + "\n"
     except (TypeError, ValueError) as exc:
         raise DatabaseError(f"meta: cannot be written as JSON ({exc}); expected plain str/number/list/dict values") from exc
-    with atomic_dir(folder, overwrite=overwrite) as tmp:
+    with atomic_dir(folder, overwrite=overwrite, kind=DATABASE_KIND) as tmp:
         if len(vertices) == 0:
             np.save(tmp / VERTICES_FILE, np.zeros(vertices.shape, dtype=np.float32), allow_pickle=False)
         else:

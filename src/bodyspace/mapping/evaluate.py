@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bodyspace.atomic import atomic_path
+from bodyspace.atomic import PNG_METADATA, atomic_path
 from bodyspace.mapping.bundle import forest_for
 from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
@@ -258,7 +258,7 @@ def plot_errors(ev: MappingEvaluation, path) -> Path:
     fig.suptitle(f"semantic mapping on {len(ev.requests)} held-out requests", fontsize=11)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", metadata=PNG_METADATA)
     return Path(path)
 
 

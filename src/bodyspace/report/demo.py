@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from bodyspace.atomic import write_json
+from bodyspace.atomic import atomic_dir, write_json
 from bodyspace.data import assets
 from bodyspace.data.template import load_template
 from bodyspace.encoding import VertexEncoder
@@ -50,6 +50,8 @@ TALLER_CM = (0, 3, 6, 9)
 # Mapping part: training bodies and held-out requests (the issue's 10,000 / 1,000; the vertex
 # model makes them in well under a second, the forest trains in ~3 s on 2 cores).
 MAPPING_SIZES = (10_000, 1_000)
+# Kind in the .bodyspace marker of a demo folder (bodyspace.atomic).
+DEMO_KIND = "demo"
 
 
 def population_summary(db, survey: dict) -> dict:
@@ -73,10 +75,22 @@ def population_summary(db, survey: dict) -> dict:
 
 
 def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0, assets_root=None,
-             progress: Callable[[str, float], None] | None = None) -> dict:
-    """Fetch the assets, build a population, write PNGs and ``summary.json`` into ``out``."""
+             progress: Callable[[str, float], None] | None = None, overwrite: bool = False,
+             flag: str = "overwrite=True") -> dict:
+    """Fetch the assets, build a population, write PNGs and ``summary.json`` into the folder ``out``.
+
+    The folder is built under a temporary name and renamed when complete (``atomic_dir``): a
+    demo killed half-way leaves no half folder. An existing ``out`` is refused unless
+    ``overwrite`` and it is a demo folder bodyspace wrote; ``flag`` names that switch in messages.
+    """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with atomic_dir(out, overwrite=overwrite, kind=DEMO_KIND, flag=flag) as folder:
+        return _run_demo_into(folder, out.resolve(), subjects, poses, seed, assets_root, progress)
+
+
+def _run_demo_into(out: Path, final: Path, subjects: int, poses: int, seed: int, assets_root,
+                   progress: Callable[[str, float], None] | None) -> dict:
+    """run_demo's work, written into the temporary folder ``out`` that becomes ``final``."""
     report = progress or (lambda msg, frac: None)
     timings = {}
 
@@ -87,7 +101,7 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
     timings["assets_and_template_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    db = build_population(template, out / "population", subjects, poses, rng=seed, overwrite=True,
+    db = build_population(template, out / "population", subjects, poses, rng=seed,
                           progress=lambda m, f: report(m, 0.05 + 0.6 * f))
     timings["population_s"] = time.perf_counter() - t
 
@@ -135,7 +149,7 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
     mapping_summary = mapping_demo(vertex_model, out, seed, timings, lambda m, f: report(m, 0.95 + 0.05 * f))
 
     summary = {
-        "output": str(out.resolve()),
+        "output": str(final),
         "assets": str(root),
         "template": template.template_id,
         "database": {"path": "population", "scans": db.n_scans, "subjects": db.n_subjects,

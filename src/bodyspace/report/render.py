@@ -35,7 +35,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
-from bodyspace.atomic import atomic_path
+from bodyspace.atomic import PNG_METADATA, atomic_path
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.geometry import face_normals
 
@@ -224,7 +224,7 @@ def _save_png(fig: Figure, path: str | os.PathLike, dpi: float) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp:
         # The temporary name ends in .part, so the format must be given explicitly.
-        fig.savefig(tmp, format="png", dpi=dpi, facecolor="white")
+        fig.savefig(tmp, format="png", dpi=dpi, facecolor="white", metadata=PNG_METADATA)
     return path
 
 

@@ -39,7 +39,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from scipy.cluster.vq import kmeans2
 
-from bodyspace.atomic import atomic_path, write_json
+from bodyspace.atomic import PNG_METADATA, atomic_path, write_json
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
@@ -277,6 +277,6 @@ def write_generalization_report(result: dict, out, stem: str = "generalization")
     ax.legend()
     fig.tight_layout()
     with atomic_path(out / f"{stem}.png") as tmp:
-        fig.savefig(tmp, format="png", facecolor="white")
+        fig.savefig(tmp, format="png", facecolor="white", metadata=PNG_METADATA)
     return {"table": f"{stem}.md", "json": f"{stem}.json", "png": f"{stem}.png"}
 

@@ -20,6 +20,8 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
+from bodyspace.atomic import check_replaceable_folder
+from bodyspace.data.database import DATABASE_KIND
 from bodyspace.data.template import Template
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure.composition import mass_from_volume
@@ -248,8 +250,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
                      overwrite: bool = False, progress: Callable[[str, float], None] | None = None):
     """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
 
-    Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (all of
-    them when it has fewer). ``progress(message, fraction)`` is called as work completes.
+    Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (more
+    than it holds is refused, not cut). ``progress(message, fraction)`` is called as work completes.
     Returns the written folder as a ``ScanDatabase``.
     """
     from bodyspace.data.database import ScanDatabase, write_database
@@ -258,15 +260,19 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
 
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
-    if Path(out).exists() and not overwrite:
-        raise DatabaseError(f"{out}: already exists; pass overwrite=True (CLI: --force) to replace it")
+    if Path(out).exists():
+        if not overwrite:
+            raise DatabaseError(f"{out}: already exists; pass overwrite=True (CLI: --force) to replace it")
+        check_replaceable_folder(Path(out), DATABASE_KIND)  # before the work, not after
+    library = load_pose_library()
+    others = [name for name in library.names if name != REST_POSE]
+    if n_poses > len(others):
+        raise ParameterError(f"poses = {n_poses}, but the pose library has {len(others)} poses besides the rest "
+                             f"pose; expected at most {len(others)} (CLI: --poses)")
     rng = np.random.default_rng(rng)
     report = progress or (lambda msg, frac: None)
     model = PhenotypeModel(template)
-    library = load_pose_library()
     skeleton = template.rigs[rig]
-    others = [name for name in library.names if name != REST_POSE]
-    n_poses = min(n_poses, len(others))
 
     report("drawing subjects and solving height/weight", 0.0)
     subjects = sample_subjects(model, n_subjects, rng, progress=lambda m: report(m, 0.05))

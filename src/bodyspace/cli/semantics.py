@@ -11,21 +11,50 @@ from __future__ import annotations
 import csv
 import json
 import warnings
-from contextlib import contextmanager
 from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
 import typer
-from rich.console import Console
-from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from bodyspace.atomic import MARKDOWN_SIGNATURE, WRITTEN_BY, atomic_path
+from bodyspace.cli.common import (
+    MESH_SUFFIXES,
+    ForceOption,
+    SeedOption,
+    check_file_output,
+    check_folder_output,
+    console,
+    fail,
+    out_console,
+    output_folder,
+    progress,
+    report_warnings,
+)
+from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import BodyspaceError
+from bodyspace.measure import evaluate as evaluate_measurements
+from bodyspace.measure import to_json
+from bodyspace.mesh.io import load_mesh, save_mesh
+from bodyspace.model import BodyModel
+from bodyspace.report.render import contact_sheet
+from bodyspace.semantics.evaluation import (
+    RegressionTable,
+    format_angle_table,
+    format_rmse_table,
+)
+from bodyspace.semantics.model import SemanticModel, semantics_path, tolerance
+from bodyspace.units import (
+    ALIASES,
+    UnitError,
+    example,
+    format_value,
+    kind_of,
+    parse_assignment,
+)
 
-console = Console(stderr=True)
-out_console = Console()
+CROWD_KIND = "crowd"
 
 DatabaseOption = typer.Option(None, "--database", help="Scan database the model was built from: fits the semantic "
                                                        "regressors (saved beside the model as MODEL.semantics.npz).")
@@ -38,32 +67,15 @@ SetOption = typer.Option(None, "--set", help="NAME=VALUE with units, e.g. statur
 RangeOption = typer.Option(None, "--range", help="NAME=LOW:HIGH with units, e.g. stature=155:185cm.")
 
 
-def _fail(exc: Exception) -> None:
-    console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True, highlight=False)
-    raise typer.Exit(code=2)
-
-
-@contextmanager
-def _progress(description: str):
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                  TimeElapsedColumn(), TextColumn("{task.fields[message]}"), console=console) as bar:
-        task = bar.add_task(description, total=1.0, message="")
-        yield lambda message, fraction: bar.update(task, completed=fraction, message=message)
-
-
-def _report_warnings(caught) -> None:
-    for w in caught:
-        console.print(f"[yellow]warning:[/yellow] {escape(str(w.message))}", soft_wrap=True, highlight=False)
+# The shared error exit, progress bar and warning report (cli.common), under this module's names.
+_fail, _progress, _report_warnings = fail, progress, report_warnings
 
 
 def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
-    from bodyspace.model import BodyModel
-    from bodyspace.semantics.model import SemanticModel, semantics_path
     model = BodyModel.load(model_file)
     spath = semantics_path(model_file)
     mode = "clamp" if clamp else "raise"
     if database is not None and (refit or not spath.is_file()):
-        from bodyspace.data.database import ScanDatabase
         db = ScanDatabase.load(database)
         with _progress("fitting semantic regressors") as cb:
             cb("measuring the rest scans", 0.1)
@@ -80,8 +92,8 @@ def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
 
 def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
     """Parse --set/--range; with the semantic model ``sm``, an unknown name is refused (with the
-    accepted names) before its value is parsed."""
-    from bodyspace.units import ALIASES, UnitError, parse_assignment
+    accepted names) before its value is parsed. A name asked twice (two --set, or --set and
+    --range) is refused: which one was meant?"""
     out = {}
     for text in list(sets or []) + list(ranges or []):
         name = str(text).partition("=")[0].strip()
@@ -92,17 +104,18 @@ def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
             raise UnitError(f"--range {text!r}: expected NAME=LOW:HIGH, e.g. stature=155:185cm")
         if t.kind == "delta" and not allow_delta:
             raise UnitError(f"--set {text!r}: a change (+/-) needs a body to change; use a value, e.g. "
-                            f"{t.name}=180cm, or bodyspace morph")
+                            f"{t.name}={example(t.name)}, or bodyspace morph")
+        if t.name in out:
+            raise UnitError(f"--set/--range {t.name}: asked twice ({text!r} after an earlier value); "
+                            f"give each name once")
         out[t.name] = t
     return out
 
 
 def _result_table(title: str, result) -> Table:
-    from bodyspace.units import format_value
     table = Table(title=title)
     for col in ("variable", "asked", "reached", "off by", "tolerance"):
         table.add_column(col, justify="left" if col == "variable" else "right")
-    from bodyspace.semantics.model import tolerance
     for name, goal in result.targets.items():
         got = result.values[name]
         table.add_row(name, format_value(name, goal), format_value(name, got),
@@ -112,7 +125,6 @@ def _result_table(title: str, result) -> Table:
 
 
 def _save_mesh(path: Path, vertices, faces) -> None:
-    from bodyspace.mesh.io import save_mesh
     path.parent.mkdir(parents=True, exist_ok=True)
     save_mesh(path, vertices, faces)
 
@@ -123,15 +135,13 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              out: Optional[Path] = typer.Option(None, "--out", help="Markdown file for the tables "
                                                 "(default MODEL.evaluation.md; a .json beside it)."),
              folds: int = typer.Option(10, "--folds", min=2, help="Cross-validation folds."),
-             seed: int = typer.Option(0, "--seed", help="Fold shuffle seed.")):
+             seed: int = SeedOption("Fold shuffle seed (an integer >= 0)."),
+             force: bool = ForceOption):
     """Table 1 (10-fold cross-validated RMSE per label and regressor) and Table 2 (angles between
     the non-linear model's morphing directions at every subject)."""
-    from bodyspace.semantics.evaluation import (
-        RegressionTable,
-        format_angle_table,
-        format_rmse_table,
-    )
-    from bodyspace.units import kind_of
+    out = out or model_file.with_name(model_file.name.removesuffix(".npz") + ".evaluation.md")
+    check_file_output(out, "--out", force, (".md",), example="evaluation.md")
+    check_file_output(out.with_suffix(".json"), "--out (its .json beside it)", force, (".json",))
     try:
         sm = _load(model_file, database, refit, False)
         with _progress("evaluate") as cb:
@@ -148,26 +158,29 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
     out_console.print(f"Table 1: RMSE, {table1.folds}-fold cross-validation, {len(sm.X_)} subjects once each\n"
                       f"{text1}\n\nTable 2: angles between non-linear morphing directions (degrees)\n{text2}",
                       highlight=False)
-    out = out or model_file.with_name(model_file.name.removesuffix(".npz") + ".evaluation.md")
-    md = (f"# Semantic regressors of {model_file.name}\n\n## Table 1: RMSE ({table1.folds}-fold cross-validation, "
+    md = (f"{MARKDOWN_SIGNATURE}\n# Semantic regressors of {model_file.name}\n\n## Table 1: RMSE ({table1.folds}-fold cross-validation, "
           f"{len(sm.X_)} subjects, each once)\n\n{format_rmse_table(shown, markdown=True)}\n\n"
           f"## Table 2: angles between the non-linear model's morphing directions (degrees)\n\n"
           f"{format_angle_table(table2, markdown=True)}\n")
-    out.write_text(md)
-    payload = {"table1": {"regressors": table1.regressors, "labels": table1.labels, "rmse_si": table1.rmse.tolist(),
+    with atomic_path(out) as tmp:
+        tmp.write_text(md)
+    payload = {"written_by": WRITTEN_BY, "table1": {"regressors": table1.regressors, "labels": table1.labels, "rmse_si": table1.rmse.tolist(),
                           "n_samples": table1.n_samples.tolist(), "folds": table1.folds},
                "table2": {k: {"mean_deg": m, "sd_deg": s} for k, (m, s) in table2.items()}}
-    out.with_suffix(".json").write_text(json.dumps(payload, indent=2))
+    with atomic_path(out.with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps(payload, indent=2))
     console.print(f"wrote {out} and {out.with_suffix('.json')}")
 
 
 def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
              sets: Optional[List[str]] = SetOption, ranges: Optional[List[str]] = RangeOption,
              out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
-             seed: int = typer.Option(0, "--seed", help="Random seed for what is not asked."),
-             clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+             seed: int = SeedOption("Random seed for what is not asked (an integer >= 0)."),
+             clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
+             force: bool = ForceOption):
     """A body that measures what is asked (labels such as stature, mass, sex, and any length of the measurement set,
     e.g. waist_size, shoulder_width: within 4 mm stature / 0.5 kg / 9 mm lengths); the rest at random."""
+    check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
         if not sets and not ranges:
             raise BodyspaceError("nothing asked; pass --set NAME=VALUE, e.g. --set stature=180cm")
@@ -191,10 +204,11 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
           keep: Optional[List[str]] = typer.Option(None, "--keep", help="Variables to hold, e.g. --keep mass."),
           mask: Optional[List[str]] = typer.Option(None, "--mask", help="Confine the change to a region: upper_body, "
                                                    "lower_body, arms, legs, torso, head, left, right (repeatable)."),
-          out: Path = typer.Option(..., "--out", help="Mesh file to write."),
-          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+          out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
+          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
+          force: bool = ForceOption):
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
-    from bodyspace.mesh.io import load_mesh
+    check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
         if not sets:
             raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
@@ -220,29 +234,31 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
 def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
           n: int = typer.Option(20, "-n", "--number", min=1, help="Number of bodies."),
           sets: Optional[List[str]] = SetOption, ranges: Optional[List[str]] = RangeOption,
-          out: Path = typer.Option(..., "--out", help="Output folder: meshes, crowd.csv, lineup.png."),
+          out: Path = typer.Option(..., "--out", help="Output folder: meshes, crowd.csv, lineup.png "
+                                                      "(must not exist, see --force)."),
           fmt: str = typer.Option("obj", "--format", help="Mesh format: obj, ply or glb."),
-          seed: int = typer.Option(0, "--seed", help="Random seed."),
+          seed: int = SeedOption(),
           png: bool = typer.Option(True, "--png/--no-png", help="Write the line-up lineup.png."),
-          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption):
+          clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
+          force: bool = ForceOption):
     """A crowd meeting the request (values or ranges), the rest random: meshes, a CSV of measurements, a PNG line-up."""
-    from bodyspace.measure import to_json
+    check_folder_output(out, "--out", force, CROWD_KIND)
     try:
         if fmt.lower() not in ("obj", "ply", "glb"):
             raise BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb")
         sm = _load(model_file, database, refit, clamp)
         targets = _targets(sets, ranges, allow_delta=False, sm=sm)
-        with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught:
+        with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught, \
+                output_folder(out, "--out", force, CROWD_KIND) as folder:
             warnings.simplefilter("always", RuntimeWarning)
             # nothing asked: random bodies from the shape-only model
             results = sm.crowd(n, targets, rng=seed, progress=lambda m, f: cb(m, 0.8 * f)) if targets else []
             bodies = (np.array([r.vertices for r in results]) if results
                       else sm.body_model.sample(n, sigma_range=2.0, rng=seed))
-            out.mkdir(parents=True, exist_ok=True)
             names = [f"body_{i:03d}.{fmt.lower()}" for i in range(n)]
             rows = []
             for i, (name, body) in enumerate(zip(names, bodies)):
-                _save_mesh(out / name, body, sm.body_model.faces)
+                _save_mesh(folder / name, body, sm.body_model.faces)
                 meas = to_json(_measure_one(sm, body))
                 row = {"mesh": name}
                 if results:
@@ -257,11 +273,10 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
                 row.update({f"{k} ({e['unit']})": e["value"] for k, e in meas.items()})
                 rows.append(row)
                 cb(f"wrote {name}", 0.8 + 0.1 * (i + 1) / n)
-            _write_csv(out / "crowd.csv", rows)
+            _write_csv(folder / "crowd.csv", rows)
             if png:
-                from bodyspace.report.render import contact_sheet
                 cb("rendering lineup.png", 0.9)
-                contact_sheet(bodies, sm.body_model.faces, out / "lineup.png", labels=names,
+                contact_sheet(bodies, sm.body_model.faces, folder / "lineup.png", labels=names,
                               title=f"crowd of {n}: " + (", ".join(sets or []) + " " + ", ".join(ranges or [])).strip())
             cb("done", 1.0)
     except BodyspaceError as exc:
@@ -273,12 +288,10 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
 
 
 def _measure_one(sm, body):
-    from bodyspace.measure import evaluate as evaluate_measurements
     return evaluate_measurements(sm.mset, body, sm.body_model.faces)
 
 
 def _write_csv(path: Path, rows: list) -> None:
-    from bodyspace.atomic import atomic_path
     fields = list(dict.fromkeys(k for r in rows for k in r))
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields)

@@ -10,8 +10,20 @@ from typing import Optional
 
 import numpy as np
 import typer
+from rich.console import Console
+from rich.table import Table
 
+from bodyspace.cli.common import ForceOption, check_file_output
 from bodyspace.errors import BodyspaceError
+from bodyspace.measure import (
+    evaluate,
+    load_landmarks,
+    load_measurement_set,
+    to_json,
+    with_landmarks,
+)
+from bodyspace.mesh.io import load_mesh
+from bodyspace.report.render import contact_sheet
 
 
 def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up."),
@@ -20,16 +32,11 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
                                                      "at most 25 names; docs/measurements.md)."),
             json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit}."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit."),
-            png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to a PNG.")):
+            png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to a PNG."),
+            force: bool = ForceOption):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
-    from bodyspace.measure import (
-        evaluate,
-        load_landmarks,
-        load_measurement_set,
-        to_json,
-        with_landmarks,
-    )
-    from bodyspace.mesh.io import load_mesh
+    if png is not None:
+        check_file_output(png, "--png", force, (".png",), example="measurements.png")
     try:
         mset = load_measurement_set()
         if landmarks is not None:
@@ -41,7 +48,6 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             results[str(path)] = evaluate(mset, v, f, keep_polylines=png is not None)
             bodies.append((v, f))
         if png is not None:
-            from bodyspace.report.render import contact_sheet
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]
             contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=[Path(p).name for p in results],
@@ -61,8 +67,6 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         out = {p: to_json(r) for p, r in results.items()}
         typer.echo(json.dumps(out[str(meshes[0])] if len(meshes) == 1 else out, indent=2))
     else:
-        from rich.console import Console
-        from rich.table import Table
         table = Table(title="measurements")
         table.add_column("name")
         for p in results:

@@ -1,0 +1,49 @@
+"""The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
+
+One module per command group (assets, population, model, measure, semantics, mapping, demo);
+``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
+here), the progress helper and the output policy.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from bodyspace import __version__
+from bodyspace.cli.assets import assets
+from bodyspace.cli.common import guarded, out_console
+from bodyspace.cli.demo import demo
+from bodyspace.cli.mapping import mapping_evaluate, mapping_fit, mapping_shape
+from bodyspace.cli.measure import measure
+from bodyspace.cli.model import build, sample
+from bodyspace.cli.population import population
+from bodyspace.cli.semantics import crowd, evaluate, generate, morph
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Statistical human body models: assets, synthetic scan databases, pictures.")
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        out_console.print(f"bodyspace {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")):
+    """Statistical human body models: assets, synthetic scan databases, pictures."""
+
+
+for _name, _command in (("assets", assets), ("population", population), ("demo", demo), ("build", build),
+                        ("sample", sample), ("measure", measure), ("evaluate", evaluate),
+                        ("generate", generate), ("morph", morph), ("crowd", crowd)):
+    app.command(_name)(guarded(_command))
+mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
+for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):
+    mapping_app.command(_name)(guarded(_command))
+app.add_typer(mapping_app, name="mapping")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app(prog_name="bodyspace")

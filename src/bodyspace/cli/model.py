@@ -1,0 +1,103 @@
+"""``bodyspace build`` and ``bodyspace sample``: a BodyModel file from a scan database, and
+random bodies from it."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from bodyspace.cli.common import (
+    MESH_SUFFIXES,
+    ForceOption,
+    SeedOption,
+    check_choice,
+    check_file_output,
+    console,
+    out_console,
+    output_folder,
+    progress,
+)
+from bodyspace.data.database import ScanDatabase
+from bodyspace.errors import ParameterError
+from bodyspace.mesh.io import save_mesh
+from bodyspace.model import BodyModel
+from bodyspace.report.render import contact_sheet
+
+SAMPLES_KIND = "samples"
+# Bodies decoded at once by `sample` (bounds memory: 64 bodies of 19k vertices are 30 MB), and
+# bodies drawn on its contact sheet (a sheet of thousands is unreadable and would hold them all).
+SAMPLE_CHUNK = 64
+SHEET_MAX = 100
+
+
+def build(database: Path = typer.Argument(..., help="Scan database folder (bodyspace population, ScanDatabase.save)."),
+          out: Path = typer.Option(..., "--out", help="Model file to write (.npz)."),
+          encoding: str = typer.Option("rre", "--encoding", help="rre (relative rotations) or vertex."),
+          selection: str = typer.Option("rest", "--selection",
+                                        help="rest: rest-pose scans (shape only); all: pose and shape."),
+          components: Optional[int] = typer.Option(None, "--components", min=1,
+                                                   help="PCA components (default: all with variance, at most 100)."),
+          on_flipped: str = typer.Option("warn", "--on-flipped",
+                                         help="Folded triangles in scans: raise, warn (counted) or ignore."),
+          force: bool = ForceOption):
+    """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
+    check_file_output(out, "--out", force, (".npz",), example="model.npz")
+    on_flipped = check_choice(on_flipped, "--on-flipped", ("raise", "warn", "ignore"))
+    db = ScanDatabase.load(database)
+    with progress("build") as cb, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
+    model.save(out)
+    folded = [w for w in caught if "flipped triangle" in str(w.message)]
+    if folded:
+        console.print(f"{len(folded)} scan(s) had flipped (folded) triangles; encoded anyway (--on-flipped warn)")
+    ratio = float(model.space.explained_variance_ratio_.sum())
+    t = model.provenance["timings_s"]
+    out_console.print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "
+                      f"encode {t['encode_s']:.1f} s, PCA {t['pca_s']:.1f} s, total {t['total_s']:.1f} s")
+
+
+def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),
+           n: int = typer.Option(10, "-n", "--number", min=1, help="Number of bodies."),
+           out: Path = typer.Option(..., "--out", help="Output folder (must not exist, see --force)."),
+           components: Optional[int] = typer.Option(None, "--components", min=1,
+                                                    help="Leading components that vary (default all)."),
+           sigma: float = typer.Option(2.0, "--sigma", min=0.01,
+                                       help="Truncation of each coefficient, in standard deviations."),
+           fmt: str = typer.Option("obj", "--format", help="Mesh format: obj, ply or glb (metres)."),
+           seed: int = SeedOption(),
+           png: bool = typer.Option(True, "--png/--no-png", help="Also write a contact sheet samples.png "
+                                                                 f"(of the first {SHEET_MAX} bodies)."),
+           force: bool = ForceOption):
+    """Sample random bodies from a model: meshes (metres) and a PNG contact sheet."""
+    # Decoded and written SAMPLE_CHUNK at a time, so any -n fits in memory; the bodies are those
+    # of BodyModel.sample(n, ...) (one coefficient draw, then decoding row by row).
+    fmt = check_choice(fmt, "--format", tuple(s[1:] for s in MESH_SUFFIXES))
+    model = BodyModel.load(model_file)
+    if components is not None and components > model.n_components:
+        raise ParameterError(f"--components {components}: {model_file} has {model.n_components} components; "
+                             f"expected at most {model.n_components}")
+    names = [f"body_{i:0{max(3, len(str(n - 1)))}d}.{fmt}" for i in range(n)]
+    with output_folder(out, "--out", force, SAMPLES_KIND) as tmp, progress("sample") as cb:
+        coefficients = model.sample_coefficients(n, n_components=components, sigma_range=sigma, rng=seed)
+        sheet = []
+        for start in range(0, n, SAMPLE_CHUNK):
+            bodies = model.reconstruct(coefficients[start:start + SAMPLE_CHUNK])
+            for i, body in enumerate(bodies, start):
+                save_mesh(tmp / names[i], body, model.faces)
+                if i < SHEET_MAX:
+                    sheet.append(body)
+            cb(f"wrote {names[min(n, start + SAMPLE_CHUNK) - 1]}", 0.9 * min(n, start + SAMPLE_CHUNK) / n)
+        if png:
+            cb("rendering samples.png", 0.9)
+            shown = f"the first {len(sheet)} of {n}" if n > len(sheet) else f"{n}"
+            contact_sheet(np.asarray(sheet), model.faces, tmp / "samples.png", labels=names[:len(sheet)],
+                          title=f"{shown} samples, {components or model.n_components} components, "
+                                f"within {sigma:g} SD")
+        cb("done", 1.0)
+    out_console.print(f"wrote {n} bodies to {out}" + (" and samples.png" if png else "")
+                      + (f" (the sheet shows the first {SHEET_MAX})" if png and n > SHEET_MAX else ""))

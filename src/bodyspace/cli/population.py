@@ -1,0 +1,46 @@
+"""``bodyspace population``: a synthetic scan database folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from bodyspace.cli.common import (
+    AssetsOption,
+    ForceOption,
+    SeedOption,
+    check_folder_output,
+    console,
+    progress,
+)
+from bodyspace.data.database import DATABASE_KIND
+from bodyspace.data.template import load_template
+from bodyspace.errors import ParameterError
+from bodyspace.synth.population import REST_POSE, build_population
+from bodyspace.synth.poses import load_pose_library
+
+
+def check_poses(poses: int, flag: str = "--poses") -> None:
+    """Refuse more poses per subject than the pose library holds besides the rest pose."""
+    available = sum(1 for name in load_pose_library().names if name != REST_POSE)
+    if poses > available:
+        raise ParameterError(f"{flag} {poses}: the pose library has {available} poses besides the rest pose; "
+                             f"expected at most {flag} {available}")
+
+
+def population(out: Path = typer.Option(..., "--out", help="Database folder to write (must not exist, see --force)."),
+               subjects: int = typer.Option(20, "--subjects", min=1, help="Number of subjects."),
+               poses: int = typer.Option(5, "--poses", min=0, help="Poses per subject besides the rest pose "
+                                                                   "(at most the library's 38)."),
+               seed: int = SeedOption(),
+               force: bool = ForceOption,
+               assets: Optional[Path] = AssetsOption):
+    """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."""
+    check_folder_output(out, "--out", force, DATABASE_KIND)
+    check_poses(poses)
+    template = load_template(assets)
+    with progress("population") as cb:
+        db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb)
+    console.print(f"wrote {db!r} to {out}")
