@@ -86,8 +86,8 @@ def check_compatible(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarr
                                    f"mesh: {mesh_name} has {nv} vertices (ids 0..{nv - 1})")
         if not used[ids].all():
             bad = int(ids[~used[ids]][0])
-            raise MeasurementError(f"{mesh_name}: vertex {bad} (landmark {name!r} of {mset.source}) is on no face, "
-                                   f"off the mesh: the faces use {int(used.sum())} of the {nv} vertices; expected "
+            raise MeasurementError(f"{mesh_name}: its faces use only {int(used.sum())} of its {nv} vertices, and "
+                                   f"vertex {bad} (landmark {name!r} of {mset.source}) is on none of them; expected "
                                    "every landmark vertex on a face (is the file truncated or damaged?)")
     for m in mset.measurements:
         ring = template_vertices(m)
