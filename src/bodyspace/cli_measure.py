@@ -1,4 +1,10 @@
-"""``bodyspace measure``: measure meshes with the default (or a landmark-file) measurement set."""
+"""``bodyspace measure``: measure meshes with the default (or a landmark-file) measurement set.
+
+Every import stands at the top but one: ``measure`` imports the renderer only when ``--png`` is
+given, because it loads matplotlib (about 0.5 s of start-up for every bodyspace command, as the
+CLI imports this module). The reason is here, not in ``measure``'s docstring, which typer shows
+as the command's help.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +23,6 @@ from rich.table import Table
 from bodyspace.errors import BodyspaceError, MeasurementError
 from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
 from bodyspace.mesh.io import load_mesh
-from bodyspace.report.render import contact_sheet
 
 
 def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up. A file "
@@ -25,7 +30,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
                                                      "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
                                                      "at most 25 names; docs/measurements.md)."),
-            json_out: bool = typer.Option(False, "--json", help="Print JSON: mesh → name → {value, unit, note?}; "
+            json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit, note?} (several meshes: mesh → name → ...); "
                                           "an undefined value is null and its note says why. Not with --csv."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit,note "
                                          "(note: why a value is empty). Not with --json."),
@@ -33,6 +38,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
                                                "this PNG file (refused if it exists, unless --force)."),
             force: bool = typer.Option(False, "--force", help="Replace an existing --png file.")):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
+    # The renderer is imported here, only for --png: see the module docstring.
     try:
         _check_outputs(json_out, csv_out, png, force, meshes)
         mset = load_measurement_set()
@@ -49,6 +55,8 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]
+            from bodyspace.report.render import contact_sheet
+
             try:
                 contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=_column_names(meshes),
                               views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
