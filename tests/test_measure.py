@@ -1,6 +1,7 @@
 """Measurements: analytic girths, phenotype trends, symmetry, poses, remeshing, bad input."""
 
 import csv
+import re
 import json
 from pathlib import Path
 
@@ -692,3 +693,21 @@ def test_cli_measure_png_is_not_written_over_a_file(body_files, tmp_path):
         refused = runner.invoke(app, ["measure", a, "--png", bad])
         assert refused.exit_code == 2 and "--png" in refused.output and "Traceback" not in refused.output, bad
     assert (body_files / "a.obj").stat().st_size > 100_000
+
+
+@pytest.mark.parametrize("content, match", [
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": "many"}', "field 'n_vertices': got 'many', expected a positive"),
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": 13380.5}', "field 'n_vertices': got 13380.5"),
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": true}', "field 'n_vertices': got True"),
+    (b'\xff\xfe\x00{}', "not UTF-8 text"),
+    (b'[1, 2]', 'expected {"landmarks": {name: vertex id or {"vertices": \\[...\\], "weights": \\[...\\]}, ...}}$'),
+    (b'{"landmarks": {"head_top": 99999999999999999999999}}', "vertex id 9+ is out of range"),
+    (b'{"landmarks": {"head_top": 5, "crotch": 7}}', r"not enough for any measurement .* but volume and surface "
+                                                     r"area; e.g. '\w+' also needs \['"),
+])
+def test_cli_measure_bad_landmark_files(body_files, tmp_path, content, match):
+    path = tmp_path / "lm.json"
+    path.write_bytes(content)
+    result = runner.invoke(app, ["measure", str(body_files / "a.obj"), "--landmarks", str(path)])
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert re.search(f"error: {re.escape(str(path))}.*{match}", result.output.replace("\n", "")), result.output

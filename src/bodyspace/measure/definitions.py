@@ -110,7 +110,7 @@ def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarr
     where = f"{src}: landmark {name!r}"
     expected = "expected a vertex id or {\"vertices\": [ids], \"weights\": [w]} (non-negative, summing to 1)"
     if isinstance(val, (int, np.integer)) and not isinstance(val, bool):
-        ids, w = np.array([int(val)]), np.array([1.0])
+        ids, w = np.array([_vertex_id(where, val)]), np.array([1.0])
     elif isinstance(val, dict) and "vertices" in val:
         extra = set(val) - {"vertices", "weights"}
         if extra:
@@ -118,7 +118,7 @@ def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarr
         raw_ids, raw_w = val["vertices"], val.get("weights")
         if not isinstance(raw_ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in raw_ids):
             raise fail(where, f"'vertices' is {raw_ids!r}, expected a list of integer vertex ids")
-        ids = np.asarray(raw_ids, dtype=np.int64).ravel()
+        ids = np.asarray([_vertex_id(where, i) for i in raw_ids], dtype=np.int64).ravel()
         if len(ids) == 0:
             raise fail(where, "'vertices' is empty, expected at least one vertex id")
         if raw_w is None:
@@ -207,17 +207,40 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
         seen.add(vm["name"])
         out.append(vm)
     n = d.get("n_vertices")
-    return MeasurementSet(landmarks, tuple(out), dict(conditions), None if n is None else int(n),
+    return MeasurementSet(landmarks, tuple(out), dict(conditions), _n_vertices(source, n),
                           str(d.get("template", "")), source)
 
 
+def _vertex_id(where: str, val: Any) -> int:
+    """A JSON vertex id as an int that fits the (L, V) matrix's int64 indices."""
+    if val >= 2 ** 62:     # negative ids are refused with the landmark's other checks
+        raise fail(where, f"vertex id {val} is out of range, expected an id below the mesh's vertex count")
+    return int(val)
+
+
+def _n_vertices(where: str, n: Any) -> int | None:
+    """The optional ``n_vertices`` field: None or a positive integer."""
+    if n is None:
+        return None
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise fail(where + " field 'n_vertices'", f"got {n!r}, expected a positive integer vertex count "
+                                                  "(or no n_vertices field)")
+    return n
+
+
 def _read_json(path: Path) -> Any:
+    if path.is_dir():
+        raise MeasurementError(f"{path}: is a folder, expected a JSON file")
     if not path.is_file():
         raise MeasurementError(f"{path}: file not found")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise MeasurementError(f"{path}: not UTF-8 text (byte {exc.start}), expected a JSON file") from None
     except json.JSONDecodeError as exc:
         raise MeasurementError(f"{path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise MeasurementError(f"{path}: could not read ({exc.strerror or exc})") from None
 
 
 def load_measurement_set(path: str | os.PathLike | None = None) -> MeasurementSet:
@@ -238,12 +261,12 @@ def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray,
     raw = d.get("landmarks", d) if isinstance(d, dict) else None
     if not isinstance(raw, dict) or not raw:
         raise MeasurementError(f"{path}: expected {{\"landmarks\": {{name: vertex id or "
-                               "{\"vertices\": [...], \"weights\": [...]}, ...}}}}")
+                               "{\"vertices\": [...], \"weights\": [...]}, ...}}")
     if len(raw) > MAX_USER_LANDMARKS:
         raise MeasurementError(f"{path}: {len(raw)} landmarks, expected at most {MAX_USER_LANDMARKS}")
     lms = {str(k): _parse_landmark(str(path), k, v) for k, v in raw.items() if k != "n_vertices"}
     n = d.get("n_vertices") if isinstance(d, dict) else None
-    return lms, (None if n is None else int(n))
+    return lms, _n_vertices(str(path), n)
 
 
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,
@@ -266,7 +289,8 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
             conditions[cname] = c
     kept, have = [], set()
     for m in base.measurements:
-        if not METHODS[m["method"]].topology_free or not _uses_only(m, landmarks):
+        method = METHODS.get(m["method"])
+        if method is None or not method.topology_free or not _uses_only(m, landmarks):
             continue
         if any(r not in conditions for r in m["requires"]):
             continue
@@ -275,13 +299,39 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
         kept.append(m)
         have.add(m["name"])
     if not any(m["method"] not in ("volume", "surface_area") for m in kept):
-        raise MeasurementError(f"{source}: none of the landmark names {sorted(landmarks)} is used by the "
-                               f"measurement set {base.source}; expected names from {sorted(base.landmarks)}")
+        raise MeasurementError(f"{source}: the landmarks {sorted(landmarks)} are not enough for any measurement "
+                               f"of {base.source} but volume and surface area; {_closest(base, landmarks)}")
     return replace(base, landmarks=dict(landmarks), measurements=tuple(kept), conditions=conditions,
                    n_vertices=n_vertices, source=source)
 
 
+def _closest(base: MeasurementSet, landmarks) -> str:
+    """Which names the measurement nearest to being measurable still needs (its points and its
+    conditions' axes), for a message."""
+    best = None
+    for m in base.measurements:
+        method = METHODS.get(m["method"])
+        if method is None or not method.topology_free or m["method"] in ("volume", "surface_area"):
+            continue
+        need = _point_fields(m)
+        for r in m["requires"]:
+            c = base.conditions[r]
+            need |= {n for a in c["axes"] + [c.get("relative_to", "up")] if a != "up" for p in a
+                     for n in point_names(p)}
+        missing = sorted(need - set(landmarks) - {"floor"})
+        if missing and (best is None or len(missing) < len(best[1])):
+            best = (m["name"], missing)
+    if best is None:
+        return f"expected names from {sorted(base.landmarks)}"
+    return f"e.g. {best[0]!r} also needs {best[1]} (names from {sorted(base.landmarks)})"
+
+
 def _uses_only(m: dict, landmarks) -> bool:
+    return _point_fields(m) - {"floor"} <= set(landmarks)
+
+
+def _point_fields(m: dict) -> set:
+    """The landmark names a measurement's point and axis fields use ("floor" included)."""
     pts = []
     for key in ("at", "pick", "from", "to"):
         if m.get(key) is not None:
@@ -292,5 +342,4 @@ def _uses_only(m: dict, landmarks) -> bool:
     if m.get("band"):
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])
-    names = set().union(*(point_names(p) for p in pts)) - {"floor"} if pts else set()
-    return names <= set(landmarks)
+    return set().union(*(point_names(p) for p in pts)) if pts else set()
