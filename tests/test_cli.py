@@ -60,7 +60,7 @@ def test_measure_command_json_csv_png(phenotype_model, template, tmp_path):
     assert data["mass"]["unit"] == "kg" and data["volume"]["unit"] == "m^3"
     assert (tmp_path / "m.png").read_bytes()[:4] == b"\x89PNG"
     csv_out = runner.invoke(app, ["measure", str(mesh), "--csv"])
-    assert csv_out.exit_code == 0 and csv_out.stdout.splitlines()[0] == "mesh,name,value,unit"
+    assert csv_out.exit_code == 0 and csv_out.stdout.splitlines()[0] == "mesh,name,value,unit,note"
 
 
 def test_measure_command_rejects_wrong_topology(tmp_path):

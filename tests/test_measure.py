@@ -1,20 +1,26 @@
 """Measurements: analytic girths, phenotype trends, symmetry, poses, remeshing, bad input."""
 
+import csv
+import re
 import json
-
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from typer.testing import CliRunner
+
+from bodyspace.cli import app
 
 from bodyspace.measure import (
     MeasurementError,
     evaluate,
     load_measurement_set,
     measurement_set_from_dict,
+    to_json,
     with_landmarks,
 )
+from bodyspace.mesh.io import save_mesh
 from bodyspace.measure.slicing import (
     contour_girths,
     mesh_edges,
@@ -516,3 +522,192 @@ def test_batched_hulls_equal_qhull():
     assert ok.sum() > 80
     assert np.allclose(fast[ok], exact[ok], rtol=1e-13, atol=0)
     assert not ok[3::5].any()                           # collinear: left to hull_perimeter
+
+
+# --- the method registry -------------------------------------------------------------------------
+
+def test_registry_covers_every_method_of_the_default_set(mset):
+    from bodyspace.measure.definitions import DEFAULT_PATH
+    from bodyspace.measure.methods import METHODS
+    used = {m["method"] for m in json.loads(DEFAULT_PATH.read_text())["measurements"]}
+    assert used == {"loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi"}
+    assert used <= set(METHODS)
+    for name, method in METHODS.items():
+        assert callable(method.compute) and method.unit, name
+    # The registry's units are the set's units; only loops are tied to the template.
+    assert {m["name"]: m["unit"] for m in mset.measurements} == {m["name"]: METHODS[m["method"]].unit
+                                                                  for m in mset.measurements}
+    assert [k for k, m in METHODS.items() if not m.topology_free] == ["loop"]
+
+
+def _ratio(m, chunk):
+    """A test method: the quotient of two earlier measurements (N,), no line to draw."""
+    return chunk.values[m["numerator"]] / chunk.values[m["denominator"]], None, None
+
+
+def _check_ratio(where, m, landmarks, earlier):
+    for key in ("numerator", "denominator"):
+        if m.get(key) not in earlier:
+            raise MeasurementError(f"{where} field {key!r}: got {m.get(key)!r}, expected an earlier measurement")
+
+
+def test_a_new_method_is_registered_and_used(mset, mean_body, phenotype_model, template):
+    from bodyspace.measure import METHODS, register_method
+    d = json.loads(open(mset.source).read())
+    d["measurements"].append({"name": "waist_to_hip", "method": "ratio", "numerator": "waist_girth",
+                              "denominator": "hip_girth"})
+    with pytest.raises(MeasurementError, match=r"x.json: measurement 'waist_to_hip': method 'ratio', expected "
+                                               r"one of loop, slice, distance, path, volume"):
+        measurement_set_from_dict(d, "x.json")
+    register_method("ratio", _ratio, "1", _check_ratio)
+    try:
+        with pytest.raises(MeasurementError, match="'ratio' is already registered"):
+            register_method("ratio", _ratio, "1")
+        extended = measurement_set_from_dict(d, "x.json")
+        bodies = phenotype_model.vertices({"weight": np.array([0.2, 0.9])})
+        r = evaluate(extended, bodies, template.faces)
+        assert r["waist_to_hip"].unit == "1" and r["waist_to_hip"].method == "ratio"
+        assert np.array_equal(r["waist_to_hip"].value, r["waist_girth"].value / r["hip_girth"].value)
+        base = evaluate(mset, bodies, template.faces)
+        for k in mset.names:                          # the other values are untouched
+            assert np.array_equal(r[k].value, base[k].value, equal_nan=True), k
+        d["measurements"][-1]["denominator"] = "hips"
+        with pytest.raises(MeasurementError, match="'waist_to_hip' field 'denominator': got 'hips'"):
+            measurement_set_from_dict(d, "x.json")
+    finally:
+        METHODS.pop("ratio")
+    # A set that names a method no longer registered is refused at evaluation, naming the file.
+    with pytest.raises(MeasurementError, match=r"x.json: measurement 'waist_to_hip': method 'ratio' is not "
+                                               r"registered; known: loop, slice"):
+        evaluate(extended, mean_body, template.faces)
+
+
+def test_to_json_is_valid_json_with_reasons(mset, mean_body, template):
+    """A batch with an undefined value: null plus a note per body; never a NaN token."""
+    r = evaluate(mset, np.stack([mean_body, mean_body]), template.faces)
+    r["stature"].value[1] = np.inf          # as a degenerate mesh could give
+    r["stature"].note = [None, None]
+    out = to_json(r)
+    text = json.dumps(out, allow_nan=False)
+    assert out["stature"]["value"][1] is None and out["stature"]["note"] == [None, "undefined for this body"]
+    assert "note" not in out["chest_girth"] and json.loads(text)["chest_girth"]["value"][0] > 50
+
+
+# --- bodyspace measure: nothing dropped, errors in the user's words ----------------------------
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def body_files(mean_body, template, tmp_path_factory):
+    """An upright body and a squatting one (stature, hip girth, mass undefined) as OBJ files."""
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.synth.poses import load_pose_library
+    folder = tmp_path_factory.mktemp("bodies")
+    rig = template.rigs["default"]
+    squat = pose_bodies(mean_body[None], rig, load_pose_library().rotations("squat", rig)[None], on_ground=True)[0]
+    save_mesh(folder / "a.obj", mean_body, template.faces)
+    save_mesh(folder / "squat.obj", squat, template.faces)
+    return folder
+
+
+def _no_nan_constants(token):
+    raise AssertionError(f"invalid JSON token {token}")
+
+
+def test_cli_measure_same_file_twice_gives_two_columns(body_files):
+    a = str(body_files / "a.obj")
+    result = runner.invoke(app, ["measure", a, a, "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert list(data) == [a, f"{a} (2)"] and data[a] == data[f"{a} (2)"]
+    table = runner.invoke(app, ["measure", a, a])
+    assert table.exit_code == 0 and "a.obj (2)" in table.stdout
+    rows = runner.invoke(app, ["measure", a, a, "--csv"]).stdout.splitlines()
+    assert sum(r.startswith(f"{a},stature,") for r in rows) == 1
+    assert sum(r.startswith(f"{a} (2),stature,") for r in rows) == 1
+
+
+def test_cli_measure_refuses_json_with_csv(body_files):
+    result = runner.invoke(app, ["measure", str(body_files / "a.obj"), "--json", "--csv"])
+    assert result.exit_code == 2
+    assert "--json" in result.output and "--csv" in result.output and "Traceback" not in result.output
+
+
+def test_cli_measure_nan_reasons_in_every_format(body_files):
+    squat = str(body_files / "squat.obj")
+    js = runner.invoke(app, ["measure", squat, "--json"])
+    assert js.exit_code == 0, js.output
+    data = json.loads(js.stdout, parse_constant=_no_nan_constants)
+    assert data["stature"]["value"] is None and "not upright" in data["stature"]["note"]
+    assert data["mass"]["value"] is None and "needs 'stature'" in data["mass"]["note"]
+    two = json.loads(runner.invoke(app, ["measure", squat, str(body_files / "a.obj"), "--json"]).stdout,
+                     parse_constant=_no_nan_constants)
+    assert two[squat]["hip_girth"]["value"] is None and "not hips_extended" in two[squat]["hip_girth"]["note"]
+    rows = list(csv.reader(runner.invoke(app, ["measure", squat, "--csv"]).stdout.splitlines()))
+    assert rows[0] == ["mesh", "name", "value", "unit", "note"]
+    stature = next(r for r in rows if r[1] == "stature")
+    assert stature[2] == "" and "not upright" in stature[4]
+    assert next(r for r in rows if r[1] == "chest_girth")[4] == ""
+    table = runner.invoke(app, ["measure", squat]).stdout
+    line = next(x for x in table.splitlines() if " stature " in x)
+    k = line.split("n/a [")[1].split("]")[0]
+    assert any(x.startswith(f"[{k}] not upright") for x in table.splitlines()), table
+
+
+@pytest.mark.parametrize("cut", ["faces at a line", "vertices at a line", "mid-line", "garbled"])
+def test_cli_measure_blames_a_damaged_obj(body_files, tmp_path, cut):
+    text = (body_files / "a.obj").read_text()
+    lines = text.splitlines(keepends=True)
+    first_face = next(i for i, x in enumerate(lines) if x.startswith("f "))
+    damaged = {"faces at a line": "".join(lines[:first_face + 15000]),
+               "vertices at a line": "".join(lines[:5000]),
+               "mid-line": text[: len(text) * 9 // 10],
+               "garbled": text.replace("v ", "v x", 1)}[cut]
+    path = tmp_path / "cut.obj"
+    path.write_text(damaged)
+    result = runner.invoke(app, ["measure", str(path)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    err = result.output.strip()
+    assert err.startswith(f"error: {path}:"), err
+    assert "hm08.json: landmark" not in err
+
+
+def test_cli_measure_wrong_vertex_count_names_the_flag(tmp_path):
+    sphere = trimesh.creation.icosphere(2)
+    path = tmp_path / "sphere.obj"
+    save_mesh(path, sphere.vertices, sphere.faces)
+    result = runner.invoke(app, ["measure", str(path)])
+    assert result.exit_code == 2
+    assert f"{path}: 162 vertices" in result.output and "13380" in result.output
+    assert "--landmarks FILE" in result.output
+
+
+def test_cli_measure_png_is_not_written_over_a_file(body_files, tmp_path):
+    a = str(body_files / "a.obj")
+    out = tmp_path / "lines.png"
+    out.write_bytes(b"keep")
+    result = runner.invoke(app, ["measure", a, "--png", str(out)])
+    assert result.exit_code == 2 and "--force" in result.output and out.read_bytes() == b"keep"
+    for bad in (a, str(tmp_path), str(body_files / "a.obj" / "x.png")):
+        refused = runner.invoke(app, ["measure", a, "--png", bad])
+        assert refused.exit_code == 2 and "--png" in refused.output and "Traceback" not in refused.output, bad
+    assert (body_files / "a.obj").stat().st_size > 100_000
+
+
+@pytest.mark.parametrize("content, match", [
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": "many"}', "field 'n_vertices': got 'many', expected a positive"),
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": 13380.5}', "field 'n_vertices': got 13380.5"),
+    (b'{"landmarks": {"head_top": 5}, "n_vertices": true}', "field 'n_vertices': got True"),
+    (b'\xff\xfe\x00{}', "not UTF-8 text"),
+    (b'[1, 2]', 'expected {"landmarks": {name: vertex id or {"vertices": \\[...\\], "weights": \\[...\\]}, ...}}$'),
+    (b'{"landmarks": {"head_top": 99999999999999999999999}}', "vertex id 9+ is out of range"),
+    (b'{"landmarks": {"head_top": 5, "crotch": 7}}', r"not enough for any measurement .* but volume and surface "
+                                                     r"area; e.g. '\w+' also needs \['"),
+])
+def test_cli_measure_bad_landmark_files(body_files, tmp_path, content, match):
+    path = tmp_path / "lm.json"
+    path.write_bytes(content)
+    result = runner.invoke(app, ["measure", str(body_files / "a.obj"), "--landmarks", str(path)])
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert re.search(f"error: {re.escape(str(path))}.*{match}", result.output.replace("\n", "")), result.output

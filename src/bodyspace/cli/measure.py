@@ -11,69 +11,132 @@ from typing import Optional
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from bodyspace.cli.common import ForceOption, check_file_output
-from bodyspace.errors import BodyspaceError
-from bodyspace.measure import (
-    evaluate,
-    load_landmarks,
-    load_measurement_set,
-    to_json,
-    with_landmarks,
-)
+from bodyspace.errors import BodyspaceError, MeasurementError
+from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
 from bodyspace.mesh.io import load_mesh
 from bodyspace.report.render import contact_sheet
 
 
-def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up."),
+def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up. A file "
+                                                "given twice is measured twice (its second column is 'NAME (2)')."),
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
                                                      "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
                                                      "at most 25 names; docs/measurements.md)."),
-            json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit}."),
-            csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit."),
-            png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to a PNG."),
+            json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit, note?} (several meshes: mesh → name → ...); "
+                                          "an undefined value is null and its note says why. Not with --csv."),
+            csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit,note "
+                                         "(note: why a value is empty). Not with --json."),
+            png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to "
+                                               "this PNG file (refused if it exists, unless --force)."),
             force: bool = ForceOption):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
-    if png is not None:
-        check_file_output(png, "--png", force, (".png",), example="measurements.png")
     try:
+        _check_outputs(json_out, csv_out, png, force, meshes)
         mset = load_measurement_set()
         if landmarks is not None:
             lms, nv = load_landmarks(landmarks)
             mset = with_landmarks(mset, lms, nv, str(landmarks))
+        labels = _labels([str(p) for p in meshes])
         results, bodies = {}, []
-        for path in meshes:
+        for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
-            results[str(path)] = evaluate(mset, v, f, keep_polylines=png is not None)
+            _check_vertex_count(path, len(v), mset, landmarks)
+            results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]
-            contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=[Path(p).name for p in results],
-                          views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
+            try:
+                contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=_column_names(meshes),
+                              views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
+            except OSError as exc:   # a folder in the way, no permission, disk full
+                raise MeasurementError(f"--png {png}: could not write the picture ({exc.strerror or exc}); "
+                                       "choose a writable file path") from None
     except BodyspaceError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2)
+    rows = {label: to_json(r) for label, r in results.items()}
     if csv_out:
         buf = io.StringIO()
         w = csv.writer(buf)
-        w.writerow(["mesh", "name", "value", "unit"])
-        for p, r in results.items():
-            for name, e in to_json(r).items():
-                w.writerow([p, name, "" if e["value"] is None else e["value"], e["unit"]])
+        w.writerow(["mesh", "name", "value", "unit", "note"])
+        for label, row in rows.items():
+            for name, e in row.items():
+                w.writerow([label, name, "" if e["value"] is None else e["value"], e["unit"], e.get("note", "")])
         typer.echo(buf.getvalue().rstrip("\n"))
     elif json_out:
-        out = {p: to_json(r) for p, r in results.items()}
-        typer.echo(json.dumps(out[str(meshes[0])] if len(meshes) == 1 else out, indent=2))
+        # allow_nan=False: NaN or Infinity would not be JSON; to_json already made them null + note.
+        typer.echo(json.dumps(rows[labels[0]] if len(meshes) == 1 else rows, indent=2, allow_nan=False))
     else:
-        table = Table(title="measurements")
-        table.add_column("name")
-        for p in results:
-            table.add_column(Path(p).name, justify="right")
-        table.add_column("unit")
-        rows = [to_json(r) for r in results.values()]
-        for name, first in rows[0].items():
-            cells = ["n/a" if row[name]["value"] is None else f"{row[name]['value']:.4g}" for row in rows]
-            table.add_row(name, *cells, first["unit"])
-        Console().print(table)
+        _print_table(rows, _column_names(meshes))
+
+
+def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool, meshes: list[Path]) -> None:
+    """Refuse conflicting or unsafe outputs before any work (MeasurementError in CLI words)."""
+    if json_out and csv_out:
+        raise MeasurementError("--json and --csv were both given, but both print to standard output; "
+                               "give one of them (run twice for both)")
+    if png is None:
+        return
+    check_file_output(png, "--png", force, (".png",), example="measurements.png")
+    if any(png.resolve() == p.resolve() for p in meshes):
+        raise MeasurementError(f"--png {png}: is one of the meshes to measure; choose another file name")
+
+
+def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | None) -> None:
+    """The mesh's vertex count must be the set's, said in the flags that fix it."""
+    if mset.n_vertices is None or n_vertices == mset.n_vertices:
+        return
+    if landmarks is None:
+        raise MeasurementError(f"{path}: {n_vertices} vertices, but the default measurement set "
+                               f"({Path(mset.source).name}) is for meshes of the {mset.template or 'default'} "
+                               f"template, {mset.n_vertices} vertices in its order; to measure a mesh of another "
+                               "topology give its landmarks with --landmarks FILE (docs/measurements.md)")
+    raise MeasurementError(f"{path}: {n_vertices} vertices, but the landmark file --landmarks {landmarks} says "
+                           f"n_vertices {mset.n_vertices}; give the landmark file made for this mesh's topology "
+                           "(or remove its n_vertices)")
+
+
+def _labels(names: list[str]) -> list[str]:
+    """One label per input, in order: a name given again is labelled by its position, 'a.obj (2)'."""
+    seen: dict[str, int] = {}
+    out = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        out.append(name if seen[name] == 1 else f"{name} ({seen[name]})")
+    return out
+
+
+def _column_names(meshes: list[Path]) -> list[str]:
+    """Short labels for the table and the picture: file names, or the paths where two files
+    share a name; repeats labelled by position as in ``_labels``."""
+    short = len({p.name for p in meshes}) == len({str(p) for p in meshes})
+    return _labels([p.name if short else str(p) for p in meshes])
+
+
+def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
+    """One column per mesh; an undefined value is 'n/a [k]', its reason printed under the table."""
+    table = Table(title="measurements")
+    table.add_column("name")
+    for h in headers:
+        table.add_column(escape(h), justify="right")
+    table.add_column("unit")
+    reasons: dict[str, int] = {}
+    for name, first in next(iter(rows.values())).items():
+        cells = []
+        for row in rows.values():
+            e = row[name]
+            if e["value"] is None:
+                k = reasons.setdefault(e.get("note") or "undefined for this body", len(reasons) + 1)
+                cells.append(escape(f"n/a [{k}]"))
+            else:
+                cells.append(f"{e['value']:.4g}")
+        table.add_row(escape(name), *cells, escape(first["unit"]))
+    console = Console()
+    console.print(table)
+    for why, k in reasons.items():
+        console.print(f"[{k}] {why}", markup=False, highlight=False)

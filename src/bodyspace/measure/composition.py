@@ -1,6 +1,10 @@
 """Body composition from geometry: body fat, density, mass, BMI.
 
-Published formulas, each with its source (docs/population.md):
+Part of the measure layer: the ``mass`` measurement method (``measure/methods.py``) and the
+synthetic population (``synth/population.py``, a layer above) both turn a body's volume into
+mass here. Arrays in, arrays out: any broadcastable shapes, SI units (m³, m, kg, kg/m³).
+
+Published formulas, each with its source (docs/population.md, docs/measurements.md):
 
 - Body fat percent from BMI, age and sex, Deurenberg, Weststrate & Seidell (1991), Br J Nutr
   65:105-114: ``BF% = 1.2 BMI + 0.23 age - 10.8 sex - 5.4`` (sex = 1 male, 0 female).

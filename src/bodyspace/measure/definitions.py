@@ -21,9 +21,13 @@ has a joint centre (a cruder but valid choice; docs/measurements.md).
 
 A *point* in a measurement is a landmark name or a list of names (their mean: the mean of a
 front and a back landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a
-pair of points ``[from, to]`` (so it follows a limb or the torso in any pose). Methods:
+pair of points ``[from, to]`` (so it follows a limb or the torso in any pose) (``points``).
 
-- ``loop``: ``vertices`` (ordered ring on the mean model, Rupprecht et al. 3.1.2), ``axis``;
+Methods are registered in ``methods.METHODS`` (one function per method, each with a check of
+its fields that runs here); a set naming an unregistered method is refused on load. The
+built-in ones:
+
+- ``loop``: ``vertices`` (ordered ring on the mean model, Rupprecht §3.1.2), ``axis``;
   closed length after projecting onto the plane normal to the axis. Template-only.
 - ``slice``: plane through ``at`` (a point) with normal ``normal`` (an axis); the contour that
   contains ``pick`` (default ``at``) projected on the plane, else the nearest; girth = its
@@ -54,18 +58,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from bodyspace.errors import MeasurementError
+from bodyspace.measure.methods import METHODS, known_methods, template_vertices
+from bodyspace.measure.points import check_axis, fail, point_names
 
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
 MAX_USER_LANDMARKS = 25
-METHODS = ("loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi")
-# The unit each method's value has inside (SI) and how the CLI/JSON shows it.
-SI_UNIT = {"loop": "m", "slice": "m", "distance": "m", "path": "m", "volume": "m^3",
-           "surface_area": "m^2", "mass": "kg", "bmi": "kg/m^2"}
-# Methods that only need landmarks: they carry over to any topology with a landmark file.
-TOPOLOGY_FREE = ("slice", "distance", "path", "volume", "surface_area", "mass", "bmi")
-
-
 
 @dataclass(frozen=True)
 class MeasurementSet:
@@ -103,12 +101,8 @@ class MeasurementSet:
 
     def max_vertex_id(self) -> int:
         ids = [int(i.max()) for i, _ in self.landmarks.values()]
-        ids += [max(m["vertices"]) for m in self.measurements if m["method"] == "loop"]
+        ids += [max(template_vertices(m)) for m in self.measurements if template_vertices(m)]
         return max(ids, default=-1)
-
-
-def _fail(where: str, msg: str) -> MeasurementError:
-    return MeasurementError(f"{where}: {msg}")
 
 
 def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -116,118 +110,66 @@ def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarr
     where = f"{src}: landmark {name!r}"
     expected = "expected a vertex id or {\"vertices\": [ids], \"weights\": [w]} (non-negative, summing to 1)"
     if isinstance(val, (int, np.integer)) and not isinstance(val, bool):
-        ids, w = np.array([int(val)]), np.array([1.0])
+        ids, w = np.array([_vertex_id(where, val)]), np.array([1.0])
     elif isinstance(val, dict) and "vertices" in val:
         extra = set(val) - {"vertices", "weights"}
         if extra:
-            raise _fail(where, f"unknown field(s) {sorted(extra)}; {expected}")
+            raise fail(where, f"unknown field(s) {sorted(extra)}; {expected}")
         raw_ids, raw_w = val["vertices"], val.get("weights")
         if not isinstance(raw_ids, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in raw_ids):
-            raise _fail(where, f"'vertices' is {raw_ids!r}, expected a list of integer vertex ids")
-        ids = np.asarray(raw_ids, dtype=np.int64).ravel()
+            raise fail(where, f"'vertices' is {raw_ids!r}, expected a list of integer vertex ids")
+        ids = np.asarray([_vertex_id(where, i) for i in raw_ids], dtype=np.int64).ravel()
         if len(ids) == 0:
-            raise _fail(where, "'vertices' is empty, expected at least one vertex id")
+            raise fail(where, "'vertices' is empty, expected at least one vertex id")
         if raw_w is None:
             w = np.full(len(ids), 1.0 / len(ids))
         else:
             if not isinstance(raw_w, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
                                                       for x in raw_w):
-                raise _fail(where, f"'weights' is {raw_w!r}, expected a list of numbers")
+                raise fail(where, f"'weights' is {raw_w!r}, expected a list of numbers")
             w = np.asarray(raw_w, dtype=float).ravel()
         if len(ids) != len(w):
-            raise _fail(where, f"{len(ids)} vertices and {len(w)} weights, expected one weight per vertex")
+            raise fail(where, f"{len(ids)} vertices and {len(w)} weights, expected one weight per vertex")
         if not np.isfinite(w).all() or (w < 0).any():
             bad = w[~np.isfinite(w) | (w < 0)][0]
-            raise _fail(where, f"weight {bad} is negative or not finite; expected convex weights "
+            raise fail(where, f"weight {bad} is negative or not finite; expected convex weights "
                                "(non-negative, summing to 1)")
         if not np.isclose(w.sum(), 1.0, rtol=0, atol=1e-6):
-            raise _fail(where, f"weights sum to {w.sum():.6g}; expected convex weights (non-negative, "
+            raise fail(where, f"weights sum to {w.sum():.6g}; expected convex weights (non-negative, "
                                "summing to 1)")
         uniq, count = np.unique(ids, return_counts=True)
         if (count > 1).any():
             dup = int(uniq[count > 1][0])
-            raise _fail(where, f"vertex {dup} is listed twice, expected each vertex once (add its weights)")
+            raise fail(where, f"vertex {dup} is listed twice, expected each vertex once (add its weights)")
     else:
-        raise _fail(where, f"got {val!r}, {expected}")
+        raise fail(where, f"got {val!r}, {expected}")
     if (ids < 0).any():
-        raise _fail(where, f"vertex id {int(ids.min())} is negative: the landmark is off the mesh")
+        raise fail(where, f"vertex id {int(ids.min())} is negative: the landmark is off the mesh")
     return ids, w
 
 
-def _check_point(where: str, p: Any, landmarks, allow_floor: bool = False) -> None:
-    names = [p] if isinstance(p, str) else p
-    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
-        raise _fail(where, f"got {p!r}, expected a landmark name or a list of names")
-    for n in names:
-        if allow_floor and n == "floor" and isinstance(p, str):
-            continue
-        if n not in landmarks:
-            raise _fail(where, f"unknown landmark {n!r}; known: {', '.join(sorted(landmarks))}")
-
-
-def _check_axis(where: str, a: Any, landmarks, required: bool = True) -> None:
-    if a is None and not required:
-        return
-    if a == "up":
-        return
-    if not (isinstance(a, list) and len(a) == 2):
-        raise _fail(where, f"got {a!r}, expected \"up\" or a pair of points [from, to]")
-    for p in a:
-        _check_point(where, p, landmarks)
-
-
 def _validate_measurement(src: str, i: int, m: Any, landmarks, conditions, seen: set) -> dict:
+    """One measurement's definition, checked by its method's ``check`` (``methods.METHODS``)."""
     if not isinstance(m, dict) or not isinstance(m.get("name"), str) or not m["name"]:
-        raise _fail(f"{src}: measurements[{i}]", f"got {m!r}, expected an object with a 'name'")
+        raise fail(f"{src}: measurements[{i}]", f"got {m!r}, expected an object with a 'name'")
     name = m["name"]
     where = f"{src}: measurement {name!r}"
     if name in seen:
-        raise _fail(where, "defined twice")
-    method = m.get("method")
-    if method not in METHODS:
-        raise _fail(where, f"method {method!r}, expected one of {', '.join(METHODS)}")
-    for c in m.get("requires", []):
+        raise fail(where, "defined twice")
+    method = METHODS.get(m.get("method")) if isinstance(m.get("method"), str) else None
+    if method is None:
+        raise fail(where, f"method {m.get('method')!r}, expected one of {known_methods()} "
+                          "(the methods registered in bodyspace.measure.methods)")
+    requires = m.get("requires", [])
+    if not isinstance(requires, list):
+        raise fail(where + " field 'requires'", f"got {requires!r}, expected a list of condition names")
+    for c in requires:
         if c not in conditions:
-            raise _fail(where, f"requires unknown condition {c!r}; defined: {', '.join(conditions) or 'none'}")
-    if method == "loop":
-        ring = m.get("vertices")
-        if not isinstance(ring, list) or len(ring) < 3 or not all(isinstance(k, int) and k >= 0 for k in ring):
-            raise _fail(where, "'vertices' must be a list of at least 3 non-negative vertex ids")
-        _check_axis(where + " field 'axis'", m.get("axis", "up"), landmarks)
-    elif method == "slice":
-        _check_axis(where + " field 'normal'", m.get("normal"), landmarks)
-        band = m.get("band")
-        if band is None:
-            _check_point(where + " field 'at'", m.get("at"), landmarks)
-        else:
-            if not isinstance(band, dict):
-                raise _fail(where + " field 'band'", f"got {band!r}, expected an object")
-            _check_point(where + " field 'band.from'", band.get("from"), landmarks)
-            _check_point(where + " field 'band.to'", band.get("to"), landmarks)
-            if band.get("mode") not in ("max", "min"):
-                raise _fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\" or \"min\"")
-            steps = band.get("steps", 12)
-            if not isinstance(steps, int) or steps < 1:
-                raise _fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")
-        if m.get("pick") is not None:
-            _check_point(where + " field 'pick'", m["pick"], landmarks)
-    elif method == "distance":
-        _check_point(where + " field 'from'", m.get("from"), landmarks)
-        _check_point(where + " field 'to'", m.get("to"), landmarks, allow_floor=True)
-        _check_axis(where + " field 'axis'", m.get("axis"), landmarks, required=False)
-    elif method == "path":
-        pts = m.get("through")
-        if not isinstance(pts, list) or len(pts) < 2:
-            raise _fail(where + " field 'through'", f"got {pts!r}, expected a list of at least 2 points")
-        for p in pts:
-            _check_point(where + " field 'through'", p, landmarks)
-    elif method in ("mass", "bmi"):
-        for key in (("stature",) if method == "mass" else ("mass", "stature")):
-            if m.get(key) not in seen:
-                raise _fail(where + f" field {key!r}", f"got {m.get(key)!r}, expected the name of a measurement "
-                                                       "defined earlier in the file")
+            raise fail(where, f"requires unknown condition {c!r}; defined: {', '.join(conditions) or 'none'}")
+    if method.check is not None:
+        method.check(where, m, landmarks, seen)
     out = dict(m)
-    out.setdefault("unit", SI_UNIT[method])
+    out.setdefault("unit", method.unit)
     out.setdefault("requires", [])
     return out
 
@@ -235,29 +177,29 @@ def _validate_measurement(src: str, i: int, m: Any, landmarks, conditions, seen:
 def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSet:
     """Validate a parsed measurement-set document; errors name the field and measurement."""
     if not isinstance(d, dict):
-        raise _fail(source, f"top level is {type(d).__name__}, expected an object")
+        raise fail(source, f"top level is {type(d).__name__}, expected an object")
     if d.get("format", FORMAT) != FORMAT:
-        raise _fail(source, f"format {d.get('format')!r}, expected {FORMAT!r}")
+        raise fail(source, f"format {d.get('format')!r}, expected {FORMAT!r}")
     raw = d.get("landmarks")
     if not isinstance(raw, dict):
-        raise _fail(source, "'landmarks' is missing or not an object of name → vertex id")
+        raise fail(source, "'landmarks' is missing or not an object of name → vertex id")
     landmarks = {str(k): _parse_landmark(source, k, v) for k, v in raw.items()}
     conditions = d.get("conditions", {})
     if not isinstance(conditions, dict):
-        raise _fail(source, "'conditions' is not an object of name → {'axes': ..., 'max_angle_deg': ...}")
+        raise fail(source, "'conditions' is not an object of name → {'axes': ..., 'max_angle_deg': ...}")
     for cname, c in conditions.items():
         where = f"{source}: condition {cname!r}"
         if not isinstance(c, dict) or not isinstance(c.get("axes"), list) or not c["axes"]:
-            raise _fail(where, "expected {'axes': [[from, to], ...], 'max_angle_deg': x, 'relative_to': axis?}")
+            raise fail(where, "expected {'axes': [[from, to], ...], 'max_angle_deg': x, 'relative_to': axis?}")
         for a in c["axes"]:
-            _check_axis(where + " axis", a, landmarks)
-        _check_axis(where + " field 'relative_to'", c.get("relative_to", "up"), landmarks)
+            check_axis(where + " axis", a, landmarks)
+        check_axis(where + " field 'relative_to'", c.get("relative_to", "up"), landmarks)
         lim = c.get("max_angle_deg", 12)
         if not isinstance(lim, (int, float)) or isinstance(lim, bool) or not 0 < lim <= 90:
-            raise _fail(where + " field 'max_angle_deg'", f"got {lim!r}, expected a number of degrees in (0, 90]")
+            raise fail(where + " field 'max_angle_deg'", f"got {lim!r}, expected a number of degrees in (0, 90]")
     ms = d.get("measurements")
     if not isinstance(ms, list):
-        raise _fail(source, "'measurements' is missing or not a list")
+        raise fail(source, "'measurements' is missing or not a list")
     seen: set = set()
     out = []
     for i, m in enumerate(ms):
@@ -265,17 +207,40 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
         seen.add(vm["name"])
         out.append(vm)
     n = d.get("n_vertices")
-    return MeasurementSet(landmarks, tuple(out), dict(conditions), None if n is None else int(n),
+    return MeasurementSet(landmarks, tuple(out), dict(conditions), _n_vertices(source, n),
                           str(d.get("template", "")), source)
 
 
+def _vertex_id(where: str, val: Any) -> int:
+    """A JSON vertex id as an int that fits the (L, V) matrix's int64 indices."""
+    if val >= 2 ** 62:     # negative ids are refused with the landmark's other checks
+        raise fail(where, f"vertex id {val} is out of range, expected an id below the mesh's vertex count")
+    return int(val)
+
+
+def _n_vertices(where: str, n: Any) -> int | None:
+    """The optional ``n_vertices`` field: None or a positive integer."""
+    if n is None:
+        return None
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise fail(where + " field 'n_vertices'", f"got {n!r}, expected a positive integer vertex count "
+                                                  "(or no n_vertices field)")
+    return n
+
+
 def _read_json(path: Path) -> Any:
+    if path.is_dir():
+        raise MeasurementError(f"{path}: is a folder, expected a JSON file")
     if not path.is_file():
         raise MeasurementError(f"{path}: file not found")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise MeasurementError(f"{path}: not UTF-8 text (byte {exc.start}), expected a JSON file") from None
     except json.JSONDecodeError as exc:
         raise MeasurementError(f"{path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise MeasurementError(f"{path}: could not read ({exc.strerror or exc})") from None
 
 
 def load_measurement_set(path: str | os.PathLike | None = None) -> MeasurementSet:
@@ -296,12 +261,12 @@ def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray,
     raw = d.get("landmarks", d) if isinstance(d, dict) else None
     if not isinstance(raw, dict) or not raw:
         raise MeasurementError(f"{path}: expected {{\"landmarks\": {{name: vertex id or "
-                               "{\"vertices\": [...], \"weights\": [...]}, ...}}}}")
+                               "{\"vertices\": [...], \"weights\": [...]}, ...}}")
     if len(raw) > MAX_USER_LANDMARKS:
         raise MeasurementError(f"{path}: {len(raw)} landmarks, expected at most {MAX_USER_LANDMARKS}")
     lms = {str(k): _parse_landmark(str(path), k, v) for k, v in raw.items() if k != "n_vertices"}
     n = d.get("n_vertices") if isinstance(d, dict) else None
-    return lms, (None if n is None else int(n))
+    return lms, _n_vertices(str(path), n)
 
 
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,
@@ -320,11 +285,12 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
     conditions = {}
     for cname, c in base.conditions.items():
         axes = c["axes"] + [c.get("relative_to", "up")]
-        if all(_point_names(p) <= set(landmarks) for a in axes if a != "up" for p in a):
+        if all(point_names(p) <= set(landmarks) for a in axes if a != "up" for p in a):
             conditions[cname] = c
     kept, have = [], set()
     for m in base.measurements:
-        if m["method"] not in TOPOLOGY_FREE or not _uses_only(m, landmarks):
+        method = METHODS.get(m["method"])
+        if method is None or not method.topology_free or not _uses_only(m, landmarks):
             continue
         if any(r not in conditions for r in m["requires"]):
             continue
@@ -333,17 +299,39 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
         kept.append(m)
         have.add(m["name"])
     if not any(m["method"] not in ("volume", "surface_area") for m in kept):
-        raise MeasurementError(f"{source}: none of the landmark names {sorted(landmarks)} is used by the "
-                               f"measurement set {base.source}; expected names from {sorted(base.landmarks)}")
+        raise MeasurementError(f"{source}: the landmarks {sorted(landmarks)} are not enough for any measurement "
+                               f"of {base.source} but volume and surface area; {_closest(base, landmarks)}")
     return replace(base, landmarks=dict(landmarks), measurements=tuple(kept), conditions=conditions,
                    n_vertices=n_vertices, source=source)
 
 
-def _point_names(p) -> set:
-    return {p} if isinstance(p, str) else set(p)
+def _closest(base: MeasurementSet, landmarks) -> str:
+    """Which names the measurement nearest to being measurable still needs (its points and its
+    conditions' axes), for a message."""
+    best = None
+    for m in base.measurements:
+        method = METHODS.get(m["method"])
+        if method is None or not method.topology_free or m["method"] in ("volume", "surface_area"):
+            continue
+        need = _point_fields(m)
+        for r in m["requires"]:
+            c = base.conditions[r]
+            need |= {n for a in c["axes"] + [c.get("relative_to", "up")] if a != "up" for p in a
+                     for n in point_names(p)}
+        missing = sorted(need - set(landmarks) - {"floor"})
+        if missing and (best is None or len(missing) < len(best[1])):
+            best = (m["name"], missing)
+    if best is None:
+        return f"expected names from {sorted(base.landmarks)}"
+    return f"e.g. {best[0]!r} also needs {best[1]} (names from {sorted(base.landmarks)})"
 
 
 def _uses_only(m: dict, landmarks) -> bool:
+    return _point_fields(m) - {"floor"} <= set(landmarks)
+
+
+def _point_fields(m: dict) -> set:
+    """The landmark names a measurement's point and axis fields use ("floor" included)."""
     pts = []
     for key in ("at", "pick", "from", "to"):
         if m.get(key) is not None:
@@ -354,5 +342,4 @@ def _uses_only(m: dict, landmarks) -> bool:
     if m.get("band"):
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])
-    names = set().union(*(_point_names(p) for p in pts)) - {"floor"} if pts else set()
-    return names <= set(landmarks)
+    return set().union(*(point_names(p) for p in pts)) if pts else set()

@@ -1,0 +1,360 @@
+"""Measurement methods: one function per method, all registered in ``METHODS``.
+
+As trimesh's ``exchange`` loaders are one function per format merged into one dict, a method
+here is one function with one signature, registered under the name a measurement-set JSON
+gives in its ``"method"`` field:
+
+    compute(m, chunk) -> (values (N,), polylines, notes)
+
+- ``m``: the measurement's definition (a validated dict of the JSON, docs/measurements.md).
+- ``chunk``: a ``Chunk`` of N bodies: vertices (N, V, 3), landmark points name → (N, 3), the
+  topology's caches, and the values (N,) of the measurements earlier in the set.
+- ``values``: (N,) float, SI units (the method's ``unit``); NaN where undefined.
+- ``polylines``: None unless ``chunk.keep_polylines``; then a list of N arrays (K, 3), the
+  measured line of each body (closed loops repeat their first point).
+- ``notes``: None, or a list of N reasons (str or None) for the bodies whose value is NaN.
+
+Each method also has a ``check(where, m, landmarks, earlier)`` that validates its fields when a
+set is loaded (``where`` names the file and measurement, ``landmarks`` the set's landmark
+names, ``earlier`` the names of the measurements before it) and raises MeasurementError.
+``register_method`` adds a method; ``definitions`` validates every ``"method"`` against
+``METHODS`` and ``evaluate`` looks each one up there, so a new method needs no other change.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from bodyspace.errors import MeasurementError
+from bodyspace.measure.composition import mass_from_volume
+from bodyspace.measure.points import axis, check_axis, check_point, fail, point
+from bodyspace.measure.slicing import (
+    approx_heights,
+    band_contours,
+    contour_girths,
+    edge_neighbours,
+    mesh_edges,
+    pick_contours,
+    support_perimeters,
+)
+from bodyspace.mesh.geometry import boundary_loops, capped_volume
+
+# A body without a stated age or sex: age 30, and the mean of the male and female masses.
+DEFAULT_AGE_YEARS = 30.0
+
+
+@dataclass
+class Topology:
+    """Per-topology caches shared by every chunk: edges (E, 2), edge→faces (E, 2), the face
+    neighbours through each edge, and the boundary loops (for capping open meshes)."""
+
+    faces: np.ndarray
+    edges: np.ndarray = field(init=False)
+    edge_faces: np.ndarray = field(init=False)
+    neighbours: tuple = field(init=False)
+    loops: list = field(init=False)
+
+    def __post_init__(self):
+        self.edges, self.edge_faces = mesh_edges(self.faces)
+        self.neighbours = edge_neighbours(self.faces, self.edges, self.edge_faces)
+        self.loops = boundary_loops(self.faces)
+
+
+@dataclass
+class Chunk:
+    """N bodies being measured, as every method sees them.
+
+    vertices: (N, V, 3) float64.
+    landmarks: landmark name → (N, 3) points.
+    topology: the mesh's ``Topology``.
+    keep_polylines: whether methods return the measured lines.
+    age_years, male: None, scalars or (N,): the caller's overrides of the mass defaults.
+    values: measurement name → (N,) values of the measurements done so far (file order).
+    cache: scratch shared by the methods within this chunk (slice heights, volume and area).
+    """
+
+    vertices: np.ndarray
+    landmarks: dict
+    topology: Topology
+    keep_polylines: bool = False
+    age_years: object = None
+    male: object = None
+    values: dict = field(default_factory=dict)
+    cache: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.vertices)
+
+
+@dataclass(frozen=True)
+class Method:
+    """A registered method: its function, the SI unit of its values, its field check, and
+    whether it carries over to another topology through a landmark file (only landmarks used)."""
+
+    compute: Callable[[dict, Chunk], tuple]
+    unit: str
+    check: Callable[[str, dict, dict, set], None] | None = None
+    topology_free: bool = True
+
+
+# --- loop: Rupprecht's vertex rings -----------------------------------------------------------
+
+def loop_girth(m: dict, chunk: Chunk) -> tuple:
+    """Closed length of the ring ``m["vertices"]`` projected on the plane normal to ``m["axis"]``
+    (Rupprecht §3.1.2: project first, then measure). Template-only (vertex ids)."""
+    ring = chunk.vertices[:, m["vertices"]]                                   # (N, K, 3)
+    ax = axis(m.get("axis", "up"), chunk.landmarks, chunk.n)[:, None, :]
+    flat = ring - np.sum(ring * ax, axis=-1, keepdims=True) * ax
+    val = np.linalg.norm(flat - np.roll(flat, -1, axis=1), axis=-1).sum(axis=1)
+    poly = [np.concatenate([r, r[:1]]) for r in ring] if chunk.keep_polylines else None
+    return val, poly, None
+
+
+def check_loop(where: str, m: dict, landmarks, earlier: set) -> None:
+    ring = m.get("vertices")
+    if not isinstance(ring, list) or len(ring) < 3 or not all(isinstance(k, int) and k >= 0 for k in ring):
+        raise fail(where, "'vertices' must be a list of at least 3 non-negative vertex ids")
+    check_axis(where + " field 'axis'", m.get("axis", "up"), landmarks)
+
+
+# --- slice: tape-measure girths of plane sections ---------------------------------------------
+
+def slice_girth(m: dict, chunk: Chunk) -> tuple:
+    """Convex-hull girth of the contour of the plane through ``at`` with normal ``normal``; with a
+    ``band``, the max or min over planes along a segment (so it follows a limb).
+
+    The chunk's float32 coordinate planes and the approximate vertex heights per normal axis
+    are cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
+    """
+    v, lm, geo, n = chunk.vertices, chunk.landmarks, chunk.topology, chunk.n
+    heights = chunk.cache.setdefault("heights", {})
+    normal = axis(m["normal"], lm, n)
+    key = repr(m["normal"])
+    if key not in heights:
+        if "planes" not in heights:
+            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
+        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
+    band = m.get("band")
+    if band is None:
+        origins = [point(m["at"], lm)]
+    else:
+        a, b = point(band["from"], lm), point(band["to"], lm)
+        ts = np.linspace(float(band.get("start", 0.0)), float(band.get("stop", 1.0)), int(band.get("steps", 12)))
+        origins = [a + t * (b - a) for t in ts]
+    pick_fixed = point(m["pick"], lm) if m.get("pick") is not None else None
+    # Every plane of the band in one Contours: group p * n + i is plane p of body i.
+    n_planes = len(origins)
+    cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
+                         heights=heights[key], neighbours=geo.neighbours)
+    normals = np.tile(normal, (n_planes, 1))
+    picks = np.concatenate(origins if pick_fixed is None else [pick_fixed] * n_planes)
+    chosen = pick_contours(cuts, picks, normals)
+    missed = np.flatnonzero(chosen < 0)
+    if len(missed):
+        raise MeasurementError(f"measurement {m['name']!r}: the plane through {m.get('at', band)} hits "
+                               f"nothing on body {int(missed[0]) % n} (the landmarks are off the body or "
+                               "the normal axis is degenerate)")
+    if n_planes == 1:
+        k = np.zeros(n, dtype=np.int64)
+    else:
+        # Pick the band's extreme plane by the fast support-function estimate, then measure
+        # only that plane exactly: one hull per body instead of one per plane.
+        est = support_perimeters(cuts, chosen, normals).reshape(n_planes, n)
+        k = np.argmax(est, axis=0) if band["mode"] == "max" else np.argmin(est, axis=0)
+    group = k * n + np.arange(n)
+    ch = np.full(n_planes * n, -1, dtype=np.int64)
+    ch[group] = chosen[group]
+    g, pl = contour_girths(cuts, ch, normals, chunk.keep_polylines)
+    return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), None
+
+
+def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
+    check_axis(where + " field 'normal'", m.get("normal"), landmarks)
+    band = m.get("band")
+    if band is None:
+        check_point(where + " field 'at'", m.get("at"), landmarks)
+    else:
+        if not isinstance(band, dict):
+            raise fail(where + " field 'band'", f"got {band!r}, expected an object")
+        check_point(where + " field 'band.from'", band.get("from"), landmarks)
+        check_point(where + " field 'band.to'", band.get("to"), landmarks)
+        if band.get("mode") not in ("max", "min"):
+            raise fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\" or \"min\"")
+        steps = band.get("steps", 12)
+        if not isinstance(steps, int) or steps < 1:
+            raise fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")
+    if m.get("pick") is not None:
+        check_point(where + " field 'pick'", m["pick"], landmarks)
+
+
+# --- distance and path: lengths between landmarks ---------------------------------------------
+
+def distance(m: dict, chunk: Chunk) -> tuple:
+    """Straight distance ``from`` → ``to`` (a point or "floor", the lowest vertex's level), or
+    its extent along ``axis``."""
+    lm, n = chunk.landmarks, chunk.n
+    a = point(m["from"], lm)
+    if m["to"] == "floor":
+        b = a.copy()
+        b[:, 1] = chunk.vertices[:, :, 1].min(axis=1)
+    else:
+        b = point(m["to"], lm)
+    if m.get("axis") is None:
+        val = np.linalg.norm(b - a, axis=-1)
+    else:
+        val = np.abs(np.sum((b - a) * axis(m["axis"], lm, n), axis=-1))
+    poly = [np.stack([p, q]) for p, q in zip(a, b)] if chunk.keep_polylines else None
+    return val, poly, None
+
+
+def check_distance(where: str, m: dict, landmarks, earlier: set) -> None:
+    check_point(where + " field 'from'", m.get("from"), landmarks)
+    check_point(where + " field 'to'", m.get("to"), landmarks, allow_floor=True)
+    check_axis(where + " field 'axis'", m.get("axis"), landmarks, required=False)
+
+
+def path_length(m: dict, chunk: Chunk) -> tuple:
+    """Summed straight segments through the points ``through`` (joint centres for limbs)."""
+    pts = np.stack([point(p, chunk.landmarks) for p in m["through"]], axis=1)   # (N, K, 3)
+    val = np.linalg.norm(np.diff(pts, axis=1), axis=-1).sum(axis=1)
+    return val, (list(pts) if chunk.keep_polylines else None), None
+
+
+def check_path(where: str, m: dict, landmarks, earlier: set) -> None:
+    pts = m.get("through")
+    if not isinstance(pts, list) or len(pts) < 2:
+        raise fail(where + " field 'through'", f"got {pts!r}, expected a list of at least 2 points")
+    for p in pts:
+        check_point(where + " field 'through'", p, landmarks)
+
+
+# --- volume, surface area, mass, BMI ----------------------------------------------------------
+
+def volume(m: dict, chunk: Chunk) -> tuple:
+    """Enclosed volume (m³), open boundaries capped."""
+    return volume_and_area(chunk)[0], None, None
+
+
+def surface_area(m: dict, chunk: Chunk) -> tuple:
+    """Surface area (m²)."""
+    return volume_and_area(chunk)[1], None, None
+
+
+def mass(m: dict, chunk: Chunk) -> tuple:
+    """Mass (kg) from the volume and the stature measurement ``m["stature"]`` through the body
+    composition fixed point (``composition.mass_from_volume``); ``age_years`` and ``male`` from
+    the caller, else the definition (``male`` null: the mean of the male and female masses)."""
+    vol = volume_and_area(chunk)[0]
+    h = chunk.values[m["stature"]]
+    age = m.get("age_years", DEFAULT_AGE_YEARS) if chunk.age_years is None else chunk.age_years
+    sex = m.get("male") if chunk.male is None else chunk.male
+    if sex is None:
+        val = 0.5 * (mass_from_volume(vol, h, age, 1.0)[0] + mass_from_volume(vol, h, age, 0.0)[0])
+    else:
+        val = mass_from_volume(vol, h, age, float(sex))[0]
+    return val, None, _needs_stature(m, val)
+
+
+def bmi(m: dict, chunk: Chunk) -> tuple:
+    """Body-mass index (kg/m²) from the measurements ``m["mass"]`` and ``m["stature"]``."""
+    val = chunk.values[m["mass"]] / chunk.values[m["stature"]] ** 2
+    return val, None, _needs_stature(m, val)
+
+
+def _needs_stature(m: dict, val: np.ndarray) -> list:
+    # A NaN stature (not upright) would poison mass and BMI: say so rather than guess.
+    return [f"needs {m['stature']!r}, which is undefined for this body" if np.isnan(x) else None
+            for x in np.asarray(val, dtype=float)]
+
+
+def _check_earlier(*fields: str):
+    """A check that each of ``fields`` names a measurement defined earlier in the set."""
+    def check(where: str, m: dict, landmarks, earlier: set) -> None:
+        for key in fields:
+            if m.get(key) not in earlier:
+                raise fail(where + f" field {key!r}", f"got {m.get(key)!r}, expected the name of a measurement "
+                                                       "defined earlier in the file")
+    return check
+
+
+def volume_and_area(chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
+    """Capped volume (N,) and surface area (N,) from one cross product per face, cached per chunk.
+
+    With n = (b - a) x (c - a): area = |n| / 2 and a.n = a.(b x c), the divergence-theorem
+    tetrahedron (x6). Same result as ``mesh.geometry.capped_volume``/``surface_area``, but
+    written per component: ``np.cross`` on (N, F, 3) costs several times more.
+    """
+    if "volume_area" in chunk.cache:
+        return chunk.cache["volume_area"]
+    v, geo = chunk.vertices, chunk.topology
+    f0, f1, f2 = (np.ascontiguousarray(geo.faces[:, k]) for k in range(3))
+    n = len(v)
+    vol, area = np.empty(n), np.empty(n)
+    # One body at a time: its (F,) temporaries stay in cache (2x faster than (N, F) arrays).
+    # Summed in the order numpy summed the (N, F) gathers (column-major, so sequential; one
+    # body: pairwise), to keep every bit of the earlier values.
+    total = np.sum if n == 1 else (lambda a: np.cumsum(a)[-1])
+    for i in range(n):
+        x, y, z = (np.ascontiguousarray(v[i, :, k]) for k in range(3))
+        ax, ay, az = x[f0], y[f0], z[f0]
+        e1x, e1y, e1z = x[f1] - ax, y[f1] - ay, z[f1] - az
+        e2x, e2y, e2z = x[f2] - ax, y[f2] - ay, z[f2] - az
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        area[i] = 0.5 * total(np.sqrt(nx * nx + ny * ny + nz * nz))
+        vol[i] = total(ax * nx + ay * ny + az * nz) / 6.0
+    if geo.loops:
+        vol = vol + capped_volume(v, np.zeros((0, 3), dtype=np.int64), geo.loops)
+    chunk.cache["volume_area"] = (vol, area)
+    return vol, area
+
+
+# --- the registry ----------------------------------------------------------------------------
+
+METHODS: dict[str, Method] = {
+    "loop": Method(loop_girth, "m", check_loop, topology_free=False),
+    "slice": Method(slice_girth, "m", check_slice),
+    "distance": Method(distance, "m", check_distance),
+    "path": Method(path_length, "m", check_path),
+    "volume": Method(volume, "m^3"),
+    "surface_area": Method(surface_area, "m^2"),
+    "mass": Method(mass, "kg", _check_earlier("stature")),
+    "bmi": Method(bmi, "kg/m^2", _check_earlier("mass", "stature")),
+}
+
+
+def register_method(name: str, compute: Callable[[dict, Chunk], tuple], unit: str,
+                    check: Callable[[str, dict, dict, set], None] | None = None, *,
+                    topology_free: bool = True, replace: bool = False) -> None:
+    """Add a method under ``name`` (the JSON's ``"method"``); ``compute`` and ``check`` have the
+    signatures of the module docstring, ``unit`` is the SI unit of its values ("m", "kg", ...).
+
+    Sets loaded afterwards may use it; an existing name is refused unless ``replace``.
+    """
+    if not isinstance(name, str) or not name:
+        raise MeasurementError(f"method name {name!r}: expected a non-empty string")
+    if name in METHODS and not replace:
+        raise MeasurementError(f"method {name!r} is already registered (known: {', '.join(METHODS)}); "
+                               "pass replace=True to replace it")
+    if not callable(compute) or (check is not None and not callable(check)):
+        raise MeasurementError(f"method {name!r}: compute and check must be functions "
+                               "(compute(m, chunk), check(where, m, landmarks, earlier))")
+    METHODS[name] = Method(compute, unit, check, topology_free)
+
+
+def known_methods() -> str:
+    """The registered method names, for messages."""
+    return ", ".join(METHODS)
+
+
+def template_vertices(m: dict) -> list:
+    """The template vertex ids a measurement uses directly: the ``vertices`` field of a
+    template-only method (a loop's ring), else none."""
+    method = METHODS.get(m["method"])
+    return list(m.get("vertices", [])) if method is not None and not method.topology_free else []
