@@ -10,13 +10,8 @@ from typer.testing import CliRunner
 from bodyspace.cli_semantics import crowd, evaluate, generate, morph
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
-from bodyspace.semantics.model import (
-    MaskedBlend,
-    SemanticModel,
-    TargetError,
-    semantics_path,
-    tolerance,
-)
+from bodyspace.semantics.masks import MaskedPoissonBlend
+from bodyspace.semantics.model import SemanticModel, TargetError, tolerance
 from bodyspace.synth.population import build_population
 from bodyspace.units import UnitError, parse_assignment, parse_target
 
@@ -28,7 +23,8 @@ def setup(template, tmp_path_factory):
     model = BodyModel.fit(db, "vertex", "rest")
     model.save(root / "model.npz")
     sm = SemanticModel(model).fit(db, template=template)
-    sm.save(semantics_path(root / "model.npz"))
+    model.semantics = sm
+    model.save(root / "model.npz")
     return root, db, model, sm
 
 
@@ -62,7 +58,7 @@ def test_infeasible_refused_with_range_or_clamped(setup):
     lo, hi = sm.reachable_range("stature")
     with pytest.raises(TargetError, match=r"outside what the model can reach \(\d+\.\d cm to \d+\.\d cm"):
         sm.generate({"stature": 2.6})
-    clamping = SemanticModel.load(semantics_path(setup[0] / "model.npz"), model, on_infeasible="clamp")
+    clamping = BodyModel.load(setup[0] / "model.npz").semantics.set_params(on_infeasible="clamp")
     with pytest.warns(RuntimeWarning, match="clamped to"):
         result = clamping.generate({"stature": 2.6}, rng=0)
     assert result.targets["stature"] == pytest.approx(hi)
@@ -103,20 +99,34 @@ def test_masked_blend_identity_and_zero(setup):
     x0 = model.mean_vertices
     d = np.random.default_rng(0).normal(size=x0.shape) * 1e-3
     w = sm.regions_["arms"]
-    out = MaskedBlend(x0, model.faces, w)(d)
+    out = MaskedPoissonBlend(x0, model.faces, w)(d)
     assert np.all(out[w == 0] == 0)
+    np.testing.assert_allclose(MaskedPoissonBlend(x0, model.faces, np.ones(len(x0)))(d), d)
     with pytest.raises(Exception, match="every weight is 0"):
-        MaskedBlend(x0, model.faces, np.zeros(len(x0)))
+        MaskedPoissonBlend(x0, model.faces, np.zeros(len(x0)))
 
 
-def test_save_load_round_trip(setup):
+def test_regressors_saved_in_the_model_file_bit_exact(setup):
     root, _, model, sm = setup
-    sm2 = SemanticModel.load(semantics_path(root / "model.npz"), model)
+    loaded = BodyModel.load(root / "model.npz")
+    sm2 = loaded.semantics
+    assert sm2 is not None and sm2.body_model is loaded
+    assert not (root / "model.semantics.npz").exists()  # one file, nothing beside it
     c = model.sample_coefficients(3, rng=1)
-    for name in sm.labels_:
-        np.testing.assert_allclose(sm2.regressors_[name].predict(c), sm.regressors_[name].predict(c))
-    assert sm2.reachable_range("mass") == pytest.approx(sm.reachable_range("mass"))
-    np.testing.assert_allclose(sm2.regions_["legs"], sm.regions_["legs"], atol=1e-7)
+    assert sm2.labels_ == sm.labels_ and sm2.lengths_ == sm.lengths_ and sm2.measured_ == sm.measured_
+    for name, reg in sm.regressors_.items():
+        assert np.array_equal(sm2.regressors_[name].predict(c), reg.predict(c)), name
+        assert np.array_equal(sm2.regressors_[name].gradient(c[0]), reg.gradient(c[0])), name
+    assert sm2.reachable_range("mass") == sm.reachable_range("mass")
+    assert np.array_equal(sm2.X_, sm.X_) and np.array_equal(sm2.Y_, sm.Y_, equal_nan=True)
+    assert np.array_equal(sm2.regions_["legs"], sm.regions_["legs"])
+    # the same request gives the same body from the fitted and the loaded regressors
+    a, b = sm.generate({"stature": 1.75, "mass": 70.0}, rng=4), sm2.generate({"stature": 1.75, "mass": 70.0}, rng=4)
+    assert np.array_equal(a.coefficients, b.coefficients)
+    # a model file without semantics stays loadable and has none
+    loaded.semantics = None
+    loaded.save(root / "plain.npz")
+    assert BodyModel.load(root / "plain.npz").semantics is None
 
 
 def test_units():
@@ -190,11 +200,15 @@ def test_cli_crowd_and_evaluate(setup, app, tmp_path):
         assert 155 <= float(row["stature (cm)"]) <= 185
     # evaluate fits the regressors from --database when asked to
     copy = tmp_path / "m.npz"
-    copy.write_bytes((root / "model.npz").read_bytes())
+    plain = BodyModel.load(root / "model.npz")
+    plain.semantics = None
+    plain.save(copy)
     r = runner.invoke(app, ["evaluate", str(copy), "--folds", "3"])
     assert r.exit_code == 2 and "--database" in r.output
     r = runner.invoke(app, ["evaluate", str(copy), "--database", str(root / "db"), "--folds", "3"])
     assert r.exit_code == 0, r.output
+    assert "saved the semantic regressors into" in r.output
+    assert BodyModel.load(copy).semantics is not None and not (tmp_path / "m.semantics.npz").exists()
     text = (tmp_path / "m.evaluation.md").read_text()
     assert "filtered linear" in text and "non-linear" in text and "μ" in text and "stature (cm)" in text
 

@@ -27,3 +27,8 @@ class ParameterError(BodyspaceError):
 
 class MeasurementError(BodyspaceError):
     """A measurement set, a landmark file, or a measurement on a given mesh is invalid."""
+
+
+class SemanticsFileError(BodyspaceError):
+    """Stored semantic regressors (in a model file, or a legacy MODEL.semantics.npz) are damaged,
+    incomplete, or were fitted on another model."""
