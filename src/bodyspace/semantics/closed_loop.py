@@ -77,7 +77,8 @@ def closed_loop(c0, goal, tolerance, variances, gradients,
         values_of: ``values_of(x (V, 3), c (K,)) -> (values (C,), measurements dict)``: the
             constraints' values on body x (measured, or predicted from c).
         current: optional ``(values (C,), measurements)`` of ``body(c0)``, when already known.
-        max_iter: most correction bodies (the Equation 11 step included).
+        max_iter: most correction bodies (the Equation 11 step included), checked before
+            each step: a step's backtracking may add up to ``BACKTRACKS - 1`` more.
         fd_step, max_step: finite-difference step and largest step, in SD.
         extra_directions: leading PCA components added to the search span.
 

@@ -48,7 +48,11 @@ from bodyspace.semantics.labels import (
     measurement_targets,
     read_scans,
 )
-from bodyspace.semantics.masks import REGIONS, MaskedPoissonBlend, region_weights_from_template
+from bodyspace.semantics.masks import (
+    REGIONS,
+    MaskedPoissonBlend,
+    region_weights_from_template,
+)
 from bodyspace.semantics.regressors import (
     FilteredLinearRegressor,
     KernelRegressor,
