@@ -72,17 +72,29 @@ def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
             cb("measuring the rest scans", 0.1)
             model.semantics = SemanticModel(model).fit(db)
             cb("done", 1.0)
-        model.save(model_file)
-        console.print(f"saved the semantic regressors into {model_file}", highlight=False)
+        if _save_into(model, model_file):
+            console.print(f"saved the semantic regressors into {model_file}", highlight=False)
     elif model.semantics is None and sidecar.is_file():
         model.semantics = SemanticModel.load(sidecar, model)
-        model.save(model_file)
-        console.print(f"note: folded {sidecar} into {model_file} (the semantic regressors now live in the model "
-                      f"file; {sidecar.name} is left as it was and no longer read)", highlight=False)
+        if _save_into(model, model_file):
+            console.print(f"note: folded {sidecar} into {model_file} (the semantic regressors now live in the "
+                          f"model file; {sidecar.name} is left as it was and no longer read)", highlight=False)
     elif model.semantics is None:
         raise BodyspaceError(f"{model_file}: holds no semantic regressors; pass --database DB (the scan database "
                              "the model was built from) to fit them (saved into the model file)")
     return model.semantics.set_params(on_infeasible="clamp" if clamp else "raise")
+
+
+def _save_into(model, model_file: Path) -> bool:
+    """Save ``model`` (with its new semantic regressors) over ``model_file``, atomically; when
+    that fails (read-only file or folder), say so and go on with the regressors in memory."""
+    try:
+        model.save(model_file)
+    except OSError as exc:
+        console.print(f"[yellow]warning:[/yellow] could not save the semantic regressors into {escape(str(model_file))} "
+                      f"({escape(str(exc))}); they are used for this run only", soft_wrap=True, highlight=False)
+        return False
+    return True
 
 
 def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:

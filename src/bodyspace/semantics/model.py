@@ -545,6 +545,10 @@ class SemanticModel:
                  "API: SemanticModel(model).fit(db))")
         if not path.is_file():
             raise SemanticsFileError(f"{path}: no semantic model; {refit}")
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        if magic != b"PK\x03\x04":  # numpy would call any other file pickled data
+            raise SemanticsFileError(f"{path}: damaged, not an .npz archive (starts with {magic!r}); {refit}")
         try:
             with np.load(path, allow_pickle=False) as z:
                 header = json.loads(z["header"].tobytes().decode("utf-8"))
