@@ -360,7 +360,7 @@ def test_damaged_sidecar_refused_clearly(setup, app, tmp_path, damage):
     assert BodyModel.load(model_file).semantics is None  # nothing folded in
 
 
-def test_damaged_semantics_in_the_model_file_refused(setup, tmp_path):
+def test_damaged_semantics_in_the_model_file_refused(setup, app, tmp_path):
     root, _, model, sm = setup
     arrays = dict(np.load(root / "model.npz"))
     header = json.loads(arrays["header"].tobytes())
@@ -370,6 +370,15 @@ def test_damaged_semantics_in_the_model_file_refused(setup, tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ModelError, match=r"bad\.npz: the stored semantic regressors do not load.*refit"):
         BodyModel.load(tmp_path / "bad.npz")
+    assert BodyModel.load(tmp_path / "bad.npz", semantics=False).semantics is None
+    # the CLI's --refit replaces them
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "bad.npz"), "--set", "stature=175cm", "--out",
+                                 str(tmp_path / "a.obj")])
+    assert r.exit_code == 2 and "--refit" in r.output and "Traceback" not in r.output, r.output
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "bad.npz"), "--database", str(root / "db"), "--refit",
+                                 "--set", "stature=175cm", "--out", str(tmp_path / "a.obj")])
+    assert r.exit_code == 0, r.output
+    assert BodyModel.load(tmp_path / "bad.npz").semantics is not None
 
 
 def test_morph_accepts_the_models_own_folds(setup, tmp_path):

@@ -63,7 +63,8 @@ def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
     folded in from a legacy ``MODEL.semantics.npz``, and then saved into the model file."""
     from bodyspace.model import BodyModel
     from bodyspace.semantics.model import SemanticModel, semantics_path
-    model = BodyModel.load(model_file)
+    # refitting never reads the stored regressors, so damaged ones can be replaced
+    model = BodyModel.load(model_file, semantics=not (refit and database is not None))
     sidecar = semantics_path(model_file)
     if database is not None and (refit or model.semantics is None):
         from bodyspace.data.database import ScanDatabase

@@ -405,8 +405,9 @@ class BodyModel:
         return path
 
     @classmethod
-    def load(cls, path, n_jobs: int | None = None) -> "BodyModel":
-        """Read a model file written by ``save`` (``allow_pickle=False``; every field checked)."""
+    def load(cls, path, n_jobs: int | None = None, semantics: bool = True) -> "BodyModel":
+        """Read a model file written by ``save`` (``allow_pickle=False``; every field checked).
+        ``semantics=False`` leaves stored semantic regressors unread (to refit damaged ones)."""
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
@@ -502,7 +503,7 @@ class BodyModel:
         model = cls(v, f, encoder, space, encoding=encoding, template_id=header.get("template_id", "unknown"),
                     selection=header.get("selection", "all"), fitted_scans=a["fitted_scans"],
                     encoder_params=params, provenance=header.get("provenance"), mapping=mapping)
-        if any(name.startswith(SEMANTICS_PREFIX) for name in a):
+        if semantics and any(name.startswith(SEMANTICS_PREFIX) for name in a):
             try:
                 model.semantics = SemanticModel.from_arrays(a, model, SEMANTICS_PREFIX)
             except BodyspaceError as exc:
