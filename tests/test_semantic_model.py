@@ -1,6 +1,8 @@
 """SemanticModel: closed-loop generation, morphing with keep and masks, units, CLI."""
 
 import csv
+import json
+import warnings
 
 import numpy as np
 import pytest
@@ -8,17 +10,19 @@ import typer
 from typer.testing import CliRunner
 
 from bodyspace.cli.semantics import crowd, evaluate, generate, morph
+from bodyspace.errors import SemanticsFileError
+from bodyspace.measure import measure
 from bodyspace.mesh.io import load_mesh
-from bodyspace.model import BodyModel
-from bodyspace.semantics.model import (
-    MaskedBlend,
-    SemanticModel,
-    TargetError,
-    semantics_path,
-    tolerance,
+from bodyspace.model import BodyModel, ModelError
+from bodyspace.report.semantic_report import (
+    format_request_report,
+    request_study,
+    write_request_report,
 )
+from bodyspace.semantics.masks import MaskedPoissonBlend
+from bodyspace.semantics.model import SemanticModel, TargetError, tolerance
 from bodyspace.synth.population import build_population
-from bodyspace.units import UnitError, parse_assignment, parse_target
+from bodyspace.units import UnitError, kind_of, parse_assignment, parse_target
 
 
 @pytest.fixture(scope="session")
@@ -28,7 +32,8 @@ def setup(template, tmp_path_factory):
     model = BodyModel.fit(db, "vertex", "rest")
     model.save(root / "model.npz")
     sm = SemanticModel(model).fit(db, template=template)
-    sm.save(semantics_path(root / "model.npz"))
+    model.semantics = sm
+    model.save(root / "model.npz")
     return root, db, model, sm
 
 
@@ -48,7 +53,6 @@ def test_generate_measures_what_was_asked(setup, targets):
     assert result.converged
     _check(result)
     # the reached values are what a tape measure reads on the mesh
-    from bodyspace.measure import measure
     m = measure(sm.mset, result.vertices, model.faces)
     for name in ("stature", "mass"):
         if name in targets and not isinstance(targets[name], tuple):
@@ -62,7 +66,7 @@ def test_infeasible_refused_with_range_or_clamped(setup):
     lo, hi = sm.reachable_range("stature")
     with pytest.raises(TargetError, match=r"outside what the model can reach \(\d+\.\d cm to \d+\.\d cm"):
         sm.generate({"stature": 2.6})
-    clamping = SemanticModel.load(semantics_path(setup[0] / "model.npz"), model, on_infeasible="clamp")
+    clamping = BodyModel.load(setup[0] / "model.npz").semantics.set_params(on_infeasible="clamp")
     with pytest.warns(RuntimeWarning, match="clamped to"):
         result = clamping.generate({"stature": 2.6}, rng=0)
     assert result.targets["stature"] == pytest.approx(hi)
@@ -72,7 +76,6 @@ def test_infeasible_refused_with_range_or_clamped(setup):
 def test_taller_same_mass(setup):
     _, _, model, sm = setup
     x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
-    from bodyspace.measure import measure
     before = measure(sm.mset, x0, model.faces)
     result = sm.morph(x0, {"stature": 0.05}, keep=["mass"])
     after = measure(sm.mset, result.vertices, model.faces)
@@ -103,20 +106,34 @@ def test_masked_blend_identity_and_zero(setup):
     x0 = model.mean_vertices
     d = np.random.default_rng(0).normal(size=x0.shape) * 1e-3
     w = sm.regions_["arms"]
-    out = MaskedBlend(x0, model.faces, w)(d)
+    out = MaskedPoissonBlend(x0, model.faces, w)(d)
     assert np.all(out[w == 0] == 0)
+    np.testing.assert_allclose(MaskedPoissonBlend(x0, model.faces, np.ones(len(x0)))(d), d)
     with pytest.raises(Exception, match="every weight is 0"):
-        MaskedBlend(x0, model.faces, np.zeros(len(x0)))
+        MaskedPoissonBlend(x0, model.faces, np.zeros(len(x0)))
 
 
-def test_save_load_round_trip(setup):
+def test_regressors_saved_in_the_model_file_bit_exact(setup):
     root, _, model, sm = setup
-    sm2 = SemanticModel.load(semantics_path(root / "model.npz"), model)
+    loaded = BodyModel.load(root / "model.npz")
+    sm2 = loaded.semantics
+    assert sm2 is not None and sm2.body_model is loaded
+    assert not (root / "model.semantics.npz").exists()  # one file, nothing beside it
     c = model.sample_coefficients(3, rng=1)
-    for name in sm.labels_:
-        np.testing.assert_allclose(sm2.regressors_[name].predict(c), sm.regressors_[name].predict(c))
-    assert sm2.reachable_range("mass") == pytest.approx(sm.reachable_range("mass"))
-    np.testing.assert_allclose(sm2.regions_["legs"], sm.regions_["legs"], atol=1e-7)
+    assert sm2.labels_ == sm.labels_ and sm2.lengths_ == sm.lengths_ and sm2.measured_ == sm.measured_
+    for name, reg in sm.regressors_.items():
+        assert np.array_equal(sm2.regressors_[name].predict(c), reg.predict(c)), name
+        assert np.array_equal(sm2.regressors_[name].gradient(c[0]), reg.gradient(c[0])), name
+    assert sm2.reachable_range("mass") == sm.reachable_range("mass")
+    assert np.array_equal(sm2.X_, sm.X_) and np.array_equal(sm2.Y_, sm.Y_, equal_nan=True)
+    assert np.array_equal(sm2.regions_["legs"], sm.regions_["legs"])
+    # the same request gives the same body from the fitted and the loaded regressors
+    a, b = sm.generate({"stature": 1.75, "mass": 70.0}, rng=4), sm2.generate({"stature": 1.75, "mass": 70.0}, rng=4)
+    assert np.array_equal(a.coefficients, b.coefficients)
+    # a model file without semantics stays loadable and has none
+    loaded.semantics = None
+    loaded.save(root / "plain.npz")
+    assert BodyModel.load(root / "plain.npz").semantics is None
 
 
 def test_units():
@@ -157,7 +174,6 @@ def test_cli_generate_and_morph(setup, app, tmp_path):
                             "--set", "sex=male", "--out", str(tmp_path / "a.obj")])
     assert r.exit_code == 0, r.output
     v, f = load_mesh(tmp_path / "a.obj")
-    from bodyspace.measure import measure
     m = measure(sm.mset, v, f)
     assert abs(m["stature"] - 1.80) <= 0.0045 and abs(m["mass"] - 80) <= 0.55
     r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
@@ -190,19 +206,21 @@ def test_cli_crowd_and_evaluate(setup, app, tmp_path):
         assert 155 <= float(row["stature (cm)"]) <= 185
     # evaluate fits the regressors from --database when asked to
     copy = tmp_path / "m.npz"
-    copy.write_bytes((root / "model.npz").read_bytes())
+    plain = BodyModel.load(root / "model.npz")
+    plain.semantics = None
+    plain.save(copy)
     r = runner.invoke(app, ["evaluate", str(copy), "--folds", "3"])
     assert r.exit_code == 2 and "--database" in r.output
     r = runner.invoke(app, ["evaluate", str(copy), "--database", str(root / "db"), "--folds", "3"])
     assert r.exit_code == 0, r.output
+    assert "saved the semantic regressors into" in r.output
+    assert BodyModel.load(copy).semantics is not None and not (tmp_path / "m.semantics.npz").exists()
     text = (tmp_path / "m.evaluation.md").read_text()
     assert "filtered linear" in text and "non-linear" in text and "μ" in text and "stature (cm)" in text
 
 
 def test_request_study_small(setup, tmp_path):
-    import json
 
-    from bodyspace.report.semantic_report import request_study, write_request_report
     _, _, _, sm = setup
     study = request_study(sm, n=40, rng=0)
     assert study["n"] == 40 and study["success_rate"] == 1.0, study["failures"]
@@ -220,7 +238,6 @@ def test_request_study_small(setup, tmp_path):
 def test_request_study_independent_draws_never_miss_silently(setup):
     """Box corners no subject has may be missed, but never silently, and every request inside
     the population's joint 98% region lands."""
-    from bodyspace.report.semantic_report import format_request_report, request_study
     _, _, _, sm = setup
     study = request_study(sm, n=30, rng=5, joint=None)
     split = study["by_plausibility"]
@@ -236,14 +253,12 @@ def test_generate_measurement_targets(setup, app, tmp_path):
     """Any length of the measurement set is a target: a Rupprecht loop and an ISO width."""
     root, _, model, sm = setup
     assert {"waist_size", "shoulder_width", "thigh_girth_l", "height"} <= set(sm.lengths_)
-    from bodyspace.units import kind_of
     assert all(kind_of(n) == "length" for n in sm.lengths_)
     lo, hi = sm.reachable_range("waist_size")
     lo2, hi2 = sm.reachable_range("shoulder_width")
     goal = {"waist_size": lo + 0.45 * (hi - lo), "shoulder_width": lo2 + 0.55 * (hi2 - lo2)}
     result = sm.generate(goal, rng=2)
     assert result.converged
-    from bodyspace.measure import measure
     m = measure(sm.mset, result.vertices, model.faces)
     for name, v in goal.items():
         assert abs(m[name] - v) <= 0.009, (name, m[name], v)
@@ -262,3 +277,123 @@ def test_generate_measurement_targets(setup, app, tmp_path):
     r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "waist_sizes=80cm",
                             "--out", str(tmp_path / "x.obj")])
     assert r.exit_code == 2 and "accepted names" in r.output and "shoulder_width" in r.output
+
+
+# ----------------------------------------------------------------------------------- storage
+def _write_legacy_sidecar(sm, path):
+    """``MODEL.semantics.npz`` exactly as ``SemanticModel.save`` wrote it before the regressors
+    moved into the model file (format_version 1)."""
+    arrays = {"X": sm.X_, "Y": sm.Y_, "subjects": np.array(sm.subjects_, dtype="U")}
+    regs = {}
+    for name, reg in sm.regressors_.items():
+        regs[name] = type(reg).__name__
+        for k, a in reg.to_arrays().items():
+            arrays[f"reg/{name}/{k}"] = a
+    for name, w in sm.regions_.items():
+        arrays[f"region/{name}"] = w.astype(np.float32)
+    header = {"format": "bodyspace.SemanticModel", "format_version": 1, "labels": sm.labels_,
+              "measured": sm.measured_, "lengths": sm.lengths_, "regressors": regs, "regions": list(sm.regions_),
+              "sigma_limit": sm.sigma_limit, "n_components": int(sm.X_.shape[1]),
+              "template_id": sm.body_model.template_id, "units": {}}
+    arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def _plain_copy(root, path):
+    plain = BodyModel.load(root / "model.npz")
+    plain.semantics = None
+    plain.save(path)
+    return path
+
+
+def test_legacy_sidecar_folded_into_the_model_file(setup, app, tmp_path):
+    root, _, _, sm = setup
+    model_file = _plain_copy(root, tmp_path / "old.npz")
+    sidecar = tmp_path / "old.semantics.npz"
+    _write_legacy_sidecar(sm, sidecar)
+    before = sidecar.read_bytes()
+    runner = CliRunner()
+    args = ["generate", str(model_file), "--set", "stature=175cm", "--out", str(tmp_path / "a.obj")]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    assert "note: folded" in r.output and "old.semantics.npz" in r.output
+    assert sidecar.read_bytes() == before  # left as it was
+    folded = BodyModel.load(model_file).semantics
+    c = sm.body_model.sample_coefficients(2, rng=3)
+    for name, reg in sm.regressors_.items():
+        assert np.array_equal(folded.regressors_[name].predict(c), reg.predict(c)), name
+    np.testing.assert_allclose(folded.regions_["legs"], sm.regions_["legs"], atol=1e-7)
+    # read once: the next run uses the model file and says nothing about the sidecar
+    r = runner.invoke(app, args[:-1] + [str(tmp_path / "b.obj")])
+    assert r.exit_code == 0 and "note: folded" not in r.output, r.output
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "no_header", "other_model"])
+def test_damaged_sidecar_refused_clearly(setup, app, tmp_path, damage):
+    root, _, model, sm = setup
+    model_file = _plain_copy(root, tmp_path / "m.npz")
+    sidecar = tmp_path / "m.semantics.npz"
+    _write_legacy_sidecar(sm, sidecar)
+    data = sidecar.read_bytes()
+    if damage == "garbage":
+        sidecar.write_bytes(b"not an npz at all")
+    elif damage == "truncated":
+        sidecar.write_bytes(data[: len(data) // 2])
+    elif damage == "no_header":
+        with np.load(sidecar) as z:
+            arrays = {k: z[k] for k in z.files if k != "header"}
+        np.savez(sidecar, **arrays)
+    else:  # fitted on a model with another number of components
+        with np.load(sidecar) as z:
+            arrays = {k: z[k] for k in z.files}
+        header = json.loads(arrays["header"].tobytes())
+        header["n_components"] += 1
+        arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+        np.savez(sidecar, **arrays)
+    with pytest.raises(SemanticsFileError, match=r"m\.semantics\.npz.*--database"):
+        SemanticModel.load(sidecar, model)
+    r = CliRunner().invoke(app, ["generate", str(model_file), "--set", "stature=175cm", "--out",
+                                 str(tmp_path / "a.obj")])
+    assert r.exit_code == 2 and isinstance(r.exception, SystemExit), r.output
+    assert "m.semantics.npz" in r.output and "--database" in r.output and "Traceback" not in r.output
+    assert BodyModel.load(model_file).semantics is None  # nothing folded in
+
+
+def test_damaged_semantics_in_the_model_file_refused(setup, app, tmp_path):
+    root, _, model, sm = setup
+    arrays = dict(np.load(root / "model.npz"))
+    header = json.loads(arrays["header"].tobytes())
+    arrays["semantics_meta"] = np.frombuffer(b"{broken", dtype=np.uint8)
+    header["arrays"]["semantics_meta"]["shape"] = [7]
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ModelError, match=r"bad\.npz: the stored semantic regressors do not load.*refit"):
+        BodyModel.load(tmp_path / "bad.npz")
+    assert BodyModel.load(tmp_path / "bad.npz", semantics=False).semantics is None
+    # the CLI's --refit replaces them
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "bad.npz"), "--set", "stature=175cm", "--out",
+                                 str(tmp_path / "a.obj")])
+    assert r.exit_code == 2 and "--refit" in r.output and "Traceback" not in r.output, r.output
+    r = CliRunner().invoke(app, ["generate", str(tmp_path / "bad.npz"), "--database", str(root / "db"), "--refit",
+                                 "--set", "stature=175cm", "--out", str(tmp_path / "a.obj")])
+    assert r.exit_code == 0, r.output
+    assert BodyModel.load(tmp_path / "bad.npz").semantics is not None
+
+
+def test_morph_accepts_the_models_own_folds(setup, tmp_path):
+    """A decoded RRE body folds where the model's training scans fold; projecting it for a
+    morph neither warns nor raises, whatever the encoder's flip policy."""
+    _, db, _, _ = setup
+    rre = BodyModel.fit(db, "rre", "rest", on_flipped="ignore")
+    rre.encoder.on_flipped = "raise"
+    sm = SemanticModel(rre).fit(db)
+    x = rre.mean_vertices.copy()
+    a, b, c = x[rre.faces[5000]]
+    x[rre.faces[5000][0]] = a + 2.2 * ((b + c) / 2 - a)  # one vertex pushed across: folded triangles
+    with pytest.raises(Exception, match="flipped triangle"):
+        rre.project(x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = sm.morph(x, {"stature": 0.02})
+    assert abs(result.values["stature"] - result.targets["stature"]) <= tolerance("stature")

@@ -20,6 +20,7 @@ from bodyspace.semantics import (
     morph,
     morph_directions,
 )
+from bodyspace.semantics.closed_loop import BACKTRACKS, closed_loop
 
 
 def shape_like(n, d, seed=0, label_noise=0.5):
@@ -305,3 +306,50 @@ def test_bad_inputs_raise_parameter_error():
         cross_validated_rmse(x, {"h": y[:3]})
     with pytest.raises(ParameterError, match="pairs"):
         ComparisonRegressor().fit(x, np.array([[0, 25]]))
+
+
+# ----------------------------------------------------------------------------------- the closed loop
+def _linear_problem(k=6, seed=0):
+    gen = np.random.default_rng(seed)
+    a = gen.normal(size=(2, k))
+    variances = np.linspace(2.0, 0.5, k)
+    return a, variances
+
+
+def test_closed_loop_converges_on_a_tiny_linear_problem():
+    a, var = _linear_problem()
+    # the "measured" values are mildly non-linear, the regressors' gradients are a's rows
+    calls = []
+
+    def body(c):
+        calls.append(c)
+        return np.tile(c, (2, 1))  # a stand-in mesh (V=2, K)
+
+    def values_of(x, c):
+        return a @ c + 0.05 * np.sum(c ** 2), {"n": len(calls)}
+
+    c0 = np.zeros(6)
+    goal = np.array([1.0, -0.5])
+    tol = np.array([1e-4, 1e-4])
+    r = closed_loop(c0, goal, tol, var, a, body, values_of)
+    assert r.converged and not r.missed.any()
+    assert np.all(np.abs(values_of(None, r.coefficients)[0] - goal) <= tol)
+    assert r.coefficients.shape == (6,) and r.vertices.shape == (2, 6) and r.values.shape == (2,)
+    assert 1 <= r.iterations <= 20 and r.solve_s >= 0
+    # purely linear: Equation 11 alone lands, one correction, the minimum-norm step in the metric
+    r = closed_loop(c0, goal, tol, var, a, body, lambda x, c: (a @ c, {}))
+    assert r.converged and r.iterations == 1
+    m = var[:, None] * a.T
+    np.testing.assert_allclose(r.coefficients, m @ np.linalg.solve(a @ m, goal), atol=1e-10)
+
+
+def test_closed_loop_reports_a_miss_when_unreachable():
+    a, var = _linear_problem()
+    # the second value is the first one again: asking 1 and 2 at once cannot be met
+    g = np.vstack([a[0], a[0]])
+    r = closed_loop(np.zeros(6), np.array([1.0, 2.0]), np.array([1e-3, 1e-3]), var, g, lambda c: c[None],
+                    lambda x, c: (g @ c, {}), max_iter=8)
+    assert not r.converged and r.missed.any()
+    assert r.iterations <= 8 + BACKTRACKS - 1  # checked before a step; its backtracking finishes
+    # the loop still found the least-squares compromise between the two
+    assert abs(r.values[0] - 1.5) < 0.05

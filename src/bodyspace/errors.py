@@ -31,3 +31,8 @@ class MeasurementError(BodyspaceError):
 
 class OutputError(BodyspaceError):
     """An output path exists, is not bodyspace's to replace, or cannot be written."""
+
+
+class SemanticsFileError(BodyspaceError):
+    """Stored semantic regressors (in a model file, or a legacy MODEL.semantics.npz) are damaged,
+    incomplete, or were fitted on another model."""

@@ -25,6 +25,8 @@ Array layout of a model file (``FORMAT_VERSION = 1``)::
     mapping_*               optional: the measurements-to-shape mapping (``mapping.bundle``:
                             names, k, the forest's and the linear map's flat arrays, the RRE
                             decoder linearization); the header's "mapping" names it
+    semantics_*             optional: the semantic regressors (``SemanticModel.to_arrays``: labels,
+                            regressors, region masks); the header's "semantics" names them
 
 Components are kept at float32 precision in memory too (float64 values exactly representable in
 float32), so a saved model loads bit-exactly; the PCA itself runs in float64 up to
@@ -56,6 +58,8 @@ from bodyspace.encoding.rotations import quaternion_exp
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping
+from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
+from bodyspace.semantics.model import SemanticModel
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import (
     KRYLOV_DEPTH,
@@ -161,7 +165,8 @@ class BodyModel:
 
     def __init__(self, template_vertices, faces, encoder, space: ShapeSpace, *, encoding: str,
                  template_id: str = "unknown", selection: str = "all", fitted_scans=None,
-                 encoder_params: dict | None = None, provenance: dict | None = None, mapping=None):
+                 encoder_params: dict | None = None, provenance: dict | None = None, mapping=None,
+                 semantics=None):
         if encoding not in ENCODINGS:
             raise ParameterError(f"encoding={encoding!r}, expected one of {', '.join(ENCODINGS)}")
         self.template_vertices = np.asarray(template_vertices, dtype=float)
@@ -177,6 +182,9 @@ class BodyModel:
         # The fitted measurements-to-shape mapping (``mapping.bundle.MeasurementMapping``), or
         # None; ``fit_mapping`` makes one, ``save`` stores it in the same file.
         self.mapping = mapping
+        # The fitted semantic regressors (``semantics.model.SemanticModel`` of this model), or
+        # None; ``save`` stores them in the same file, ``load`` restores them.
+        self.semantics = semantics
 
     # ------------------------------------------------------------------ fitting
     @classmethod
@@ -368,6 +376,8 @@ class BodyModel:
             arrays["rre_mean_stretch"] = np.asarray(self.encoder.mean_stretch_, dtype=np.float64)
         if self.mapping is not None:
             arrays.update(self.mapping.to_arrays(MAPPING_PREFIX))
+        if self.semantics is not None:
+            arrays.update(self.semantics.to_arrays(SEMANTICS_PREFIX))
         return arrays
 
     def save(self, path) -> Path:
@@ -385,6 +395,8 @@ class BodyModel:
             "provenance": self.provenance,
             "mapping": None if self.mapping is None else {"names": list(self.mapping.names), "k": self.mapping.k,
                                                           "samples": self.mapping.samples, "units": "cm"},
+            "semantics": None if self.semantics is None else {"labels": list(self.semantics.labels_),
+                                                              "lengths": len(self.semantics.lengths_)},
             "arrays": {name: {"shape": list(a.shape), "dtype": a.dtype.str} for name, a in arrays.items()},
         }
         arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
@@ -393,8 +405,9 @@ class BodyModel:
         return path
 
     @classmethod
-    def load(cls, path, n_jobs: int | None = None) -> "BodyModel":
-        """Read a model file written by ``save`` (``allow_pickle=False``; every field checked)."""
+    def load(cls, path, n_jobs: int | None = None, semantics: bool = True) -> "BodyModel":
+        """Read a model file written by ``save`` (``allow_pickle=False``; every field checked).
+        ``semantics=False`` leaves stored semantic regressors unread (to refit damaged ones)."""
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
@@ -487,9 +500,16 @@ class BodyModel:
         space = shape_space_from_state(encoder, a["pca_mean"], a["pca_components"].astype(np.float64),
                                        a["pca_explained_variance"], a["pca_explained_variance_ratio"],
                                        a["pca_singular_values"], header.get("n_samples", 0))
-        return cls(v, f, encoder, space, encoding=encoding, template_id=header.get("template_id", "unknown"),
-                   selection=header.get("selection", "all"), fitted_scans=a["fitted_scans"],
-                   encoder_params=params, provenance=header.get("provenance"), mapping=mapping)
+        model = cls(v, f, encoder, space, encoding=encoding, template_id=header.get("template_id", "unknown"),
+                    selection=header.get("selection", "all"), fitted_scans=a["fitted_scans"],
+                    encoder_params=params, provenance=header.get("provenance"), mapping=mapping)
+        if semantics and any(name.startswith(SEMANTICS_PREFIX) for name in a):
+            try:
+                model.semantics = SemanticModel.from_arrays(a, model, SEMANTICS_PREFIX)
+            except BodyspaceError as exc:
+                raise ModelError(f"{path}: the stored semantic regressors do not load ({exc}); refit them "
+                                 "(CLI: --database DB --refit)") from None
+        return model
 
 
 # ----------------------------------------------------------------------------------- helpers

@@ -2,8 +2,9 @@
 
 Thin layer over ``bodyspace.semantics.model.SemanticModel``; register with
 ``app.command("evaluate")(evaluate)`` etc. Every command takes the model file; the semantic
-regressors live beside it (``MODEL.semantics.npz``) and are fitted on first use from
-``--database`` (the scan database the model was built from).
+regressors live inside it, fitted on first use from ``--database`` (the scan database the model
+was built from) and saved into the model file (atomically). A ``MODEL.semantics.npz`` that
+earlier versions wrote beside the model is read once and folded into the model file.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import List, Optional
 
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from bodyspace.atomic import MARKDOWN_SIGNATURE, WRITTEN_BY, atomic_path
@@ -57,8 +59,9 @@ from bodyspace.units import (
 CROWD_KIND = "crowd"
 
 DatabaseOption = typer.Option(None, "--database", help="Scan database the model was built from: fits the semantic "
-                                                       "regressors (saved beside the model as MODEL.semantics.npz).")
-RefitOption = typer.Option(False, "--refit", help="With --database: fit again even if MODEL.semantics.npz exists.")
+                                                       "regressors (saved into the model file).")
+RefitOption = typer.Option(False, "--refit", help="With --database: fit again even if the model file holds "
+                                                  "semantic regressors.")
 ClampOption = typer.Option(False, "--clamp", help="Clamp requests outside the reachable range (with a warning) "
                                                   "instead of refusing them.")
 SetOption = typer.Option(None, "--set", help="NAME=VALUE with units, e.g. stature=180cm, mass=80kg, sex=female, "
@@ -72,22 +75,40 @@ _fail, _progress, _report_warnings = fail, progress, report_warnings
 
 
 def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
-    model = BodyModel.load(model_file)
-    spath = semantics_path(model_file)
-    mode = "clamp" if clamp else "raise"
-    if database is not None and (refit or not spath.is_file()):
+    """The model's ``SemanticModel``: stored in the model file; else fitted from ``database`` or
+    folded in from a legacy ``MODEL.semantics.npz``, and then saved into the model file."""
+    # refitting never reads the stored regressors, so damaged ones can be replaced
+    model = BodyModel.load(model_file, semantics=not (refit and database is not None))
+    sidecar = semantics_path(model_file)
+    if database is not None and (refit or model.semantics is None):
         db = ScanDatabase.load(database)
         with _progress("fitting semantic regressors") as cb:
             cb("measuring the rest scans", 0.1)
-            sm = SemanticModel(model, on_infeasible=mode).fit(db)
+            model.semantics = SemanticModel(model).fit(db)
             cb("done", 1.0)
-        sm.save(spath)
-        console.print(f"wrote {spath}")
-        return sm
-    if not spath.is_file():
-        raise BodyspaceError(f"{spath}: no semantic regressors for {model_file}; pass --database DB (the scan "
-                             "database the model was built from) to fit them")
-    return SemanticModel.load(spath, model, on_infeasible=mode)
+        if _save_into(model, model_file):
+            console.print(f"saved the semantic regressors into {model_file}", highlight=False)
+    elif model.semantics is None and sidecar.is_file():
+        model.semantics = SemanticModel.load(sidecar, model)
+        if _save_into(model, model_file):
+            console.print(f"note: folded {sidecar} into {model_file} (the semantic regressors now live in the "
+                          f"model file; {sidecar.name} is left as it was and no longer read)", highlight=False)
+    elif model.semantics is None:
+        raise BodyspaceError(f"{model_file}: holds no semantic regressors; pass --database DB (the scan database "
+                             "the model was built from) to fit them (saved into the model file)")
+    return model.semantics.set_params(on_infeasible="clamp" if clamp else "raise")
+
+
+def _save_into(model, model_file: Path) -> bool:
+    """Save ``model`` (with its new semantic regressors) over ``model_file``, atomically; when
+    that fails (read-only file or folder), say so and go on with the regressors in memory."""
+    try:
+        model.save(model_file)
+    except OSError as exc:
+        console.print(f"[yellow]warning:[/yellow] could not save the semantic regressors into {escape(str(model_file))} "
+                      f"({escape(str(exc))}); they are used for this run only", soft_wrap=True, highlight=False)
+        return False
+    return True
 
 
 def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:

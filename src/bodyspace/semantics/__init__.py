@@ -8,9 +8,15 @@
 - ``basis``: the semantic model basis (§4.1): Gram-Schmidt of the semantic directions + PCA of
   the rest.
 - ``evaluation``: Table 1 (cross-validated RMSE) and Table 2 (angles between morphing directions).
+- ``labels``: which labels a database gives (measured on rest scans, subject columns, lengths).
+- ``masks``: body regions and the masked Poisson solve of a masked morph (§5.1).
+- ``closed_loop``: the pure closed loop (Equation 11, then Gauss-Newton on measured values).
+- ``model``: ``SemanticModel``, the estimator that holds the regressors and calls these; it is
+  stored inside the BodyModel file (import it from ``bodyspace.semantics.model``).
 """
 
 from bodyspace.semantics.basis import SemanticBasis, gram_schmidt
+from bodyspace.semantics.closed_loop import LoopResult, closed_loop
 from bodyspace.semantics.evaluation import (
                                             RegressionTable,
                                             cross_validated_rmse,
@@ -18,6 +24,12 @@ from bodyspace.semantics.evaluation import (
                                             direction_angles,
                                             format_angle_table,
                                             format_rmse_table,
+)
+from bodyspace.semantics.masks import (
+                                            REGIONS,
+                                            MaskedPoissonBlend,
+                                            masked_poisson_blend,
+                                            region_weights_from_template,
 )
 from bodyspace.semantics.morph import (
                                             ComparisonRegressor,
@@ -38,4 +50,6 @@ __all__ = [
     "SemanticBasis", "gram_schmidt",
     "RegressionTable", "cross_validated_rmse", "default_regressors", "direction_angles",
     "format_rmse_table", "format_angle_table",
+    "closed_loop", "LoopResult", "MaskedPoissonBlend", "masked_poisson_blend", "region_weights_from_template",
+    "REGIONS",
 ]

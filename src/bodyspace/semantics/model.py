@@ -1,48 +1,30 @@
-"""SemanticModel: bodies that *measure* what was asked (Hasler et al. 2009 §4, §5.1, and beyond).
+"""SemanticModel: bodies that *measure* what was asked (Hasler §4, §5.1, and beyond).
 
-Fitted from a shape-only ``BodyModel`` and the scan database it came from: one row per subject
-(its rest scan), PCA coefficients ``c`` (K,) as the body, and two kinds of labels:
+A scikit-learn-style estimator: hyper-parameters in ``__init__``, ``fit(db)`` returns self, the
+learned state ends in ``_``. It holds one ``FilteredLinearRegressor`` (the paper's Table 1
+winner) per label on a shape-only ``BodyModel``'s PCA coefficients ``c`` (K,), whose gradient is
+the label's morphing direction, and calls the pure parts of the package:
 
-- *measured* labels (stature, mass, waist/chest/hip girth): ``bodyspace.measure`` on the rest
-  scans, i.e. the quantity a tape measure (and a scale, at the default density) reads on the
-  mesh; during generation they are measured again on every decoded body;
-- *subject* labels (sex 1 = male / 0 = female, age, body fat %, muscle): the database's columns,
-  only known through their regressors.
-- *measurement targets* (``lengths_``): every other length of the measurement set (Rupprecht's
-  waist_size, ..., ISO thigh_girth_l, shoulder_width, ...): a regressor each, measured on the
-  decoded body only when asked (the loop measures just the requested names and their dependencies).
-
-Every label gets a ``FilteredLinearRegressor`` on the coefficients (the paper's Table 1 winner),
-whose gradient is its morphing direction.
-
-Generation and morphing (``_solve``):
-
-1. Equation (11) gives the first step: the minimum-norm ``z`` with ``<s_i, z> = delta_i`` for all
-   constraints, in the metric ``sum_k z_k^2 / var_k`` (the PCA variances), i.e. the most
-   probable change, the one that moves the body least in units of the population's spread.
-2. Closed loop: decode, measure, and correct the measured residuals with a Gauss-Newton step,
-   the minimum-norm (same metric) solution within the span of the minimum-norm directions
-   ``var * s_i`` plus the leading PCA components. Its Jacobian is measured there by finite
-   differences and refreshed by Broyden's rank-one update (remeasured when progress stalls);
-   steps are limited to 1 SD and backtracked when they do not reduce the residual. It stops when
-   every label is within tolerance (``TOLERANCES``: 4 mm stature, 9 mm girths, 0.5 kg mass) or
-   after ``max_iter`` corrections; a miss is never silent (``on_infeasible``).
+- ``labels``: which labels, from one rest scan per subject (measured on the scans, or the
+  database's subject columns) and every other length of the measurement set as a target;
+- ``closed_loop``: Hasler Equation 11, then decode, measure and correct until every value is
+  within tolerance (``TOLERANCES``: 4 mm stature, 9 mm lengths, 0.5 kg mass); a miss is never
+  silent (``on_infeasible``);
+- ``masks``: morphs confined to body regions by the masked Poisson solve (Hasler §5.1).
 
 Requests the model cannot reach: the reachable range of a label is its linear regressor over
 the coefficients within ``sigma_limit`` standard deviations (``f(0) +- sigma sqrt(sum s_k^2
 var_k)``); outside it a request is refused (``TargetError`` with the range) or, with
 ``on_infeasible="clamp"``, clamped with a warning.
 
-Masks (§5.1): named regions (``REGIONS``) as per-vertex weights from the template's skinning
-weights (smooth across joints) and left/right vertex groups. The change of a masked morph is
-blended in the gradient domain: per-triangle weights ``w_f`` scale the change of every
-triangle's deformation gradient, and a Poisson solve with the unmasked vertices held fixed
-rebuilds the surface, spreading the seam with no step (``MaskedBlend``).
+Storage: the fitted state lives inside the BodyModel file, as flat arrays under a prefix
+(``to_arrays`` / ``from_arrays``, no pickle), like the measurement mapping. ``load`` still reads
+the sidecar ``MODEL.semantics.npz`` earlier versions wrote beside the model.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 import json
 import time
 import warnings
@@ -50,38 +32,48 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
-from bodyspace.atomic import atomic_path
-from bodyspace.errors import BodyspaceError, ParameterError
-from bodyspace.semantics.morph import morph_directions
+from bodyspace.data.template import load_template
+from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError
+from bodyspace.measure import load_measurement_set, measure
+from bodyspace.semantics.closed_loop import closed_loop
+from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
+from bodyspace.semantics.labels import (
+    MEASURED_LABELS,
+    SUBJECT_LABELS,
+    first_scan_per_subject,
+    labels_from_subjects,
+    measured_labels,
+    measurement_subset,
+    measurement_targets,
+    read_scans,
+)
+from bodyspace.semantics.masks import (
+    REGIONS,
+    MaskedPoissonBlend,
+    region_weights_from_template,
+)
 from bodyspace.semantics.regressors import (
     FilteredLinearRegressor,
+    KernelRegressor,
     SimpleLinearRegressor,
 )
 from bodyspace.units import Target, format_value, kind_of
 
-__all__ = ["SemanticModel", "GenerationResult", "TargetError", "MaskedBlend", "REGIONS", "TOLERANCES",
-           "MEASURED_LABELS", "SUBJECT_LABELS", "semantics_path", "region_weights_from_template"]
+__all__ = ["SemanticModel", "GenerationResult", "TargetError", "REGIONS", "TOLERANCES", "MEASURED_LABELS",
+           "SUBJECT_LABELS", "PREFIX", "semantics_path", "tolerance"]
 
 FORMAT = "bodyspace.SemanticModel"
-FORMAT_VERSION = 1
-MEASURED_LABELS = ("stature", "mass", "waist_girth", "chest_girth", "hip_girth")
-# label -> database subject column
-SUBJECT_LABELS = {"sex": "sex", "age": "age_years", "body_fat": "body_fat_percent", "muscle": "muscle_1"}
+FORMAT_VERSION = 1  # of the legacy sidecar file and of the arrays inside a model file
+# Key prefix of the semantic model's arrays inside a BodyModel file.
+PREFIX = "semantics_"
 # closed-loop tolerance per label (SI); girths and other lengths 9 mm
 TOLERANCES = {"stature": 0.004, "mass": 0.5}
 LENGTH_TOLERANCE = 0.009
-# closed loop: finite-difference step and largest step, in standard deviations (Mahalanobis)
-FD_STEP = 0.25
-MAX_STEP = 1.0
-# the closed loop also searches along this many leading PCA components (conditioning)
-EXTRA_DIRECTIONS = 4
-REGIONS = ("upper_body", "lower_body", "arms", "legs", "torso", "head", "left", "right")
-_ARM = ("shoulder01", "upperarm", "lowerarm", "wrist", "finger", "metacarpal")
-_LEG = ("upperleg", "lowerleg", "foot", "toe")
-_LOWER = _LEG + ("pelvis", "spine05", "root")
-_TORSO = ("spine", "pelvis", "breast", "clavicle", "root")
+# a mask's factored Poisson solve is cached; user-supplied weight arrays are keys too
+MAX_CACHED_MASKS = 8
+_REGRESSOR_KINDS = {"FilteredLinearRegressor": FilteredLinearRegressor,
+                    "SimpleLinearRegressor": SimpleLinearRegressor, "KernelRegressor": KernelRegressor}
 
 
 class TargetError(ParameterError):
@@ -89,7 +81,8 @@ class TargetError(ParameterError):
 
 
 def semantics_path(model_path) -> Path:
-    """Where the SemanticModel of model file ``x.npz`` lives: ``x.semantics.npz`` beside it."""
+    """Where earlier versions kept the SemanticModel of model file ``x.npz``: ``x.semantics.npz``
+    beside it (read once by the CLI and folded into the model file)."""
     p = Path(model_path)
     return p.with_name(p.name[:-4] + ".semantics.npz" if p.name.endswith(".npz") else p.name + ".semantics.npz")
 
@@ -101,81 +94,6 @@ def tolerance(name: str) -> float:
     if kind_of(name) == "length":
         return LENGTH_TOLERANCE
     return 1e-3
-
-
-# ----------------------------------------------------------------------------------- masks
-def region_weights_from_template(template) -> dict[str, np.ndarray]:
-    """Per-vertex weights (V,) in [0, 1] of every region in ``REGIONS``: sums of the default
-    rig's skinning weights over the region's bones (smooth across joints); left/right from the
-    template's vertex groups (1 on the side, 0.5 on the symmetry plane)."""
-    rig = template.rigs["default"]
-    w = sp.csc_matrix(rig.weights)
-
-    def bones(prefixes):
-        cols = [i for i, b in enumerate(rig.bone_names) if b.startswith(prefixes)]
-        return np.clip(np.asarray(w[:, cols].sum(axis=1)).ravel(), 0.0, 1.0)
-
-    nv = template.n_vertices
-    lower = bones(_LOWER)
-    arms, legs, torso = bones(_ARM), bones(_LEG), bones(_TORSO)
-    left, right = np.zeros(nv), np.zeros(nv)
-    left[template.left] = 1.0
-    right[template.right] = 1.0
-    left[template.mid] = right[template.mid] = 0.5
-    head = np.clip(1.0 - arms - legs - torso, 0.0, 1.0)
-    out = {"upper_body": 1.0 - lower, "lower_body": lower, "arms": arms, "legs": legs, "torso": torso,
-           "head": head, "left": left, "right": right}
-    return {k: np.where(v < 1e-4, 0.0, np.where(v > 1 - 1e-4, 1.0, v)) for k, v in out.items()}
-
-
-class MaskedBlend:
-    """Apply a change ``d`` (V, 3) to mesh ``x0`` only where ``weights`` (V,) say, in the gradient
-    domain: minimise ``sum_f area_f || grad(d') - w_f grad(d) ||^2`` with ``d' = 0`` at every vertex
-    of weight 0, ``w_f`` the mean weight of face f's corners. Inside the mask the shape change is
-    kept, at the seam it fades over the blended triangles, outside nothing moves (exactly)."""
-
-    def __init__(self, x0, faces, weights):
-        from bodyspace.mesh.operators import gradient_operator
-        from bodyspace.mesh.solver import FactorizedSolver
-        faces = np.asarray(faces, dtype=np.int64)
-        w = np.asarray(weights, dtype=float)
-        if w.shape != (len(x0),) or not np.isfinite(w).all() or w.min() < 0 or w.max() > 1:
-            raise ParameterError(f"mask: weights of shape {w.shape}, expected ({len(x0)},) values in [0, 1]")
-        self.weights = w
-        self.free = np.flatnonzero(w > 0)
-        if self.free.size == 0:
-            raise ParameterError("mask: every weight is 0, expected a region to change")
-        self.g = gradient_operator(x0, faces)
-        a, b, c = (np.asarray(x0)[faces[:, i]] for i in range(3))
-        area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        wf = w[faces].mean(axis=1)
-        self.area3 = np.repeat(area, 3)
-        self.wf3 = np.repeat(wf, 3)
-        lap = (self.g.T @ sp.diags(self.area3) @ self.g).tocsr()
-        self.fixed_all = self.free.size == len(w)
-        sub = lap[self.free][:, self.free]
-        if self.fixed_all:  # nothing held: pin one vertex of weight 1 (translation)
-            sub = sub + sp.diags(np.r_[1e-8 * lap.diagonal().mean(), np.zeros(self.free.size - 1)])
-        self.solver = FactorizedSolver(sub)
-
-    def __call__(self, d) -> np.ndarray:
-        d = np.asarray(d, dtype=float)
-        if self.fixed_all and np.all(self.weights == 1):
-            return d.copy()
-        target = (self.g @ d) * self.wf3[:, None]
-        rhs = self.g.T @ (self.area3[:, None] * target)
-        out = np.zeros_like(d)
-        out[self.free] = self.solver.solve(rhs[self.free])
-        return out
-
-
-def _metric_orthonormal(u, metric):
-    """Columns of ``u`` (K, m) orthonormalized in the inner product ``a^T diag(metric) b``
-    (dependent columns dropped)."""
-    w = np.sqrt(metric)[:, None]
-    q, r = np.linalg.qr(u * w)
-    keep = np.abs(np.diag(r)) > 1e-10 * np.abs(np.diag(r)).max()
-    return q[:, keep] / w
 
 
 # ----------------------------------------------------------------------------------- results
@@ -219,28 +137,42 @@ class SemanticModel:
         on_infeasible: "raise" (refuse with the reachable range / the residuals) or "clamp"
             (clamp to the range and warn; a miss after ``max_iter`` warns).
 
-    Attributes (after ``fit``/``load``): labels_ (names), measured_ (names measured on bodies),
-    X_ (N, K) coefficients of one rest scan per subject, Y_ (N, L) labels (NaN unknown),
-    regressors_ name -> fitted regressor, regions_ name -> (V,) weights, subjects_ (N,) ids.
+    Attributes (after ``fit``/``from_arrays``): labels_ (names), measured_ (names measured on
+    bodies), lengths_ (measurement targets), X_ (N, K) coefficients of one rest scan per subject,
+    Y_ (N, L) labels (NaN unknown), regressors_ name -> fitted regressor, regions_ name -> (V,)
+    weights, subjects_ (N,) ids.
     """
 
     def __init__(self, body_model, sigma_limit: float = 3.0, max_iter: int = 20, on_infeasible: str = "raise"):
-        if on_infeasible not in ("raise", "clamp"):
-            raise ParameterError(f"on_infeasible={on_infeasible!r}, expected 'raise' or 'clamp'")
         self.body_model = body_model
         self.sigma_limit = float(sigma_limit)
         self.max_iter = int(max_iter)
         self.on_infeasible = on_infeasible
+        self._check_params()
         self._mset = None
         self._sub_msets = {}
         self._blends = {}
+        self._projector = None
         self.lengths_ = []
+
+    def _check_params(self) -> None:
+        if self.on_infeasible not in ("raise", "clamp"):
+            raise ParameterError(f"on_infeasible={self.on_infeasible!r}, expected 'raise' or 'clamp'")
+
+    def set_params(self, **params) -> "SemanticModel":
+        """Change hyper-parameters (sigma_limit, max_iter, on_infeasible) of a fitted model."""
+        valid = ("sigma_limit", "max_iter", "on_infeasible")
+        for key, value in params.items():
+            if key not in valid:
+                raise ParameterError(f"SemanticModel.set_params: unknown parameter {key!r}, expected one of {valid}")
+            setattr(self, key, value if key == "on_infeasible" else type(getattr(self, key))(value))
+        self._check_params()
+        return self
 
     # ------------------------------------------------------------------ fitting
     @property
     def mset(self):
         if self._mset is None:
-            from bodyspace.measure import load_measurement_set
             self._mset = load_measurement_set()
         return self._mset
 
@@ -248,86 +180,54 @@ class SemanticModel:
         return name in self.measured_ or name in self.lengths_
 
     def _measure(self, vertices, names=None) -> dict:
-        """Measurements of bodies: the whole set, or just ``names`` (plus what they depend on:
-        mass needs stature, bmi mass and stature), in the set's order. The generation loop
-        measures only what the request needs (the full set costs several times as much)."""
-        from bodyspace.measure import measure
+        """Measurements of bodies: the whole set, or just ``names`` and what they depend on
+        (``labels.measurement_subset``, cached per set of names)."""
         mset = self.mset
         if names is not None:
             key = frozenset(names)
             if key not in self._sub_msets:
-                by_name = {m["name"]: m for m in mset.measurements}
-                need, todo = set(), list(key)
-                while todo:
-                    n = todo.pop()
-                    if n in need or n not in by_name:
-                        continue
-                    need.add(n)
-                    m = by_name[n]
-                    if m["method"] in ("mass", "bmi"):
-                        todo += [m[k] for k in ("stature", "mass") if isinstance(m.get(k), str)]
-                self._sub_msets[key] = dataclasses.replace(
-                    mset, measurements=tuple(m for m in mset.measurements if m["name"] in need))
+                self._sub_msets[key] = measurement_subset(mset, key)
             mset = self._sub_msets[key]
         return measure(mset, vertices, self.body_model.faces)
+
+    def _project(self, vertices) -> np.ndarray:
+        """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3), with the encoder's
+        check for flipped triangles off. The model's own bodies fold where its training scans
+        fold (the LBS-posed population folds a few triangles, a model fitted on it decodes
+        them), so a mesh ``generate`` wrote would be reported, or refused under
+        ``on_flipped="raise"``; the projection is exact for folded triangles all the same, and
+        a morph adds a change to the mesh, keeping whatever folds it had."""
+        if self._projector is None:
+            encoder = copy.copy(self.body_model.encoder)
+            if hasattr(encoder, "on_flipped"):  # a flip policy, where the encoder has one
+                encoder.on_flipped = "ignore"
+            self._projector = encoder
+        codes = self._projector.encode(vertices)
+        return np.asarray(self.body_model.space.transform(codes), dtype=float)
 
     def fit(self, db, measured=MEASURED_LABELS, subject_labels=None, rng=0, template=None) -> "SemanticModel":
         """Labels and regressors from ``db`` (the database the body model was fitted on): one
         rest scan per subject (the first of the model's fitted scans for that subject)."""
-        from bodyspace.model import _read
         bm = self.body_model
-        rows = np.asarray(bm.fitted_scans)
-        if rows.size == 0:
-            raise ParameterError("body_model: no fitted_scans recorded, expected a BodyModel from BodyModel.fit")
-        scan_subj = np.asarray(db.scans["subject"])[rows]
-        _, first = np.unique(scan_subj, return_index=True)
-        first = np.sort(first)
-        rows, subj = rows[first], scan_subj[first]
-        if len(rows) < 4:
-            raise ParameterError(f"database: {len(rows)} subjects, expected at least 4 to fit semantic regressors")
-        verts = _read(db, rows)
-        self.subjects_ = subj.astype(str)
-        self.X_ = np.asarray(bm.project(verts), dtype=float).reshape(len(rows), -1)
+        rows, self.subjects_ = first_scan_per_subject(db.scans["subject"], bm.fitted_scans)
+        verts = read_scans(db, rows)
+        self.X_ = self._project(verts).reshape(len(rows), -1)
         values = self._measure(verts)
-        unknown = [m for m in measured if m not in values]
-        if unknown:
-            raise ParameterError(f"measured labels {unknown} are not in the measurement set; expected names from "
-                                 f"{', '.join(values)}")
-        labels = {m: np.asarray(values[m], dtype=float) for m in measured}
-        cols = db.subjects
-        ids = np.asarray(cols["subject"]).astype(str)
-        index = {s: i for i, s in enumerate(ids)}
-        where = np.array([index[s] for s in self.subjects_])
-        for name, col in (SUBJECT_LABELS if subject_labels is None else subject_labels).items():
-            if col not in cols:
-                continue
-            raw = np.asarray(cols[col])[where]
-            if name == "sex" or raw.dtype.kind in "OUS":
-                low = np.char.lower(raw.astype(str))
-                v = np.where(low == "male", 1.0, np.where(low == "female", 0.0, np.nan))
-            else:
-                v = raw.astype(float)
-            if np.isfinite(v).sum() >= 4 and np.nanstd(v) > 0:
-                labels[name] = v
+        labels = measured_labels(values, measured)
+        labels.update(labels_from_subjects(db.subjects, self.subjects_, subject_labels))
         self.labels_ = list(labels)
-        self.measured_ = [m for m in measured]
+        self.measured_ = list(measured)
         self.Y_ = np.column_stack([labels[n] for n in self.labels_])
-        self._fit_regressors(rng)
-        # every other length of the measurement set (girths, Rupprecht loops, widths, limb
-        # lengths) is a target too: a regressor each (cheap), measured only when asked
-        self.lengths_ = []
-        for m in self.mset.measurements:
-            name = m["name"]
-            if name in labels or m["unit"] != "m" or name not in values:
-                continue
-            y = np.asarray(values[name], dtype=float)
+        # every other length of the measurement set is a target too: a regressor each (cheap),
+        # measured on a body only when asked
+        targets = measurement_targets(self.mset, values, exclude=labels)
+        self.lengths_ = list(targets)
+        self.regressors_ = {}
+        for name, y in {**labels, **targets}.items():
             ok = np.isfinite(y)
-            if ok.sum() >= 4 and np.std(y[ok]) > 0:
-                self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
-                self.lengths_.append(name)
+            self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
         if template is None:
             try:
-                from bodyspace.data.template import load_template
                 template = load_template()
             except BodyspaceError:
                 template = None
@@ -336,13 +236,6 @@ class SemanticModel:
                 np.array_equal(np.asarray(template.faces), bm.faces):
             self.regions_ = region_weights_from_template(template)
         return self
-
-    def _fit_regressors(self, rng):
-        self.regressors_ = {}
-        for j, name in enumerate(self.labels_):
-            y = self.Y_[:, j]
-            ok = np.isfinite(y)
-            self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
 
     @staticmethod
     def _fit_one(x, y, rng):
@@ -367,7 +260,7 @@ class SemanticModel:
         if name not in getattr(self, "regressors_", {}):
             labels = list(getattr(self, "labels_", []))
             lengths = list(getattr(self, "lengths_", []))
-            meas = ", ".join(lengths) or "(none: this semantics file predates measurement targets; refit it)"
+            meas = ", ".join(lengths) or "(none: these regressors predate measurement targets; refit them)"
             raise ParameterError(f"unknown semantic variable {name!r}; accepted names: labels "
                                  f"{', '.join(labels) or '(none)'}; measurements {meas}")
         return self.regressors_[name]
@@ -406,82 +299,21 @@ class SemanticModel:
 
     # ------------------------------------------------------------------ the closed loop
     def _solve(self, c0, goal: dict, body, timings, messages, current=None) -> GenerationResult:
+        """``closed_loop`` from ``c0`` to ``goal`` (name -> SI value), with this model's
+        regressors, tolerances and ``on_infeasible`` policy for a miss."""
         names = list(goal)
         g = np.array([goal[n] for n in names], dtype=float)
-        tol = np.array([tolerance(n) for n in names])
-        metric = 1.0 / np.maximum(self.variances, 1e-300)
         grads = np.array([self._regressor(n).gradient(c0) for n in names], dtype=float)
-        c = np.asarray(c0, dtype=float).copy()
-        x = body(c)
-        vals, meas = current if current is not None else self._values(names, x, c, timings)
-
-        def score(v):
-            e = np.abs(g - v) / tol
-            return float(np.linalg.norm(e)) if np.isfinite(e).all() else np.inf
-
-        def try_step(step):
-            cn = c + step
-            xn = body(cn)
-            vn, mn = self._values(names, xn, cn, timings)
-            return cn, xn, vn, mn
-
-        it = 0
-        # 1. Equation (11): the minimum-norm step (PCA-variance metric) along the regressor gradients.
-        if score(vals) > np.sqrt(len(names)) or np.any(np.abs(g - vals) > tol):
-            t = time.perf_counter()
-            z = morph_directions(grads, g - vals, metric=metric)
-            timings["solve"] += time.perf_counter() - t
-            cn, xn, vn, mn = try_step(z)
-            it += 1
-            if score(vn) < score(vals):
-                c, x, vals, meas = cn, xn, vn, mn
-        # 2. Closed loop: Gauss-Newton on the measured residuals in the span of the minimum-norm
-        #    directions u_i = var * s_i (where every minimum-norm solution lies), Jacobian by
-        #    finite differences there, refreshed by Broyden updates, steps at most MAX_STEP SD.
-        u = self.variances[:, None] * grads.T
-        extra = np.eye(len(metric))[:, :min(EXTRA_DIRECTIONS, len(metric))] * np.sqrt(self.variances)[:, None]
-        u = _metric_orthonormal(np.hstack([u, extra]), metric)
-        # The regressors' gradients are a first model of the measured Jacobian in that span: a
-        # correction costs one decode instead of a finite-difference column per direction, and
-        # the finite differences run only once a step shows the model is off.
-        jac, fresh = grads @ u, False
-        while np.any(np.abs(g - vals) > tol) and it < self.max_iter:
-            if jac is None:
-                jac = np.empty((len(names), u.shape[1]))
-                for i in range(u.shape[1]):
-                    _, _, vi, _ = try_step(FD_STEP * u[:, i])
-                    jac[:, i] = (vi - vals) / FD_STEP
-                fresh = True
-                if not np.isfinite(jac).all():
-                    break
-            t = time.perf_counter()
-            a = np.linalg.lstsq(jac, g - vals, rcond=1e-8)[0]
-            a *= min(1.0, MAX_STEP / max(np.linalg.norm(a), 1e-300))
-            timings["solve"] += time.perf_counter() - t
-            before = score(vals)
-            for _ in range(4):  # backtrack if a step makes things worse
-                cn, xn, vn, mn = try_step(u @ a)
-                it += 1
-                if score(vn) < before:
-                    break
-                a = a * 0.5
-            if score(vn) < before:
-                if score(vn) > 0.5 * before and not fresh:
-                    jac = None  # slow progress: the secant model is off, measure it again
-                elif np.isfinite(vn).all():
-                    jac = jac + np.outer((vn - vals) - jac @ a, a) / max(float(a @ a), 1e-300)
-                c, x, vals, meas = cn, xn, vn, mn
-                fresh = False
-            elif fresh:
-                break  # no progress even with a fresh Jacobian
-            else:
-                jac = None  # refresh the Jacobian where we are
-        converged = bool(np.all(np.abs(g - vals) <= tol))
-        if not converged:
+        loop = closed_loop(c0, g, [tolerance(n) for n in names], self.variances, grads, body,
+                           lambda x, c: self._values(names, x, c, timings), current=current,
+                           max_iter=self.max_iter)
+        timings["solve"] += loop.solve_s
+        vals, meas = loop.values, loop.measurements
+        if not loop.converged:
             miss = ", ".join(f"{n} {format_value(n, v)} (asked {format_value(n, gv)})"
-                             for n, v, gv, tl in zip(names, vals, g, tol) if abs(gv - v) > tl)
-            msg = (f"not met after {it} corrections: {miss}; the request is probably not jointly reachable "
-                   f"(ask for less, or fewer constraints)")
+                             for n, v, gv, m in zip(names, vals, g, loop.missed) if m)
+            msg = (f"not met after {loop.iterations} corrections: {miss}; the request is probably not jointly "
+                   "reachable (ask for less, or fewer constraints)")
             if self.on_infeasible == "raise":
                 raise TargetError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
@@ -489,11 +321,13 @@ class SemanticModel:
         missing = [n for n in self.measured_ if n not in meas]
         if meas and missing:  # the result reports every measured label: the rest once, on the final body
             t = time.perf_counter()
-            meas = {**meas, **self._measure(x, missing)}
+            meas = {**meas, **self._measure(loop.vertices, missing)}
             timings["measure"] += time.perf_counter() - t
-        maha = float(np.sqrt(np.sum((c - c0) ** 2 * metric)))
-        return GenerationResult(c, x, dict(zip(names, vals.tolist())), dict(zip(names, g.tolist())), converged,
-                                it, maha, dict(timings), messages, {k: float(v) for k, v in meas.items()})
+        metric = 1.0 / np.maximum(self.variances, 1e-300)
+        maha = float(np.sqrt(np.sum((loop.coefficients - np.asarray(c0, dtype=float)) ** 2 * metric)))
+        return GenerationResult(loop.coefficients, loop.vertices, dict(zip(names, vals.tolist())),
+                                dict(zip(names, g.tolist())), loop.converged, loop.iterations, maha,
+                                dict(timings), messages, {k: float(v) for k, v in meas.items()})
 
     # ------------------------------------------------------------------ generate
     def generate(self, targets: dict, rng=None, sigma_range: float = 2.0) -> GenerationResult:
@@ -563,23 +397,24 @@ class SemanticModel:
             return np.max([self.regions_[m] for m in mask], axis=0)
         return np.asarray(mask, dtype=float)
 
-    def _masked_blend(self, weights) -> MaskedBlend:
-        """The ``MaskedBlend`` of a mask, built on the model's mean body and cached: its matrix
-        depends on the mask and the rest geometry only, so a morph pays triangular solves, not a
-        factorization. Using the mean body's gradients instead of the morphed body's changes only
-        the metric the change is blended in; outside the mask nothing moves either way."""
+    def _masked_blend(self, weights) -> MaskedPoissonBlend:
+        """The ``MaskedPoissonBlend`` of a mask, built on the model's mean body and cached: its
+        matrix depends on the mask and the rest geometry only, so a morph pays triangular
+        solves, not a factorization. Using the mean body's gradients instead of the morphed
+        body's changes only the metric the change is blended in; outside the mask nothing moves
+        either way."""
         key = np.asarray(weights, dtype=float).tobytes()
         if key not in self._blends:
-            if len(self._blends) >= 8:  # bounded: user-supplied weight arrays are keys too
+            if len(self._blends) >= MAX_CACHED_MASKS:
                 self._blends.pop(next(iter(self._blends)))
             mean = np.asarray(self.body_model.encoder.mean_vertices_, dtype=float)
-            self._blends[key] = MaskedBlend(mean, self.body_model.faces, weights)
+            self._blends[key] = MaskedPoissonBlend(mean, self.body_model.faces, weights)
         return self._blends[key]
 
     def morph(self, vertices, changes: dict, keep=(), mask=None) -> GenerationResult:
         """Morph a registered mesh (V, 3): ``changes`` name -> ``Target`` (value/delta/range) or a
         float *change* (SI), ``keep`` names held at their measured value, ``mask`` a region
-        name(s) or (V,) weights: the change is confined to it (``MaskedBlend``), and the loop
+        name(s) or (V,) weights: the change is confined to it (``MaskedPoissonBlend``), and the loop
         corrects for what the mask took away."""
         timings = {"decode": 0.0, "measure": 0.0, "solve": 0.0}
         messages: list = []
@@ -596,7 +431,7 @@ class SemanticModel:
         if not reqs:
             raise ParameterError("morph: nothing to change, expected at least one --set")
         t = time.perf_counter()
-        c0 = np.asarray(self.body_model.project(x0), dtype=float).reshape(-1)
+        c0 = self._project(x0).reshape(-1)
         d0 = np.asarray(self.body_model.reconstruct(c0))[0]
         timings["decode"] += time.perf_counter() - t
         w = self.mask_weights(mask)
@@ -630,11 +465,6 @@ class SemanticModel:
     def evaluate(self, folds: int = 10, rng=0) -> tuple:
         """(Table 1 ``RegressionTable``, Table 2 dict label -> (mean, sd) degrees) on the model's
         subjects (one row per subject)."""
-        from bodyspace.semantics.evaluation import (
-            cross_validated_rmse,
-            direction_angles,
-        )
-        from bodyspace.semantics.regressors import KernelRegressor
         labels = {n: self.Y_[:, j] for j, n in enumerate(self.labels_)}
         table1 = cross_validated_rmse(self.X_, labels, folds=folds, rng=rng)
         table2 = {}
@@ -644,57 +474,151 @@ class SemanticModel:
             table2[n] = direction_angles(reg, self.X_[ok])
         return table1, table2
 
-    # ------------------------------------------------------------------ files
-    def save(self, path) -> Path:
-        """One ``.npz`` (no pickle) with a JSON header; by default beside the model file."""
-        path = Path(path)
-        arrays = {"X": self.X_, "Y": self.Y_, "subjects": np.array(self.subjects_, dtype="U")}
-        regs = {}
-        for name, reg in self.regressors_.items():
-            regs[name] = type(reg).__name__
-            for k, a in reg.to_arrays().items():
-                arrays[f"reg/{name}/{k}"] = a
+    # ------------------------------------------------------------------ storage
+    def to_arrays(self, prefix: str = PREFIX) -> dict[str, np.ndarray]:
+        """The fitted state as flat arrays under ``prefix`` (no object dtype, no pickle), for the
+        BodyModel file: ``meta`` (uint8 JSON: names, regressor kinds, sigma_limit, ...), ``X``
+        (N, K), ``Y`` (N, L) with ``Y_known`` (N, L) bool (unknown labels stored as 0: a model
+        file holds finite numbers only), ``subjects`` (N,), ``reg<j>_<key>`` the j-th
+        regressor's arrays, ``region_<name>`` (V,) float64."""
+        if not hasattr(self, "regressors_"):
+            raise ParameterError("SemanticModel is not fitted; call fit(db) first")
+        names = list(self.regressors_)
+        meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "labels": list(self.labels_),
+                "measured": list(self.measured_), "lengths": list(self.lengths_),
+                "regressors": [[n, type(self.regressors_[n]).__name__] for n in names],
+                "regions": list(self.regions_), "sigma_limit": self.sigma_limit,
+                "n_components": int(self.X_.shape[1]), "template_id": self.body_model.template_id,
+                "units": {n: kind_of(n) for n in list(self.labels_) + list(self.lengths_)}}
+        y = np.asarray(self.Y_, dtype=float)
+        out = {prefix + "meta": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8),
+               prefix + "X": np.asarray(self.X_, dtype=np.float64),
+               prefix + "Y": np.where(np.isfinite(y), y, 0.0), prefix + "Y_known": np.isfinite(y),
+               prefix + "subjects": np.array(self.subjects_, dtype="U")}
+        for j, name in enumerate(names):
+            for key, a in self.regressors_[name].to_arrays().items():
+                out[f"{prefix}reg{j}_{key}"] = a
         for name, w in self.regions_.items():
-            arrays[f"region/{name}"] = w.astype(np.float32)
-        header = {"format": FORMAT, "format_version": FORMAT_VERSION, "labels": self.labels_,
-                  "measured": self.measured_, "lengths": self.lengths_, "regressors": regs, "regions": list(self.regions_),
-                  "sigma_limit": self.sigma_limit, "n_components": int(self.X_.shape[1]),
-                  "template_id": self.body_model.template_id,
-                  "units": {n: kind_of(n) for n in self.labels_ + self.lengths_}}
-        arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        return path
+            out[f"{prefix}region_{name}"] = np.asarray(w, dtype=np.float64)
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays, body_model, prefix: str = PREFIX, **params) -> "SemanticModel":
+        """Inverse of ``to_arrays`` for ``body_model`` (the model whose file holds them);
+        ``params`` override the stored hyper-parameters. Raises ``SemanticsFileError`` naming the
+        array that is missing or does not fit."""
+        def get(key):
+            if prefix + key not in arrays:
+                raise SemanticsFileError(f"semantic regressors: array '{prefix + key}' is missing; expected the "
+                                         "arrays written by SemanticModel.to_arrays")
+            return np.asarray(arrays[prefix + key])
+
+        raw = get("meta")
+        try:
+            meta = json.loads(raw.astype(np.uint8).tobytes().decode("utf-8"))
+            assert isinstance(meta, dict)
+        except (ValueError, TypeError, AssertionError) as exc:
+            raise SemanticsFileError(f"semantic regressors: array '{prefix}meta' is not UTF-8 JSON ({exc})") from None
+        regs = {}
+        for j, entry in enumerate(meta.get("regressors") or []):
+            if not (isinstance(entry, list) and len(entry) == 2):
+                raise SemanticsFileError(f"semantic regressors: entry {j} of '{prefix}meta' regressors is {entry!r}, "
+                                         "expected [name, kind]")
+            key = f"{prefix}reg{j}_"
+            regs[str(entry[0])] = (entry[1], {k[len(key):]: arrays[k] for k in arrays if k.startswith(key)})
+        y, known = get("Y").astype(float), get("Y_known")
+        if known.shape != y.shape or known.dtype != bool:
+            raise SemanticsFileError(f"semantic regressors: '{prefix}Y_known' has shape {known.shape} and dtype "
+                                     f"{known.dtype}, expected {y.shape} bool")
+        regions = {name: get(f"region_{name}") for name in meta.get("regions") or []}
+        return cls._from_state(body_model, meta, get("X"), np.where(known, y, np.nan), get("subjects"), regs,
+                               regions, params, "semantic regressors")
 
     @classmethod
     def load(cls, path, body_model, **params) -> "SemanticModel":
-        from bodyspace.semantics.regressors import KernelRegressor
+        """Read a sidecar ``MODEL.semantics.npz`` that earlier versions wrote beside the model
+        (``allow_pickle=False``). New fits live inside the model file (``to_arrays``); the CLI
+        folds a sidecar in on first use. Raises ``SemanticsFileError`` for a missing, damaged
+        or mismatched file, saying how to refit."""
         path = Path(path)
+        refit = ("refit the regressors from the scan database the model was built from (CLI: --database DB; "
+                 "API: SemanticModel(model).fit(db))")
         if not path.is_file():
-            raise ParameterError(f"{path}: no semantic model; fit one from the database (CLI: --database DB)")
+            raise SemanticsFileError(f"{path}: no semantic model; {refit}")
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        if magic != b"PK\x03\x04":  # numpy would call any other file pickled data
+            raise SemanticsFileError(f"{path}: damaged, not an .npz archive (starts with {magic!r}); {refit}")
         try:
-            z = np.load(path, allow_pickle=False)
-            header = json.loads(z["header"].tobytes().decode("utf-8"))
-        except Exception as exc:  # noqa: BLE001 - any damage is reported the same way
-            raise ParameterError(f"{path}: not a SemanticModel file ({exc})") from None
-        if header.get("format") != FORMAT or header.get("format_version") != FORMAT_VERSION:
-            raise ParameterError(f"{path}: format {header.get('format')!r} v{header.get('format_version')!r}, "
-                                 f"expected {FORMAT!r} v{FORMAT_VERSION}")
-        if header.get("n_components") != body_model.n_components:
-            raise ParameterError(f"{path}: fitted on {header.get('n_components')} components, the model has "
-                                 f"{body_model.n_components}; refit it (--database DB --refit)")
-        self = cls(body_model, sigma_limit=params.pop("sigma_limit", header.get("sigma_limit", 3.0)), **params)
-        kinds = {"FilteredLinearRegressor": FilteredLinearRegressor, "SimpleLinearRegressor": SimpleLinearRegressor,
-                 "KernelRegressor": KernelRegressor}
-        with z:
-            self.X_, self.Y_ = z["X"], z["Y"]
-            self.subjects_ = z["subjects"].astype(str)
-            self.labels_, self.measured_ = list(header["labels"]), list(header["measured"])
-            self.lengths_ = list(header.get("lengths", []))
-            self.regressors_ = {}
-            for name, kind in header["regressors"].items():
-                prefix = f"reg/{name}/"
-                arrs = {k[len(prefix):]: z[k] for k in z.files if k.startswith(prefix)}
-                self.regressors_[name] = kinds[kind].from_arrays(arrs)
-            self.regions_ = {name: z[f"region/{name}"].astype(float) for name in header["regions"]}
+            with np.load(path, allow_pickle=False) as z:
+                header = json.loads(z["header"].tobytes().decode("utf-8"))
+                if not isinstance(header, dict) or header.get("format") != FORMAT:
+                    found = header.get("format") if isinstance(header, dict) else type(header).__name__
+                    raise SemanticsFileError(f"{path}: format {found!r}, expected {FORMAT!r}; {refit}")
+                regs = {}
+                for name, kind in dict(header["regressors"]).items():
+                    key = f"reg/{name}/"
+                    regs[name] = (kind, {k[len(key):]: z[k] for k in z.files if k.startswith(key)})
+                state = (z["X"], z["Y"], z["subjects"], regs,
+                         {name: z[f"region/{name}"] for name in header["regions"]})
+        except SemanticsFileError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any damage (zip, npy, JSON, missing key) is reported one way
+            raise SemanticsFileError(f"{path}: damaged, not a semantics file ({type(exc).__name__}: {exc}); "
+                                     f"{refit}") from None
+        if header.get("format_version") != FORMAT_VERSION:
+            raise SemanticsFileError(f"{path}: format_version {header.get('format_version')!r}, expected "
+                                     f"{FORMAT_VERSION}; {refit}")
+        return cls._from_state(body_model, header, *state, params, str(path), refit=refit)
+
+    @classmethod
+    def _from_state(cls, body_model, meta, X, Y, subjects, regressors, regions, params, where: str,
+                    refit: str = "refit them (CLI: --database DB --refit)") -> "SemanticModel":
+        """A fitted model from its stored parts, every part checked against ``body_model``.
+
+        meta: dict (labels, measured, lengths, sigma_limit, n_components). X (N, K), Y (N, L),
+        subjects (N,); regressors: name -> (kind, arrays); regions: name -> (V,). ``where``
+        names the source in messages."""
+        k = body_model.n_components
+        if meta.get("n_components") != k:
+            raise SemanticsFileError(f"{where}: fitted on {meta.get('n_components')!r} components, the model has "
+                                     f"{k}; {refit}")
+        try:
+            labels, measured = [str(n) for n in meta["labels"]], [str(n) for n in meta["measured"]]
+            lengths = [str(n) for n in meta.get("lengths", [])]
+            params = {"sigma_limit": float(meta.get("sigma_limit", 3.0)), **params}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SemanticsFileError(f"{where}: header field {exc} is missing or malformed; {refit}") from None
+        X, Y, subjects = np.asarray(X), np.asarray(Y), np.asarray(subjects)
+        n = len(X)
+        for name, a, shape in (("X", X, (n, k)), ("Y", Y, (n, len(labels))), ("subjects", subjects, (n,))):
+            if a.shape != shape or (name != "subjects" and a.dtype.kind != "f"):
+                raise SemanticsFileError(f"{where}: '{name}' has shape {a.shape} and dtype {a.dtype}, expected "
+                                         f"{shape}{'' if name == 'subjects' else ' float'}; {refit}")
+        self = cls(body_model, **params)
+        self.X_, self.Y_, self.subjects_ = X.astype(float), Y.astype(float), subjects.astype(str)
+        self.labels_, self.measured_, self.lengths_ = labels, measured, lengths
+        self.regressors_ = {}
+        for name, (kind, arrays) in regressors.items():
+            if kind not in _REGRESSOR_KINDS:
+                raise SemanticsFileError(f"{where}: regressor {name!r} of kind {kind!r}, expected one of "
+                                         f"{', '.join(_REGRESSOR_KINDS)}; {refit}")
+            try:
+                reg = _REGRESSOR_KINDS[kind].from_arrays(arrays)
+            except ParameterError as exc:
+                raise SemanticsFileError(f"{where}: regressor {name!r}: {exc}; {refit}") from None
+            if reg.n_features_in_ != k:
+                raise SemanticsFileError(f"{where}: regressor {name!r} takes {reg.n_features_in_} coefficients, "
+                                         f"expected {k}; {refit}")
+            self.regressors_[name] = reg
+        absent = [n for n in labels + lengths if n not in self.regressors_]
+        if absent:
+            raise SemanticsFileError(f"{where}: no regressor for {absent}; {refit}")
+        nv = len(body_model.template_vertices)
+        self.regions_ = {}
+        for name, w in regions.items():
+            w = np.asarray(w, dtype=float)
+            if w.shape != (nv,):
+                raise SemanticsFileError(f"{where}: region {name!r} has shape {w.shape}, expected ({nv},); {refit}")
+            self.regions_[name] = w
         return self

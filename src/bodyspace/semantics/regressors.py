@@ -454,6 +454,8 @@ class KernelRegressor(_SemanticRegressor):
         return dual
 
     def _fit_svr(self, u, ls, gammas, cs):
+        """The SVR grid search. scikit-learn is imported here, not at the top: it is an optional
+        dependency, needed only for ``method="svr"``."""
         try:
             from sklearn.svm import SVR
         except ImportError:  # pragma: no cover - optional dependency
