@@ -23,12 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.model import BodyModel  # noqa: E402
-from bodyspace.report.semantic_report import (  # noqa: E402
-    JOINT_QUANTILE,
-    request_study,
-    write_request_report,
-)
+from bodyspace.report.semantic_report import write_request_report  # noqa: E402
 from bodyspace.semantics.model import SemanticModel  # noqa: E402
+from bodyspace.studies.requests import JOINT_QUANTILE, request_study  # noqa: E402
 from bodyspace.synth.population import build_population
 
 

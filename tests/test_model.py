@@ -14,14 +14,11 @@ from bodyspace.encoding import VertexEncoder
 from bodyspace.errors import BodyspaceError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.model import BodyModel, ModelError
-from bodyspace.report.shape_report import (
-    generalization_study,
-    interpolation_study,
-    write_generalization_report,
-    write_interpolation_report,
-)
+from bodyspace.report.shape_report import write_generalization_report, write_interpolation_report
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import pca_full, pca_randomized
+from bodyspace.studies.generalization import generalization_study
+from bodyspace.studies.interpolation import interpolation_study
 from bodyspace.synth.population import build_population
 
 runner = CliRunner()

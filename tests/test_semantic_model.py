@@ -202,7 +202,8 @@ def test_cli_crowd_and_evaluate(setup, app, tmp_path):
 def test_request_study_small(setup, tmp_path):
     import json
 
-    from bodyspace.report.semantic_report import request_study, write_request_report
+    from bodyspace.report.semantic_report import write_request_report
+    from bodyspace.studies.requests import request_study
     _, _, _, sm = setup
     study = request_study(sm, n=40, rng=0)
     assert study["n"] == 40 and study["success_rate"] == 1.0, study["failures"]
@@ -220,7 +221,8 @@ def test_request_study_small(setup, tmp_path):
 def test_request_study_independent_draws_never_miss_silently(setup):
     """Box corners no subject has may be missed, but never silently, and every request inside
     the population's joint 98% region lands."""
-    from bodyspace.report.semantic_report import format_request_report, request_study
+    from bodyspace.report.semantic_report import format_request_report
+    from bodyspace.studies.requests import request_study
     _, _, _, sm = setup
     study = request_study(sm, n=30, rng=5, joint=None)
     split = study["by_plausibility"]

@@ -108,14 +108,10 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
     from rich.console import Console
     from rich.table import Table
 
-    from bodyspace.mapping.evaluate import (
-        decode_seconds,
-        default_sizes,
-        estimate_seconds,
-        evaluate_mapping,
-        write_report,
-    )
+    from bodyspace.mapping.training import default_sizes
     from bodyspace.model import BodyModel
+    from bodyspace.report.mapping_report import write_mapping_report
+    from bodyspace.studies.mapping import decode_seconds, estimate_seconds, evaluate_mapping
 
     console = Console()
     try:
@@ -133,7 +129,7 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
             task = bar.add_task("mapping evaluate", total=1.0, message="")
             ev, _ = evaluate_mapping(body_model, samples, held_out, seed, n_trees=trees, sweep=sweep,
                                      progress=lambda msg, frac: bar.update(task, completed=frac, message=msg))
-        files = write_report(body_model, ev, out)
+        files = write_mapping_report(body_model, ev, out)
     except BodyspaceError as exc:
         _fail(console, exc)
     table = Table(title=f"measured − requested (cm) over {held_out} held-out requests: mean / variance")
