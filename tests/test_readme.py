@@ -6,6 +6,9 @@ command runs through ``bash -e`` in one temporary folder with ``bodyspace`` on t
 ``python -m bodyspace`` of this source tree; the python blocks are executed in one namespace,
 in the same folder, between the bash commands that surround them. A failure names the README
 line, the command and its output.
+
+Cost: about 65 CPU seconds (most of it 25 interpreter start-ups), a minute of wall clock on an
+idle 2-core machine. Deselect with ``--deselect tests/test_readme.py::test_readme_runs_top_to_bottom``.
 """
 
 from __future__ import annotations
