@@ -21,8 +21,12 @@ from bodyspace.encoding import VertexEncoder
 from bodyspace.model import BodyModel
 from bodyspace.report.mapping_report import write_mapping_report
 from bodyspace.report.render import contact_sheet, histogram_figure
-from bodyspace.report.semantic_report import write_request_report
-from bodyspace.report.shape_report import write_generalization_report, write_interpolation_report
+from bodyspace.report.semantic_report import requests_in_display_units, write_request_report
+from bodyspace.report.shape_report import (
+    generalization_in_mm,
+    write_generalization_report,
+    write_interpolation_report,
+)
 from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
 from bodyspace.semantics.model import SemanticModel
 from bodyspace.studies.generalization import generalization_study
@@ -211,7 +215,7 @@ def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) 
         "interpolation": {"subjects": interp["subjects"], "pairs": interp["pairs"], "summary": interp["summary"],
                           **interp_files},
         "generalization": {"selection": "rest", "folds": general["folds"], "components": general["components"],
-                           "error_mm": general["error_mm"], **general_files},
+                           "error_mm": generalization_in_mm(general)["error_mm"], **general_files},
         "pictures": ["samples.png", interp_files["png"], general_files["png"]],
     }
 
@@ -355,7 +359,8 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
         study = request_study(sm, n=DEMO_REQUESTS, rng=seed, progress=lambda m, f: report(m, 0.55 + 0.45 * f))
         files = write_request_report(study, out)
         study_entry = {"n": study["n"], "joint_quantile": study["joint_quantile"],
-                       "success_rate": study["success_rate"], "errors": study["errors"],
+                       "success_rate": study["success_rate"],
+                       "errors": requests_in_display_units(study)["errors"],
                        "time_per_request_s": study["time_s"]["mean"], **files}
     timings["semantic_requests_s"] = time.perf_counter() - t
 

@@ -2,7 +2,8 @@
 
 ``format_request_report`` lays the study out (share within tolerance, errors per variable,
 inside and outside the population, time per request, failures); ``write_request_report``
-writes it as ``requests.md`` and ``requests.json``.
+writes it as ``requests.md`` and ``requests.json``. The study's errors are SI; both show them
+as ``requests_in_display_units`` does (mm for lengths, kg).
 """
 
 from __future__ import annotations
@@ -12,10 +13,19 @@ from pathlib import Path
 import numpy as np
 
 from bodyspace.atomic import atomic_path, write_json
-from bodyspace.studies.requests import error_unit
 from bodyspace.units import kind_of
 
-__all__ = ["format_request_report", "write_request_report"]
+__all__ = ["format_request_report", "requests_in_display_units", "write_request_report"]
+
+
+def error_unit(name: str) -> tuple[str, float]:
+    """Display unit of the *errors* of a label and the factor from SI."""
+    kind = kind_of(name)
+    if kind == "length":
+        return "mm", 1000.0
+    if kind == "mass":
+        return "kg", 1.0
+    return "1", 1.0
 
 
 def _value_unit(name: str) -> tuple[str, float]:
@@ -30,8 +40,19 @@ def _ordinal(p: float) -> str:
     return f"{k}{suffix}"
 
 
+def requests_in_display_units(study: dict) -> dict:
+    """A copy of ``request_study``'s result whose ``errors`` are in display units (mm for
+    lengths, kg for mass: ``unit`` says which); every other field as it is (SI)."""
+    errors = {}
+    for name, e in study["errors"].items():
+        unit, f = error_unit(name)
+        errors[name] = {k: (unit if k == "unit" else v if k == "bodies" else v * f) for k, v in e.items()}
+    return {**study, "errors": errors}
+
+
 def format_request_report(study: dict) -> str:
-    """Markdown of a ``request_study`` result."""
+    """Markdown of a ``request_study`` result (errors in SI, as the study returns them)."""
+    study = requests_in_display_units(study)
     lines = [f"# Random requests: {study['n']} bodies asked for {', '.join(study['labels'])} together", ""]
     box = ", ".join(f"{n} {study['box'][n][0] * _value_unit(n)[1]:.1f} to {study['box'][n][1] * _value_unit(n)[1]:.1f} "
                     f"{_value_unit(n)[0]}" for n in study["labels"])
@@ -89,5 +110,5 @@ def write_request_report(study: dict, out, stem: str = "requests") -> dict:
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / f"{stem}.md") as tmp:
         tmp.write_text(format_request_report(study))
-    write_json(out / f"{stem}.json", _finite(study))
+    write_json(out / f"{stem}.json", _finite(requests_in_display_units(study)))
     return {"md": f"{stem}.md", "json": f"{stem}.json"}

@@ -18,7 +18,7 @@ from bodyspace.atomic import atomic_path, write_json
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.report.render import contact_sheet
 
-__all__ = ["write_generalization_report", "write_interpolation_report"]
+__all__ = ["generalization_in_mm", "write_generalization_report", "write_interpolation_report"]
 
 
 def write_interpolation_report(result: dict, faces: np.ndarray, out, stem: str = "interpolation") -> dict:
@@ -60,9 +60,23 @@ def write_interpolation_report(result: dict, faces: np.ndarray, out, stem: str =
     return {"table": f"{stem}.md", "json": f"{stem}.json", "png": f"{stem}.png"}
 
 
+def generalization_in_mm(result: dict) -> dict:
+    """``generalization_study``'s result with its errors in mm: ``error_mm``, ``local_error_mm``,
+    ``error_mm_per_fold`` in place of the ``*_m`` fields (metres); everything else as it is."""
+    keys = {"error_m": "error_mm", "local_error_m": "local_error_mm", "error_m_per_fold": "error_mm_per_fold"}
+    out = {}
+    for k, v in result.items():
+        if k in keys:
+            out[keys[k]] = {name: (1000.0 * np.asarray(e, dtype=float)).tolist() for name, e in v.items()}
+        else:
+            out[k] = v
+    return out
+
+
 def write_generalization_report(result: dict, out, stem: str = "generalization") -> dict:
-    """Write ``{stem}.md``, ``{stem}.json`` and a ``{stem}.png`` plot into ``out``."""
+    """Write ``{stem}.md``, ``{stem}.json`` (errors in mm) and a ``{stem}.png`` plot into ``out``."""
     out = Path(out)
+    result = generalization_in_mm(result)
     names = list(result["error_mm"])
     lines = [f"# Leave-one-subject-out reconstruction error ({result['selection']} scans, "
              f"{len(result['folds'])} held-out subjects)", "",

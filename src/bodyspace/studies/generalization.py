@@ -4,7 +4,7 @@ PCA components, RRE against vertex PCA.
 For each held-out subject the PCA is fitted on every other subject's scans and the held-out
 scans are projected and reconstructed; the error is the mean vertex distance (mm) between the
 reconstruction and the scan, both in the documented placement (rigidly aligned to the encoder's
-mean model, docs/encoding.md). A second error, ``local_error_mm``, first aligns each of
+mean model, docs/encoding.md). A second error, ``local_error_m``, first aligns each of
 ``LOCAL_REGIONS`` body regions (k-means clusters of the mean scan's vertices, the same for
 every encoder) rigidly onto the scan: it separates the error of the local shape from limbs and
 regions that are merely turned or shifted. RRE's excess global error is almost all of the
@@ -44,7 +44,7 @@ LOCAL_REGIONS = 12
 def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: int = 6,
                          components: Sequence[int] = DEFAULT_COMPONENTS,
                          progress: Callable[[str, float], None] | None = None) -> dict:
-    """Leave-one-subject-out reconstruction error (mm) against the number of components.
+    """Leave-one-subject-out reconstruction error (metres) against the number of components.
 
     Args:
         db: a ``ScanDatabase``.
@@ -54,10 +54,11 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
         components: component counts; each is capped at the training set's rank, and the
             largest possible count (all components) is always added.
     Returns:
-        dict with ``components`` (the counts), ``error_mm`` {name: (n_counts,) mean over folds
-        and held-out scans of the mean vertex distance}, ``local_error_mm`` (the same after a
-        rigid alignment of each of ``LOCAL_REGIONS`` regions, see the module docstring),
-        ``error_mm_per_fold``, ``folds`` (held-out subjects), ``cost_s``.
+        dict with ``components`` (the counts), ``error_m`` {name: (n_counts,) mean over folds
+        and held-out scans of the mean vertex distance, metres}, ``local_error_m`` (the same
+        after a rigid alignment of each of ``LOCAL_REGIONS`` regions, see the module docstring),
+        ``error_m_per_fold`` {name: (n_folds, n_counts)}, ``folds`` (held-out subjects),
+        ``cost_s``. ``report.shape_report.generalization_in_mm`` gives the same in mm.
     """
     report = progress or (lambda m, f: None)
     t0 = time.perf_counter()
@@ -101,17 +102,17 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
         start = 0
         for f, j, idx in where:
             dec, tgt = decoded[start:start + len(idx)], targets[idx]
-            err[f, j] = 1000.0 * np.linalg.norm(dec - tgt, axis=-1).mean()
+            err[f, j] = np.linalg.norm(dec - tgt, axis=-1).mean()
             aligned = np.empty_like(dec)
             for r in regions:
                 aligned[:, r] = rigid_procrustes(dec[:, r], tgt[:, r])[0]
-            err_local[f, j] = 1000.0 * np.linalg.norm(aligned - tgt, axis=-1).mean()
+            err_local[f, j] = np.linalg.norm(aligned - tgt, axis=-1).mean()
             start += len(idx)
         errors[name] = err.mean(axis=0).tolist()
         local[name] = err_local.mean(axis=0).tolist()
         per_fold[name] = err.tolist()
     report("generalization done", 1.0)
-    return {"selection": selection, "components": ks, "folds": held_subjects, "error_mm": errors,
-            "local_error_mm": local, "local_regions": len(regions),
-            "error_mm_per_fold": per_fold, "training_subjects": len(groups) - 1,
+    return {"selection": selection, "components": ks, "folds": held_subjects, "error_m": errors,
+            "local_error_m": local, "local_regions": len(regions),
+            "error_m_per_fold": per_fold, "training_subjects": len(groups) - 1,
             "cost_s": round(time.perf_counter() - t0, 2)}

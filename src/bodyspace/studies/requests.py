@@ -27,7 +27,7 @@ from bodyspace.errors import BodyspaceError
 from bodyspace.semantics.model import tolerance
 from bodyspace.units import kind_of
 
-__all__ = ["JOINT_QUANTILE", "REQUEST_LABELS", "error_unit", "population_quantile", "request_study"]
+__all__ = ["JOINT_QUANTILE", "REQUEST_LABELS", "population_quantile", "request_study", "si_unit"]
 
 REQUEST_LABELS = ("stature", "mass", "waist_girth")
 PERCENTILES = (2.0, 98.0)
@@ -38,14 +38,9 @@ ERROR_PERCENTILES = (50, 90, 99)
 JOINT_QUANTILE = 0.98
 
 
-def error_unit(name: str) -> tuple[str, float]:
-    """Display unit of the *errors* of a label and the factor from SI."""
-    kind = kind_of(name)
-    if kind == "length":
-        return "mm", 1000.0
-    if kind == "mass":
-        return "kg", 1.0
-    return "1", 1.0
+def si_unit(name: str) -> str:
+    """SI unit of a label's values and errors: "m" (lengths), "kg" (mass) or "1"."""
+    return {"length": "m", "mass": "kg"}.get(kind_of(name), "1")
 
 
 def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, percentiles=PERCENTILES,
@@ -54,8 +49,9 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
     label in ``labels`` (measured labels of ``semantic_model``) and report how they landed.
 
     Returns a JSON-ready dict: ``n``, ``labels``, ``box`` (label -> [lo, hi] SI),
-    ``tolerances`` (SI), ``successes``, ``success_rate``, ``errors`` (label -> unit and the
-    50/90/99th percentile, max and mean of the absolute error, over the bodies generated),
+    ``tolerances`` (SI), ``successes``, ``success_rate``, ``errors`` (label -> SI unit, tolerance
+    and the 50/90/99th percentile, max and mean of the absolute error over the bodies generated,
+    SI; ``report.semantic_report.requests_in_display_units`` gives them in mm and kg),
     ``time_s`` (mean/median/p90/max per request, total), ``iterations`` (mean/max),
     ``failures`` (request, reached, message) and ``requests`` (one row per request, SI).
 
@@ -99,10 +95,9 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
     outside = [r for r in rows if r["population_quantile"] > region]
     errors = {}
     for name in labels:
-        unit, f = error_unit(name)
-        e = np.array([abs(r["error"][name]) for r in rows]) * f
+        e = np.array([abs(r["error"][name]) for r in rows])
         e = e[np.isfinite(e)]
-        errors[name] = {"unit": unit, "tolerance": tol[name] * f, "bodies": int(e.size),
+        errors[name] = {"unit": si_unit(name), "tolerance": tol[name], "bodies": int(e.size),
                         **({f"p{p}": float(np.percentile(e, p)) for p in ERROR_PERCENTILES} if e.size else {}),
                         "max": float(e.max()) if e.size else float("nan"),
                         "mean": float(e.mean()) if e.size else float("nan")}
