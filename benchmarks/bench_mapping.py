@@ -32,12 +32,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import report  # noqa: E402
 
 from bodyspace.data.template import load_template  # noqa: E402
-from bodyspace.mapping.evaluate import evaluate_mapping  # noqa: E402
 from bodyspace.mapping.gradients import RUPPRECHT_SIX, subset  # noqa: E402
 from bodyspace.mapping.refine import refine  # noqa: E402
 from bodyspace.mapping.training import make_training_set, sample_uniform  # noqa: E402
 from bodyspace.measure import load_measurement_set, measure  # noqa: E402
 from bodyspace.model import BodyModel  # noqa: E402
+from bodyspace.report.mapping_report import mapping_tables_markdown  # noqa: E402
+from bodyspace.studies.mapping import decode_seconds, estimate_seconds, evaluate_mapping  # noqa: E402
 from bodyspace.synth.population import build_population
 
 
@@ -125,13 +126,12 @@ def main() -> None:
           f"{1000 * one:.1f} ms, batched: {per:.2f} ms")
     report("refinement (batched)", per / 1000, slow, 1, "requests")
     print()
-    print(ev.markdown())
+    print(mapping_tables_markdown(ev))
     print(f"timings: { {k: round(v, 3) for k, v in ev.timings.items()} }")
 
 
 def bench_rre(model, args) -> None:
     """RRE model: every body is decoded; training set, refinement ms/request, iterations, decodes."""
-    from bodyspace.mapping.evaluate import decode_seconds, estimate_seconds
     per_body = decode_seconds(model)
     print(f"decode: {1000 * per_body:.0f} ms per ±3σ body; estimated run "
           f"{estimate_seconds(model, args.samples, args.held_out, per_body, sweep=False):.0f} s")
@@ -144,7 +144,7 @@ def bench_rre(model, args) -> None:
           f"{ev.settings['refine_iterations_mean']:.1f} iterations (max {ev.settings['refine_iterations_max']}), "
           f"{ev.settings['refine_misses']} missed")
     print()
-    print(ev.markdown())
+    print(mapping_tables_markdown(ev))
     print(f"timings: { {k: round(v, 3) for k, v in ev.timings.items()} }")
 
 

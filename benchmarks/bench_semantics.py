@@ -23,12 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.model import BodyModel  # noqa: E402
-from bodyspace.report.semantic_report import (  # noqa: E402
-    JOINT_QUANTILE,
-    request_study,
-    write_request_report,
-)
+from bodyspace.report.semantic_report import requests_in_display_units, write_request_report  # noqa: E402
 from bodyspace.semantics.model import SemanticModel  # noqa: E402
+from bodyspace.studies.requests import JOINT_QUANTILE, request_study  # noqa: E402
 from bodyspace.synth.population import build_population
 
 
@@ -104,7 +101,7 @@ def main() -> None:
         if args.requests > 0:
             for stem, joint in (("requests", JOINT_QUANTILE), ("requests_independent", None)):
                 study = request_study(sm, n=args.requests, rng=0, joint=joint)
-                e = study["errors"]
+                e = requests_in_display_units(study)["errors"]
                 split = study["by_plausibility"]
                 print(f"request study ({'jointly plausible' if joint else 'independent draws'}): "
                       f"{study['successes']}/{study['n']} ({100 * study['success_rate']:.1f}%) within "

@@ -195,11 +195,12 @@ def test_infeasible_request_gets_closest_plausible_body_and_report(model, fitted
 
 
 def test_evaluation_report_files(model, tmp_path):
-    from bodyspace.mapping.evaluate import METHODS, evaluate_mapping, write_report
+    from bodyspace.report.mapping_report import write_mapping_report
+    from bodyspace.studies.mapping import METHODS, evaluate_mapping
     ev, fitted = evaluate_mapping(model, samples=600, held_out=30, seed=0, n_trees=4, n_jobs=1)
     assert tuple(ev.errors) == METHODS and ev.errors["forest"].shape == (30, 6)
     assert ev.within("forest + refinement") >= 0.96
-    files = write_report(model, ev, tmp_path / "out")
+    files = write_mapping_report(model, ev, tmp_path / "out")
     for f in files.values():
         assert f.exists() and f.stat().st_size > 0
     text = files["tables"].read_text()
@@ -221,7 +222,7 @@ def rre_model(db, template):
 
 @pytest.fixture(scope="module")
 def rre_evaluation(rre_model):
-    from bodyspace.mapping.evaluate import evaluate_mapping
+    from bodyspace.studies.mapping import evaluate_mapping
     return evaluate_mapping(rre_model, samples=32, held_out=4, seed=0, k=RRE_K, n_trees=2, n_jobs=1, sweep=False)
 
 

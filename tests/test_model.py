@@ -14,14 +14,11 @@ from bodyspace.encoding import VertexEncoder
 from bodyspace.errors import BodyspaceError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.model import BodyModel, ModelError
-from bodyspace.report.shape_report import (
-    generalization_study,
-    interpolation_study,
-    write_generalization_report,
-    write_interpolation_report,
-)
+from bodyspace.report.shape_report import write_generalization_report, write_interpolation_report
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import pca_full, pca_randomized
+from bodyspace.studies.generalization import generalization_study
+from bodyspace.studies.interpolation import interpolation_study
 from bodyspace.synth.population import build_population
 
 runner = CliRunner()
@@ -182,11 +179,15 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
                                components=(1, 2))
     assert gen["components"][0] == 1 and gen["components"][-1] == 12 - 3 - 1
     for name in ("rre", "vertex"):
-        e = np.asarray(gen["error_mm"][name])
+        e = np.asarray(gen["error_m"][name])
         assert e.shape == (len(gen["components"]),) and np.isfinite(e).all() and (e > 0).all()
         # Aligning each region rigidly first leaves only the local shape error: never much larger.
-        local = np.asarray(gen["local_error_mm"][name])
-        assert local.shape == e.shape and np.isfinite(local).all() and (local <= 1.05 * e + 1e-6).all()
+        local = np.asarray(gen["local_error_m"][name])
+        assert local.shape == e.shape and np.isfinite(local).all() and (local <= 1.05 * e + 1e-9).all()
     assert gen["local_regions"] == 12
     files = write_generalization_report(gen, tmp_path)
-    assert json.loads((tmp_path / files["json"]).read_text())["units"]["error"] == "mm"
+    written = json.loads((tmp_path / files["json"]).read_text())
+    assert written["units"]["error"] == "mm"
+    # The study is in metres, the report in mm (a body's error is millimetres, never metres).
+    assert np.allclose(written["error_mm"]["vertex"], 1000.0 * np.asarray(gen["error_m"]["vertex"]))
+    assert (np.asarray(gen["error_m"]["rre"]) < 0.2).all()

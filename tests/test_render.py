@@ -252,6 +252,16 @@ def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_new_figure_and_save_png_are_public_building_blocks(tmp_path):
+    """``report.landmarks`` builds its figure from these two: the size in pixels is width x dpi,
+    and the PNG appears under its name only (no temporary file left beside it)."""
+    fig = R.new_figure(2.0, 1.5, 50)
+    fig.add_axes((0, 0, 1, 1)).plot([0, 1], [0, 1])
+    out = R.save_png(fig, tmp_path / "fig.png", 50)
+    assert out == tmp_path / "fig.png" and [p.name for p in tmp_path.iterdir()] == ["fig.png"]
+    assert imread(out).shape[:2] == (75, 100)
+
+
 # --------------------------------------------------------------------------------- histograms
 
 def test_histogram_figure(tmp_path):

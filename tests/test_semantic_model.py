@@ -14,13 +14,10 @@ from bodyspace.errors import SemanticsFileError
 from bodyspace.measure import measure
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel, ModelError
-from bodyspace.report.semantic_report import (
-    format_request_report,
-    request_study,
-    write_request_report,
-)
+from bodyspace.report.semantic_report import format_request_report, write_request_report
 from bodyspace.semantics.masks import MaskedPoissonBlend
 from bodyspace.semantics.model import SemanticModel, TargetError, tolerance
+from bodyspace.studies.requests import request_study
 from bodyspace.synth.population import build_population
 from bodyspace.units import UnitError, kind_of, parse_assignment, parse_target
 
@@ -227,12 +224,14 @@ def test_request_study_small(setup, tmp_path):
     for name, (lo, hi) in study["box"].items():
         asked = np.array([r["asked"][name] for r in study["requests"]])
         assert lo <= asked.min() and asked.max() <= hi
-    assert study["errors"]["stature"]["max"] <= 4.0 and study["errors"]["mass"]["max"] <= 0.5
-    assert study["errors"]["waist_girth"]["unit"] == "mm" and study["errors"]["waist_girth"]["max"] <= 9.0
+    assert study["errors"]["stature"]["max"] <= 0.004 and study["errors"]["mass"]["max"] <= 0.5
+    assert study["errors"]["waist_girth"]["unit"] == "m" and study["errors"]["waist_girth"]["max"] <= 0.009
     assert sm.mset.names == tuple(m["name"] for m in sm.mset.measurements) and len(sm.mset.names) > 5
     files = write_request_report(study, tmp_path)
     assert "40/40" in (tmp_path / files["md"]).read_text()
-    assert json.loads((tmp_path / files["json"]).read_text())["successes"] == 40
+    written = json.loads((tmp_path / files["json"]).read_text())
+    assert written["successes"] == 40 and written["errors"]["waist_girth"]["unit"] == "mm"
+    assert np.isclose(written["errors"]["waist_girth"]["max"], 1000 * study["errors"]["waist_girth"]["max"])
 
 
 def test_request_study_independent_draws_never_miss_silently(setup):

@@ -22,15 +22,11 @@ from bodyspace.cli.common import (
     progress,
 )
 from bodyspace.errors import BodyspaceError
-from bodyspace.mapping.evaluate import (
-    decode_seconds,
-    default_sizes,
-    estimate_seconds,
-    evaluate_mapping,
-    write_report,
-)
+from bodyspace.mapping.training import default_sizes
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import BodyModel
+from bodyspace.report.mapping_report import write_mapping_report
+from bodyspace.studies.mapping import decode_seconds, estimate_seconds, evaluate_mapping
 from bodyspace.units import UnitError, kind_of, parse_assignment
 
 MAPPING_REPORT_KIND = "mapping_report"
@@ -137,7 +133,7 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
         with progress("mapping evaluate", eta=True) as cb:
             ev, _ = evaluate_mapping(body_model, samples, held_out, seed, n_trees=trees, sweep=sweep, progress=cb)
         with output_folder(out, "--out", force, MAPPING_REPORT_KIND) as folder:
-            files = {k: out / Path(f).name for k, f in write_report(body_model, ev, folder).items()}
+            files = {k: out / Path(f).name for k, f in write_mapping_report(body_model, ev, folder).items()}
     except BodyspaceError as exc:
         _fail(console, exc)
     table = Table(title=f"measured − requested (cm) over {held_out} held-out requests: mean / variance")

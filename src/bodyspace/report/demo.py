@@ -14,23 +14,31 @@ from typing import Callable
 
 import numpy as np
 
-from bodyspace.atomic import atomic_dir, write_json
+from bodyspace.atomic import atomic_dir, atomic_path, write_json
 from bodyspace.data import assets
 from bodyspace.data.template import load_template
 from bodyspace.encoding import VertexEncoder
 from bodyspace.model import BodyModel
+from bodyspace.report.mapping_report import write_mapping_report
 from bodyspace.report.render import contact_sheet, histogram_figure
+from bodyspace.report.semantic_report import requests_in_display_units, write_request_report
 from bodyspace.report.shape_report import (
-    generalization_study,
-    interpolation_study,
+    generalization_in_mm,
     write_generalization_report,
     write_interpolation_report,
 )
+from bodyspace.semantics.evaluation import RegressionTable, format_angle_table, format_rmse_table
+from bodyspace.semantics.model import SemanticModel
+from bodyspace.studies.generalization import generalization_study
+from bodyspace.studies.interpolation import interpolation_study
+from bodyspace.studies.mapping import evaluate_mapping
+from bodyspace.studies.requests import request_study
 from bodyspace.synth.population import build_population, load_survey
+from bodyspace.units import kind_of
 
 # Shape-space part of the demo: components of the pose+shape model, bodies sampled, subjects in
 # the interpolation study and held-out subjects in the generalization study (cost: ~0.3 s per
-# RRE decode on 2 cores; see report/shape_report.py).
+# RRE decode on 2 cores; see studies/generalization.py).
 POSE_SHAPE_COMPONENTS = 30
 SAMPLES = 8
 INTERPOLATION_SUBJECTS = 1
@@ -221,14 +229,13 @@ def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) 
         "interpolation": {"subjects": interp["subjects"], "pairs": interp["pairs"], "summary": interp["summary"],
                           **interp_files},
         "generalization": {"selection": "rest", "folds": general["folds"], "components": general["components"],
-                           "error_mm": general["error_mm"], **general_files},
+                           "error_mm": generalization_in_mm(general)["error_mm"], **general_files},
         "pictures": ["samples.png", interp_files["png"], general_files["png"]],
     }
 
 
 def _cm_kg(values: dict) -> dict:
     """Measured labels in display units (cm, kg; sex and other model labels as they are)."""
-    from bodyspace.units import kind_of
     out = {}
     for k, v in values.items():
         kind = kind_of(k)
@@ -242,16 +249,6 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
     (``requested.png``), taller at the same mass (``taller_same_weight.png``), a masked morph
     (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Table 1 and Table 2
     (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``)."""
-    from bodyspace.atomic import atomic_path
-    from bodyspace.report.semantic_report import request_study, write_request_report
-    from bodyspace.semantics.evaluation import (
-        RegressionTable,
-        format_angle_table,
-        format_rmse_table,
-    )
-    from bodyspace.semantics.model import SemanticModel
-    from bodyspace.units import kind_of
-
     messages: list = []
     t = time.perf_counter()
     report("fitting the semantic model (vertex encoding, rest scans)", 0.0)
@@ -376,7 +373,8 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
         study = request_study(sm, n=DEMO_REQUESTS, rng=seed, progress=lambda m, f: report(m, 0.55 + 0.45 * f))
         files = write_request_report(study, out)
         study_entry = {"n": study["n"], "joint_quantile": study["joint_quantile"],
-                       "success_rate": study["success_rate"], "errors": study["errors"],
+                       "success_rate": study["success_rate"],
+                       "errors": requests_in_display_units(study)["errors"],
                        "time_per_request_s": study["time_s"]["mean"], **files}
     timings["semantic_requests_s"] = time.perf_counter() - t
 
@@ -398,14 +396,12 @@ def mapping_demo(bm: BodyModel, out: Path, seed: int, timings: dict, report) -> 
     from the model, the linear baseline, the linear-leaf forest and the exact refinement, scored on
     held-out requests (``mapping_tables.md``/``.json``, ``mapping_errors.png``) and the shoulder
     sweep (``shoulder_sweep.png``)."""
-    from bodyspace.mapping.evaluate import evaluate_mapping, write_report
-
     t = time.perf_counter()
     small = bm.n_components < SEMANTIC_MIN_SUBJECTS  # a tiny database (the CLI test): a quick pass
     samples, held_out = (300, 30) if small else MAPPING_SIZES
     ev, _ = evaluate_mapping(bm, samples=samples, held_out=held_out, seed=seed, k=min(25, bm.n_components),
                              n_trees=10 if small else 50, progress=report)
-    files = write_report(bm, ev, out)
+    files = write_mapping_report(bm, ev, out)
     timings["mapping_s"] = time.perf_counter() - t
     variance = {m: {n: round(d["variance"], 4) for n, d in ev.table(m).items()} for m in ev.errors}
     return {

@@ -5,18 +5,21 @@ its name in a column beside the body, joined by a leader line (docs/measurements
 is ``landmark_figure("docs/measurements_landmark_names.png")``). Surface landmarks (one vertex)
 are filled dots; weighted landmarks (joint centres inside the body) are open rings.
 
-The drawing itself (shaded mesh, projection, atomic PNG write) is ``report.render``'s; it is
-imported when a figure is made, so measuring never loads matplotlib.
+The drawing itself (shaded mesh, projection, atomic PNG write) is ``report.render``'s.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from bodyspace.data.template import load_template
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
+from bodyspace.report.render import draw_mesh, new_figure, project, save_png
+from bodyspace.synth.phenotype import PhenotypeModel
 
 SURFACE_COLOR = "#c0392b"
 JOINT_COLOR = "#1f5fa8"
@@ -54,12 +57,8 @@ def landmark_figure(path: str | os.PathLike, mset: MeasurementSet | None = None,
     column, right ones in the left column, mid-line ones on the side with room. Side (the left
     profile): mid-line and left landmarks (the right ones mirror them).
     """
-    from bodyspace.report.render import _new_figure, _save_png, draw_mesh, project
-
     mset = load_measurement_set() if mset is None else mset
     if vertices is None or faces is None:
-        from bodyspace.data.template import load_template
-        from bodyspace.synth.phenotype import PhenotypeModel
         template = load_template()
         vertices = PhenotypeModel(template).vertices({})[0] if vertices is None else vertices
         faces = template.faces if faces is None else faces
@@ -78,7 +77,7 @@ def landmark_figure(path: str | os.PathLike, mset: MeasurementSet | None = None,
     y_lim = (-0.16, body_h * 1.04)
     width_in = 15.0
     height_in = width_in * (y_lim[1] - y_lim[0]) / (x_lim[1] - x_lim[0]) / 0.94
-    fig = _new_figure(width_in, height_in, dpi)
+    fig = new_figure(width_in, height_in, dpi)
     ax = fig.add_axes((0.0, 0.0, 1.0, 0.94))
     ax.set_axis_off()
     fs = 8.5
@@ -135,9 +134,8 @@ def landmark_figure(path: str | os.PathLike, mset: MeasurementSet | None = None,
     ax.set_ylim(*y_lim)
     ax.set_aspect("equal")
     fig.suptitle(title or f"landmarks of {Path(mset.source).name} ({len(names)})", fontsize=fs + 4)
-    return _save_png(fig, path, dpi)
+    return save_png(fig, path, dpi)
 
 
 if __name__ == "__main__":      # python -m bodyspace.report.landmarks [out.png]
-    import sys
     print(landmark_figure(sys.argv[1] if len(sys.argv) > 1 else "docs/measurements_landmark_names.png"))

@@ -214,13 +214,15 @@ def draw_polyline(ax, points3d: np.ndarray, view: str = "front",
     return line
 
 
-def _new_figure(width_in: float, height_in: float, dpi: float) -> Figure:
+def new_figure(width_in: float, height_in: float, dpi: float) -> Figure:
+    """A bare ``Figure`` of ``width_in`` x ``height_in`` inches on its own Agg canvas."""
     fig = Figure(figsize=(width_in, height_in), dpi=dpi)
     FigureCanvasAgg(fig)          # explicit Agg canvas: no pyplot, no display
     return fig
 
 
-def _save_png(fig: Figure, path: str | os.PathLike, dpi: float) -> Path:
+def save_png(fig: Figure, path: str | os.PathLike, dpi: float) -> Path:
+    """Write ``fig`` as a PNG to ``path`` atomically (temporary name, then rename); returns ``path``."""
     path = Path(path)
     with atomic_path(path) as tmp:
         # The temporary name ends in .part, so the format must be given explicitly.
@@ -313,7 +315,7 @@ def contact_sheet(meshes, faces, path: str | os.PathLike, labels: Sequence[str] 
     h_px = max(1, round(nrows * row_h_in * dpi + title_in * dpi))
     fontsize = max(5.0, 9.0 * shrink)
 
-    fig = _new_figure(w_px / dpi, h_px / dpi, dpi)
+    fig = new_figure(w_px / dpi, h_px / dpi, dpi)
     # One axes for the whole sheet in metres: a single scale across all panels by construction.
     data_w = w_px / dpi * m_per_in
     data_h = (h_px / dpi - title_in) * m_per_in
@@ -353,7 +355,7 @@ def contact_sheet(meshes, faces, path: str | os.PathLike, labels: Sequence[str] 
     if title:
         fig.suptitle(title, y=1.0 - 0.5 * title_in * dpi / h_px, va="center",
                      fontsize=fontsize * 1.35)
-    return _save_png(fig, path, dpi)
+    return save_png(fig, path, dpi)
 
 
 # --------------------------------------------------------------------------------- histograms
@@ -399,7 +401,7 @@ def histogram_figure(panels: Sequence[Mapping], path: str | os.PathLike,
     parsed = [_panel_values(p, i) for i, p in enumerate(panels)]
     ncols = math.ceil(math.sqrt(len(panels)))
     nrows = math.ceil(len(panels) / ncols)
-    fig = _new_figure(ncols * panel_size[0], nrows * panel_size[1], dpi)
+    fig = new_figure(ncols * panel_size[0], nrows * panel_size[1], dpi)
     fig.set_layout_engine("constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     for ax in axes[len(panels):]:
@@ -449,4 +451,4 @@ def histogram_figure(panels: Sequence[Mapping], path: str | os.PathLike,
             ax.legend(fontsize=7, loc="upper right", frameon=False)
     if title:
         fig.suptitle(title, fontsize=12)
-    return _save_png(fig, path, dpi)
+    return save_png(fig, path, dpi)

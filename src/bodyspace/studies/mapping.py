@@ -12,23 +12,23 @@ RRE models: every body is decoded (training set, held-out requests, both predict
 refinement iteration), so the default sizes are smaller (``default_sizes``) and
 ``estimate_seconds`` says how long it will take before starting; the measurements of all three
 methods are those of the truly decoded bodies.
+
+This module returns data (``MappingEvaluation``); ``report.mapping_report`` writes its tables
+and pictures.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from bodyspace.atomic import PNG_METADATA, atomic_path
 from bodyspace.mapping.bundle import forest_for
 from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import refine
-from bodyspace.mapping.training import default_sizes, make_training_set
+from bodyspace.mapping.training import default_sizes, make_training_set, sample_uniform
 
 METHODS = ("linear", "forest", "forest + refinement")
 SWEEP_CM = (100.0, 110.0, 120.0, 130.0, 140.0)
@@ -65,20 +65,6 @@ class MappingEvaluation:
                 "timings_s": {k: round(v, 4) for k, v in self.timings.items()},
                 "shoulder_sweep": _jsonable(self.sweep)}
 
-    def markdown(self) -> str:
-        """The layout of Tables 1 and 2, the three methods side by side (cm, cm²)."""
-        head = "| parameter | " + " | ".join(f"{m} mean | {m} variance" for m in self.errors) + " |"
-        rule = "|---|" + "---|---|" * len(self.errors)
-        rows = [head, rule]
-        tabs = {m: self.table(m) for m in self.errors}
-        for n in self.names:
-            rows.append(f"| {n} | " + " | ".join(f"{tabs[m][n]['mean']:.4f} | {tabs[m][n]['variance']:.4f}"
-                                                 for m in self.errors) + " |")
-        cells = sum(([f"{100 * self.within(m):.1f} %", ""] for m in self.errors), [])
-        rows.append("| all six within 1 mm | " + " | ".join(cells) + " |")
-        return (f"Error (measured − requested) in cm over {len(self.requests)} held-out feasible requests "
-                "(mean in cm, variance in cm²)\n\n" + "\n".join(rows) + "\n")
-
 
 def _jsonable(x):
     if isinstance(x, dict):
@@ -103,7 +89,6 @@ def decode_seconds(model, n: int = 4, k: int = 25, seed: int = 0) -> float:
     uniform ±3 sigma samples; 0 for the vertex encoding (nothing is decoded)."""
     if model.encoding == "vertex":
         return 0.0
-    from bodyspace.mapping.training import sample_uniform
     z = sample_uniform(model, n, k, 3.0, seed + 12345)
     t = time.perf_counter()
     model.reconstruct(z)
@@ -231,64 +216,3 @@ def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "
     return {"names": list(names), "swept": name, "sizes_cm": list(sizes), "requests": req,
             "coefficients": res.coefficients, "measured": res.measured,
             "forest_measured": start, "misses": res.misses}
-
-
-def plot_errors(ev: MappingEvaluation, path) -> Path:
-    """Figure-4-like PNG: per parameter, mean error (bars) and standard deviation (whiskers), and
-    the variance on a log scale, for the three methods."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(11, 4.2), dpi=110)
-    FigureCanvasAgg(fig)
-    ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    x = np.arange(len(ev.names))
-    wdt = 0.8 / len(ev.errors)
-    colors = ("#8c8c8c", "#2a7ab9", "#d95f02")
-    for i, (m, e) in enumerate(ev.errors.items()):
-        ax1.bar(x + (i - 1) * wdt, e.mean(0), wdt, yerr=e.std(0), capsize=2, label=m, color=colors[i % 3])
-        ax2.bar(x + (i - 1) * wdt, np.maximum(e.var(0), 1e-12), wdt, label=m, color=colors[i % 3])
-    for ax, title in ((ax1, "mean ± sd of measured − requested (cm)"), (ax2, "variance (cm², log scale)")):
-        ax.set_xticks(x)
-        ax.set_xticklabels([n.replace("_", " ") for n in ev.names], rotation=25, fontsize=8)
-        ax.set_title(title, fontsize=10)
-        ax.axhline(0, color="k", lw=0.5)
-    ax2.set_yscale("log")
-    ax1.legend(fontsize=8)
-    fig.suptitle(f"semantic mapping on {len(ev.requests)} held-out requests", fontsize=11)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", metadata=PNG_METADATA)
-    return Path(path)
-
-
-def write_report(model, ev: MappingEvaluation, out) -> dict[str, Path]:
-    """Write tables (Markdown + JSON), the Figure-4 PNG and the Figure-6 line-up into folder ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = {"tables": out / "mapping_tables.md", "json": out / "mapping_evaluation.json",
-             "errors_png": out / "mapping_errors.png"}
-    md = ev.markdown()
-    if ev.sweep:
-        sw = ev.sweep
-        md += f"\n{sw['swept']} sweep (other parameters held at the training median; cm)\n\n"
-        md += "| requested | " + " | ".join(sw["names"]) + " | missed |\n|---|" + "---|" * (len(sw["names"]) + 1) + "\n"
-        for i, s in enumerate(sw["sizes_cm"]):
-            miss = ", ".join(f"{k} {v['difference']:+.2f}" for k, v in sw["misses"][i].items()) or "—"
-            md += f"| {s:.0f} | " + " | ".join(f"{v:.2f}" for v in sw["measured"][i]) + f" | {miss} |\n"
-    with atomic_path(files["tables"]) as tmp:
-        Path(tmp).write_text(md)
-    with atomic_path(files["json"]) as tmp:
-        Path(tmp).write_text(json.dumps(ev.to_json(), indent=2))
-    plot_errors(ev, files["errors_png"])
-    if ev.sweep:
-        from bodyspace.report.render import contact_sheet
-        sw = ev.sweep
-        files["sweep_png"] = out / "shoulder_sweep.png"
-        j = sw["names"].index(sw["swept"])
-        bodies = model.reconstruct(np.asarray(sw["coefficients"]))
-        labels = [f"{s:.0f} cm → {m[j]:.1f}" + (" (missed)" if miss else "")
-                  for s, m, miss in zip(sw["sizes_cm"], sw["measured"], sw["misses"])]
-        contact_sheet(bodies, model.faces, files["sweep_png"], labels=labels, views=("front", "side"),
-                      title=f"{sw['swept']} from {sw['sizes_cm'][0]:.0f} to {sw['sizes_cm'][-1]:.0f} cm (Rupprecht Fig. 6)")
-    return files
