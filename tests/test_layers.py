@@ -65,8 +65,9 @@ def _imports(tree: ast.Module, module: str):
                     base = package.split(".")
                     name = ".".join(base[: len(base) - child.level + 1] + ([name] if name else []))
                 if name.startswith("bodyspace"):
-                    if name == "bodyspace":       # from bodyspace import x -> bodyspace.x
-                        out.extend((child.lineno, f"bodyspace.{a.name}", in_function) for a in child.names)
+                    if name == "bodyspace":       # from bodyspace import x -> bodyspace.x, if x is a module
+                        out.extend((child.lineno, f"bodyspace.{a.name}", in_function) for a in child.names
+                                   if (PACKAGE / a.name).is_dir() or (PACKAGE / f"{a.name}.py").is_file())
                     else:
                         out.append((child.lineno, name, in_function))
             visit(child, inner)

@@ -21,12 +21,14 @@ import numpy as np
 import scipy.stats
 
 from bodyspace.atomic import check_replaceable_folder
-from bodyspace.data.database import DATABASE_KIND
+from bodyspace.data.database import DATABASE_KIND, ScanDatabase, write_database
 from bodyspace.data.template import Template
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure.composition import mass_from_volume
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
+from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
+from bodyspace.synth.poses import load_pose_library
 
 REST_POSE = "rest"
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
@@ -254,10 +256,6 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     than it holds is refused, not cut). ``progress(message, fraction)`` is called as work completes.
     Returns the written folder as a ``ScanDatabase``.
     """
-    from bodyspace.data.database import ScanDatabase, write_database
-    from bodyspace.rig.posing import pose_bodies
-    from bodyspace.synth.poses import load_pose_library
-
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
     if Path(out).exists():
