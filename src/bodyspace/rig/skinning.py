@@ -75,11 +75,12 @@ def csr_skin_weights(weights, n_vertices: int, n_bones: int) -> tuple[np.ndarray
     sums = np.add.reduceat(W.data, W.indptr[:-1]) if W.nnz else np.zeros(n_vertices)
     sums[np.diff(W.indptr) == 0] = 0.0                        # reduceat repeats a value at empty rows
     off = np.abs(sums - 1.0)
-    if (off > WEIGHT_SUM_TOLERANCE).any():
-        i = int(np.argmax(off))
+    bad = np.flatnonzero(off > WEIGHT_SUM_TOLERANCE)
+    if len(bad):
+        i = int(bad[0])
         raise ParameterError(f"weights: row {i} (vertex {i}) sums to {sums[i]:.9g} over {int(np.diff(W.indptr)[i])} "
-                             f"bones; expected every row to sum to 1 (within {WEIGHT_SUM_TOLERANCE:g}): "
-                             "normalize the weights (divide each row by its sum)")
+                             f"bones ({len(bad)} rows off in all); expected every row to sum to 1 (within "
+                             f"{WEIGHT_SUM_TOLERANCE:g}): normalize the weights (divide each row by its sum)")
     return W.indptr.astype(np.int64), W.indices.astype(np.uint32), W.data
 
 
