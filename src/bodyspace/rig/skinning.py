@@ -40,8 +40,10 @@ from bodyspace.errors import MeshError, ParameterError
 from bodyspace.parallel import halves, run_both
 
 # ``contract``: multiply-adds may fuse into FMA instructions (no other reassociation): results
-# differ from unfused ones only in the last bit.
-_kernel = numba.njit(cache=True, nogil=True, fastmath={"contract"})
+# differ from unfused ones only in the last bit. ``error_model="numpy"``: a float division does
+# not test for zero (that branch kept DQS's normalization loop from vectorizing; the blended
+# quaternion's norm is not zero for non-negative weights in one hemisphere).
+_kernel = numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 
 # Frames skinned together, in SIMD lanes (8 doubles fill an AVX-512 register): the most a block
 # takes; its (B, 12, 64) table is 1 MB for 163 bones, within a core's L2 (measured: 64 beat 16, 32).
@@ -204,6 +206,18 @@ def _rest_rows(rest, s, nf, i, xyz, check):
 
 
 @_kernel
+def _apply_rows(m, xyz, res):
+    """``res[r] = v_r + m[4r+3] + m[4r] x + m[4r+1] y + m[4r+2] z`` over the frame lanes: the
+    blended ``(A - I | t)`` rows m (12, fb) applied to the rest rows xyz (3, fb)."""
+    fb = xyz.shape[1]
+    x, y, z = xyz[0], xyz[1], xyz[2]
+    for r in range(3):
+        o, v, ax, ay, az, at = res[r], xyz[r], m[4 * r], m[4 * r + 1], m[4 * r + 2], m[4 * r + 3]
+        for f in range(fb):
+            o[f] = v[f] + (at[f] + ax[f] * x[f] + ay[f] * y[f] + az[f] * z[f])
+
+
+@_kernel
 def _lbs_kernel(indptr, indices, data, G, rest, out, fb, n0, n1, i0, i1, check):
     """``out[n, i] = v + sum_k w_k (G_{b_k} - I) [v; 1]`` for frames n0:n1 and vertices i0:i1.
 
@@ -241,11 +255,7 @@ def _lbs_kernel(indptr, indices, data, G, rest, out, fb, n0, n1, i0, i1, check):
                     for f in range(fb):
                         a[f] += w0 * t0[f] + w1 * t1[f] + w2 * t2[f] + w3 * t3[f]
             _rest_rows(rest, s, nf, i, xyz, check)
-            x, y, z = xyz[0], xyz[1], xyz[2]
-            for r in range(3):
-                o, v, ax, ay, az, at = res[r], xyz[r], acc[4 * r], acc[4 * r + 1], acc[4 * r + 2], acc[4 * r + 3]
-                for f in range(fb):
-                    o[f] = v[f] + (at[f] + ax[f] * x[f] + ay[f] * y[f] + az[f] * z[f])
+            _apply_rows(acc, xyz, res)
             for f in range(nf):
                 out[s + f, i, 0] = res[0, f]
                 out[s + f, i, 1] = res[1, f]
@@ -330,8 +340,9 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, out, fb, n0, n1, i0, i1, 
 
     Arguments as ``_lbs_kernel``; pivot (V,): each vertex's heaviest bone. Per vertex and
     frame lane: each bone's dual quaternion, flipped into the pivot's hemisphere, is weighted
-    and summed; the sum is normalized and applied as
-    ``v' = v + 2 w (q x v) + 2 q x (q x v) + t`` with ``t = 2 (e conj(q)).xyz``.
+    and summed; the sum ``(q, e)`` is normalized and applied as the rigid motion
+    ``v' = v + (R(q) - I) v + t`` with ``t = 2 (e conj(q)).xyz``; ``R(q) - I`` is formed from
+    ``q``'s products (its diagonal as ``-2 (q_j^2 + q_k^2)``), so ``q = 1`` gives exactly 0.
     """
     B = G.shape[1]
     table = np.zeros((B, 8, fb))
@@ -339,6 +350,8 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, out, fb, n0, n1, i0, i1, 
         for f in range(fb):
             table[b, 0, f] = 1.0                 # frames past the end: identity
     acc = np.empty((8, fb))
+    m = np.empty((12, fb))
+    inv = np.empty(fb)
     sw = np.empty((4, fb))
     xyz = np.empty((3, fb))
     res = np.empty((3, fb))
@@ -351,8 +364,8 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, out, fb, n0, n1, i0, i1, 
             p = pivot[i]
             pw, px, py, pz = table[p, 0], table[p, 1], table[p, 2], table[p, 3]
             for k in range(indptr[i], indptr[i + 1], 4):
-                for m in range(4):
-                    b, w, sg = indices[k + m], data[k + m], sw[m]
+                for e in range(4):
+                    b, w, sg = indices[k + e], data[k + e], sw[e]
                     tw, tx, ty, tz = table[b, 0], table[b, 1], table[b, 2], table[b, 3]
                     for f in range(fb):
                         d = tw[f] * pw[f] + tx[f] * px[f] + ty[f] * py[f] + tz[f] * pz[f]
@@ -367,22 +380,44 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, out, fb, n0, n1, i0, i1, 
                     else:
                         for f in range(fb):
                             a[f] += s0[f] * t0[f] + s1[f] * t1[f] + s2[f] * t2[f] + s3[f] * t3[f]
-            _rest_rows(rest, s, nf, i, xyz, check)
-            x, y, z = xyz[0], xyz[1], xyz[2]
-            aw, ax, ay, az, ew, ex, ey, ez = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7]
-            r0, r1, r2 = res[0], res[1], res[2]
+            # normalize, then as (R - I | t) rows: every loop reads few rows and writes one,
+            # the form LLVM vectorizes (one loop doing it all was left scalar)
+            aw, ax, ay, az = acc[0], acc[1], acc[2], acc[3]
             for f in range(fb):
-                inv = 1.0 / np.sqrt(aw[f] * aw[f] + ax[f] * ax[f] + ay[f] * ay[f] + az[f] * az[f])
-                qw, qx, qy, qz = aw[f] * inv, ax[f] * inv, ay[f] * inv, az[f] * inv
-                dw, dx, dy, dz = ew[f] * inv, ex[f] * inv, ey[f] * inv, ez[f] * inv
-                vx, vy, vz = x[f], y[f], z[f]
-                cx, cy, cz = qy * vz - qz * vy, qz * vx - qx * vz, qx * vy - qy * vx
-                tx = 2.0 * (qw * dx - dw * qx + (qy * dz - qz * dy))
-                ty = 2.0 * (qw * dy - dw * qy + (qz * dx - qx * dz))
-                tz = 2.0 * (qw * dz - dw * qz + (qx * dy - qy * dx))
-                r0[f] = vx + (2.0 * qw * cx + 2.0 * (qy * cz - qz * cy) + tx)
-                r1[f] = vy + (2.0 * qw * cy + 2.0 * (qz * cx - qx * cz) + ty)
-                r2[f] = vz + (2.0 * qw * cz + 2.0 * (qx * cy - qy * cx) + tz)
+                inv[f] = 1.0 / np.sqrt(aw[f] * aw[f] + ax[f] * ax[f] + ay[f] * ay[f] + az[f] * az[f])
+            for j in range(8):
+                a = acc[j]
+                for f in range(fb):
+                    a[f] = a[f] * inv[f]
+            qw, qx, qy, qz, dw, dx, dy, dz = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5], acc[6], acc[7]
+            m0, m1, m2, m3, m4, m5, m6, m7, m8, m9, m10, m11 = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7],
+                                                               m[8], m[9], m[10], m[11])
+            for f in range(fb):
+                m0[f] = -2.0 * (qy[f] * qy[f] + qz[f] * qz[f])
+            for f in range(fb):
+                m1[f] = 2.0 * (qx[f] * qy[f] - qw[f] * qz[f])
+            for f in range(fb):
+                m2[f] = 2.0 * (qx[f] * qz[f] + qw[f] * qy[f])
+            for f in range(fb):
+                m4[f] = 2.0 * (qx[f] * qy[f] + qw[f] * qz[f])
+            for f in range(fb):
+                m5[f] = -2.0 * (qx[f] * qx[f] + qz[f] * qz[f])
+            for f in range(fb):
+                m6[f] = 2.0 * (qy[f] * qz[f] - qw[f] * qx[f])
+            for f in range(fb):
+                m8[f] = 2.0 * (qx[f] * qz[f] - qw[f] * qy[f])
+            for f in range(fb):
+                m9[f] = 2.0 * (qy[f] * qz[f] + qw[f] * qx[f])
+            for f in range(fb):
+                m10[f] = -2.0 * (qx[f] * qx[f] + qy[f] * qy[f])
+            for f in range(fb):        # t = 2 (e conj(q)).xyz
+                m3[f] = 2.0 * (qw[f] * dx[f] - dw[f] * qx[f] + (qy[f] * dz[f] - qz[f] * dy[f]))
+            for f in range(fb):
+                m7[f] = 2.0 * (qw[f] * dy[f] - dw[f] * qy[f] + (qz[f] * dx[f] - qx[f] * dz[f]))
+            for f in range(fb):
+                m11[f] = 2.0 * (qw[f] * dz[f] - dw[f] * qz[f] + (qx[f] * dy[f] - qy[f] * dx[f]))
+            _rest_rows(rest, s, nf, i, xyz, check)
+            _apply_rows(m, xyz, res)
             for f in range(nf):
                 out[s + f, i, 0] = res[0, f]
                 out[s + f, i, 1] = res[1, f]
