@@ -6,14 +6,17 @@ writes a temporary of (V, 12, N) or (V, 3, N) doubles, so it runs at a fraction 
 bandwidth on one core. Here each vertex's few influences (the CSR row of the (V, B) weights, at
 most a handful) are blended and applied in registers, and only the posed vertex is written.
 
-Layout of the work: frames (or bodies) go in blocks of ``FRAME_BLOCK``; for one block the
-bones' transforms are rearranged once into a small (B, 12, FRAME_BLOCK) table (the bone's
-entries, frames contiguous), so the inner loops run over the frames of the block in SIMD
-lanes: for a vertex, ``A_f = sum_k w_k (G_{b_k, f} - I)`` for the block's frames f at once,
-then ``v'_f = v + A_f [v; 1]``. The table of one block (~125 kB for the 163-bone rig) stays in
-the L2 cache; the rest vertices are read once a block (shared rest) or once a frame (per-body
-rest). Two lanes (``bodyspace.parallel.run_both``) take the two halves of the frames, or of
-the vertices for a single frame.
+Layout of the work: frames (or bodies) go in blocks of up to ``FRAME_BLOCK``; for one block
+the bones' ``G_b - I`` (LBS) or unit dual quaternions (DQS) are rearranged once into a table
+(B, 12 or 8, frames), frames contiguous, so every inner loop runs over the frames of the block
+in SIMD lanes, on 1-D rows (the form LLVM vectorizes): for a vertex,
+``A_f = sum_k w_k (G_{b_k, f} - I)`` for all the block's frames f at once, then
+``v'_f = v + A_f [v; 1]``. Rows of the weights are padded to a multiple of four influences
+(weight 0, exact), four blended per pass. The table of one block (1 MB for the 163-bone rig)
+stays in the L2 cache; the rest vertices are read once a block (shared rest) or once a frame
+(per-body rest). The last step, three strided stores a vertex-frame into the (N, V, 3)
+output, now costs about as much as the blend. Two lanes (``bodyspace.parallel.run_both``) take
+the two halves of the frames, or of the vertices for a single frame.
 
 Properties kept from the numpy reference, exactly:
 
