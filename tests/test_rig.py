@@ -394,6 +394,19 @@ def test_pose_bodies_batches_and_shapes(rig, body, library):
     np.testing.assert_allclose(moved[:, :, [0, 2]], batch[:, :, [0, 2]], atol=1e-12)
 
 
+def test_pose_bodies_one_body_over_frames(rig, body, library):
+    """A (V, 3) body with (N, B, 3, 3) rotations is posed once per frame, as the same body
+    repeated N times (or broadcast) would be; joints too."""
+    R = library.stack(["squat", "t_pose", "rest"], rig)
+    frames, joints = pose_bodies(body, rig, R, on_ground=True, return_joints=True)
+    repeated, joints_rep = pose_bodies(np.repeat(body[None], 3, axis=0), rig, R, on_ground=True, return_joints=True)
+    assert frames.shape == (3,) + body.shape and joints.shape == (3, rig.n_bones, 3)
+    np.testing.assert_allclose(frames, repeated, atol=1e-12)
+    np.testing.assert_allclose(joints, joints_rep, atol=1e-12)
+    np.testing.assert_allclose(pose_bodies(np.broadcast_to(body, (3,) + body.shape), rig, R, skinning="dqs"),
+                               pose_bodies(np.repeat(body[None], 3, axis=0), rig, R, skinning="dqs"), atol=1e-12)
+
+
 def test_dqs_matches_lbs_for_rigid_parts_and_keeps_identity():
     rng = np.random.default_rng(2)
     V, B, N = 40, 4, 3

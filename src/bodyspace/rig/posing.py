@@ -153,7 +153,8 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
                 faces: np.ndarray | None = None):
     """Pose bodies of the template topology: joints from the rig regressors, FK, then LBS.
 
-    vertices: (N, V, 3) rest-pose bodies, or (V, 3) for one body.
+    vertices: (N, V, 3) rest-pose bodies, or (V, 3) for one body (posed once, or once per
+        frame when ``rotations`` holds several frames: one body over an animation).
     rig: a ``Rig`` of the template (its regressors give each body's own joints).
     rotations: (N, B, 3, 3) per-bone rotations (rest-pose world axes, about the bone heads),
         or (B, 3, 3) applied to every body; e.g. ``load_pose_library().rotations("squat", rig)``.
@@ -168,23 +169,36 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         < 2.5 cm), so the measurement landmarks, fitted on the original weights, are not
         validated for it. Not yet the default for that reason.
     faces: (F, 3) template faces for the smoothing; by default the shipped template's.
-    Returns posed vertices (N, V, 3) (or (V, 3) for a single (V, 3) input); with
+    FK and skinning are the compiled kernels of ``kinematics`` / ``skinning`` (two lanes for
+    large batches).
+    Returns posed vertices (N, V, 3) (or (V, 3) for a single (V, 3) input and one pose); with
     ``return_joints`` also the posed bone heads (N, B, 3) (or (B, 3)), translated alike.
     """
     v = np.asarray(vertices, dtype=float)
-    single = v.ndim == 2
-    if single:
+    R = np.asarray(rotations, dtype=float)
+    frames = R.shape[0] if R.ndim == 4 else 1
+    # One rest body for every frame: (V, 3) with several rotation sets, or a (N, V, 3) broadcast
+    # of one body (stride 0). Its joints are regressed once and the skinning reads it once.
+    shared = (v.ndim == 2 and frames > 1) or (v.ndim == 3 and v.shape[0] > 1 and v.strides[0] == 0)
+    single = v.ndim == 2 and not shared
+    if shared:
+        v = v if v.ndim == 2 else v[0]
+        if v.shape != (rig.weights.shape[0], 3):
+            raise MeshError(f"vertices: shape {np.shape(vertices)}, expected ({rig.weights.shape[0]}, 3) "
+                            f"a body of the template topology")
+        v = v[None]
+    elif single:
         v = v[None]
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[1] != rig.weights.shape[0]:
         raise MeshError(f"vertices: shape {np.shape(vertices)}, expected (N, {rig.weights.shape[0]}, 3) "
                         f"bodies of the template topology")
-    R = np.asarray(rotations, dtype=float)
+    n = frames if shared else v.shape[0]
     if R.ndim == 3:
-        R = np.broadcast_to(R, (v.shape[0],) + R.shape)
-    if R.shape != (v.shape[0], rig.n_bones, 3, 3):
-        raise ParameterError(f"rotations: shape {np.shape(rotations)}, expected ({v.shape[0]}, {rig.n_bones}, 3, 3) "
+        R = np.broadcast_to(R, (n,) + R.shape)
+    if R.shape != (n, rig.n_bones, 3, 3):
+        raise ParameterError(f"rotations: shape {np.shape(rotations)}, expected ({n}, {rig.n_bones}, 3, 3) "
                              f"or ({rig.n_bones}, 3, 3) for rig {rig.name!r}")
-    heads = rig.heads(v)                                           # (N, B, 3)
+    heads = rig.heads(v)                                           # (N, B, 3), or (1, B, 3) shared
     G = forward_kinematics(R, heads, rig.parents)                  # (N, B, 4, 4)
     if weights == "smoothed":
         W = smoothed_weights(rig, faces)
@@ -198,12 +212,12 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         posed = dual_quaternion_skinning(v, W, G)
     else:
         raise ParameterError(f"skinning={skinning!r}; expected 'lbs' or 'dqs'")
-    joints = np.einsum("nbij,nbj->nbi", G[..., :3, :3], heads) + G[..., :3, 3]
+    joints = np.einsum("nbij,nbj->nbi", G[..., :3, :3], np.broadcast_to(heads, (n,) + heads.shape[1:])) + G[..., :3, 3]
     if on_ground:
         r = root_bone(rig)
-        off = ground_offset(posed, joints[:, r], heads[:, r])
-        posed = posed + off[:, None, :]
-        joints = joints + off[:, None, :]
+        off = ground_offset(posed, joints[:, r], np.broadcast_to(heads[:, r], (n, 3)))
+        posed += off[:, None, :]                                   # in place: posed is ours
+        joints += off[:, None, :]
     if single:
         posed, joints = posed[0], joints[0]
     return (posed, joints) if return_joints else posed

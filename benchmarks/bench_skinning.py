@@ -1,0 +1,130 @@
+"""Skinning throughput in vertex-frames per second: compiled LBS / DQS against the plain numpy path
+(the code before issue 13, kept as ``kinematics.*_numpy``), beside this machine's memory-bandwidth
+bound measured in the same run.
+
+Cases: one 13,380-vertex body over 1,000 frames of the default rig (163 bones), and a batch of
+100 bodies x 10 frames (per-body rest meshes). The bound: a compiled streaming write of an
+output-sized array on both cores (GB/s), divided by the bytes a vertex-frame writes (24 for
+float64, 12 for float32).
+
+Run: python benchmarks/bench_skinning.py [--frames 1000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import best_time, report  # noqa: E402
+
+from bodyspace.data.template import load_template  # noqa: E402
+from bodyspace.parallel import halves, run_both  # noqa: E402
+from bodyspace.rig.kinematics import (  # noqa: E402
+    dual_quaternion_skinning_numpy,
+    forward_kinematics,
+    forward_kinematics_numpy,
+    linear_blend_skinning_numpy,
+    rotvec_to_matrix,
+)
+from bodyspace.rig.posing import pose_bodies  # noqa: E402
+from bodyspace.rig.skinning import dual_quaternion_skinning, linear_blend_skinning  # noqa: E402
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel  # noqa: E402
+from bodyspace.synth.poses import load_pose_library  # noqa: E402
+
+
+@numba.njit(nogil=True, cache=True)
+def _stream_write(flat, start, stop):
+    for i in range(start, stop):
+        flat[i] = 1.0
+
+
+def write_bandwidth(nbytes: int) -> float:
+    """GB/s of a compiled streaming write of ``nbytes`` (already touched) on both cores."""
+    flat = np.zeros(nbytes // 8)
+    (a0, a1), (b0, b1) = halves(len(flat))
+    fn = lambda: run_both(lambda: _stream_write(flat, a0, a1), lambda: _stream_write(flat, b0, b1))  # noqa: E731
+    fn()
+    return nbytes / best_time(fn, 5) / 1e9
+
+
+def frames_of(library, rig, n: int, rng) -> np.ndarray:
+    """(n, B, 3, 3) rotations: the library's poses in turn, each bone jittered a little so no
+    two frames are equal (an animation, not 25 repeated poses)."""
+    base = library.stack([library.names[i % len(library.names)] for i in range(n)], rig)
+    return base @ rotvec_to_matrix(rng.normal(scale=0.02, size=base.shape[:2] + (3,)))
+
+
+def main(frames: int = 1000) -> None:
+    rng = np.random.default_rng(0)
+    template = load_template()
+    rig = template.rigs["default"]
+    W = rig.weights
+    library = load_pose_library()
+    body = PhenotypeModel(template).vertices({"gender": 1.0})[0]
+    V = body.shape[0]
+    R = frames_of(library, rig, frames, rng)
+    heads = rig.heads(body)
+    vf = frames * V
+    print(f"one body, {V:,} vertices, {frames:,} frames, {rig.n_bones} bones, {W.nnz:,} weights; "
+          f"numba threading: bodyspace.parallel (2 lanes)")
+
+    gbps = write_bandwidth(vf * 24)
+    print(f"memory bandwidth (compiled streaming write, 2 cores): {gbps:.1f} GB/s -> bound "
+          f"{gbps * 1e9 / 24 / 1e6:,.0f} M vertex-frames/s for float64 output, {gbps * 1e9 / 12 / 1e6:,.0f} M for float32")
+
+    fk = best_time(lambda: forward_kinematics(R, heads, rig.parents), 5)
+    fk_np = best_time(lambda: forward_kinematics_numpy(R, heads, rig.parents), 1)
+    report(f"forward kinematics, {frames} frames", fk, fk_np, frames, "frames")
+    G = forward_kinematics(R, heads, rig.parents)
+
+    out64 = np.zeros((frames, V, 3))
+    out32 = np.zeros((frames, V, 3), dtype=np.float32)
+    lbs_np = best_time(lambda: linear_blend_skinning_numpy(body, W, G), 1)
+    for name, compiled, baseline_s in (("LBS", linear_blend_skinning, lbs_np),
+                                       ("DQS", dual_quaternion_skinning, None)):
+        if baseline_s is None:
+            baseline_s = best_time(lambda: dual_quaternion_skinning_numpy(body, W, G), 1)
+        ref = compiled(body, W, G)
+        for out in (out64, out32):
+            t = best_time(lambda: compiled(body, W, G, out=out), 5)
+            report(f"{name} {out.dtype}, out= (written in place)", t, baseline_s, vf, "vertex-frames")
+        t1 = best_time(lambda: compiled(body, W, G, out=out64, lanes=1), 3)
+        print(f"  {name} float64 one lane: {vf / t1 / 1e6:,.0f} M vertex-frames/s")
+        t = best_time(lambda: compiled(body, W, G), 3)
+        report(f"{name} float64, new output array each call", t, baseline_s, vf, "vertex-frames")
+        del ref
+
+    t_new = best_time(lambda: pose_bodies(body, rig, R), 3)
+
+    def numpy_pipeline():
+        Gn = forward_kinematics_numpy(R, heads, rig.parents)
+        return linear_blend_skinning_numpy(body, W, Gn)
+    t_old = best_time(numpy_pipeline, 1)
+    report("pose_bodies one body over the frames (heads + FK + LBS)", t_new, t_old, vf, "vertex-frames")
+
+    # a batch of 100 bodies x 10 frames: per-body rest meshes
+    n_bodies, per = 100, 10
+    bodies = PhenotypeModel(template).vertices(rng.random((n_bodies, len(PARAMETERS))))
+    rest = np.repeat(bodies, per, axis=0)
+    Rb = frames_of(library, rig, n_bodies * per, rng)
+    Gb = forward_kinematics(Rb, rig.heads(rest), rig.parents)
+    vfb = n_bodies * per * V
+    outb = np.zeros((n_bodies * per, V, 3))
+    for name, compiled, reference in (("LBS", linear_blend_skinning, linear_blend_skinning_numpy),
+                                      ("DQS", dual_quaternion_skinning, dual_quaternion_skinning_numpy)):
+        t = best_time(lambda: compiled(rest, W, Gb, out=outb), 3)
+        tn = best_time(lambda: reference(rest, W, Gb), 1)
+        report(f"{name} {n_bodies} bodies x {per} frames (per-body rest), out=", t, tn, vfb, "vertex-frames")
+    print(f"measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=1000)
+    main(parser.parse_args().frames)
