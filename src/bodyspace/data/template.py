@@ -381,7 +381,17 @@ def _load_compiled(root: Path) -> Template:
             return read_compiled(path)
         except (AssetError, *_DAMAGED_CACHE_ERRORS):
             pass  # rebuilt below, written over the damaged file
-    arrays = _compile(root)
+    try:
+        arrays = _compile(root)
+    except AssetError:
+        raise
+    except (OSError, EOFError, ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
+        # A user's MPFB2-style folder holds every required file, but one of them is not what
+        # MakeHuman writes (a truncated target, a JSON file of another layout...).
+        raise AssetError(f"{root}: the MakeHuman files do not compile into the template ({type(exc).__name__}: "
+                         f"{exc}); expected the hm08 files of MakeHuman/MPFB2. Point --assets (or "
+                         "BODYSPACE_ASSETS) at a complete folder, or unset it to use the verified cache "
+                         "(`bodyspace assets --fetch`)") from exc
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)

@@ -45,7 +45,7 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     Returns ``vertices`` (V, 3) float64 and ``faces`` (F, 3) int64. Raises MeshError naming the
     file if it is missing, unreadable, has no faces, indexes missing vertices or holds NaN/inf.
     """
-    path = Path(path)
+    path = mesh_path(path)
     suffix = path.suffix.lower()
     if suffix not in READ_SUFFIXES:
         raise MeshError(f"{path}: unsupported mesh format '{suffix}', expected one of {', '.join(READ_SUFFIXES)}")
@@ -64,7 +64,7 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
 
     The file appears complete or not at all (written to a temporary name, then renamed).
     """
-    path = Path(path)
+    path = mesh_path(path)
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise MeshError(f"{path}: cannot write mesh format '{suffix}', expected one of {', '.join(WRITE_SUFFIXES)}")
@@ -84,6 +84,17 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
             mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
             # The temporary file ends in ".part", so the format must be named explicitly.
             mesh.export(file_obj=str(tmp), file_type=suffix[1:])
+
+
+def mesh_path(path) -> Path:
+    """``path`` (str or os.PathLike) as a Path; MeshError for anything else (None, a number, bytes)."""
+    if isinstance(path, Path):
+        return path
+    if not isinstance(path, (str, os.PathLike)) or isinstance(os.fspath(path), bytes):
+        raise MeshError(f"mesh path {path!r} is a {type(path).__name__}, expected a file name (str or pathlib.Path)")
+    if not os.fspath(path):
+        raise MeshError("mesh path is empty, expected a file name such as body.obj")
+    return Path(path)
 
 
 def _check_loaded(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -128,9 +139,26 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{path}: could not read: {exc}") from exc
     vertices = _parse_obj_vertices(path, _obj_statements(text, "v"))
     face_lines = _obj_statements(text, "f")
-    if not face_lines:
-        return vertices, np.zeros((0, 3), dtype=np.int64)
-    return vertices, _parse_obj_faces(path, face_lines, text)
+    faces = _parse_obj_faces(path, face_lines, text) if face_lines else np.zeros((0, 3), dtype=np.int64)
+    _check_declared_counts(path, text, len(vertices), len(faces))
+    return vertices, faces
+
+
+# The first line _write_obj writes: a file cut short (a killed copy, a full disk) still parses
+# when it ends at a line break, so the counts it declares are how such a cut is caught.
+_OBJ_COUNTS_HEADER = re.compile(r"# bodyspace mesh: (\d+) vertices, (\d+) faces")
+
+
+def _check_declared_counts(path: Path, text: str, n_vertices: int, n_faces: int) -> None:
+    """MeshError if a file written by bodyspace holds fewer or more vertices/faces than its header says."""
+    declared = _OBJ_COUNTS_HEADER.match(text[:100])
+    if declared is None:
+        return  # written by another program: nothing to compare with
+    want_v, want_f = int(declared[1]), int(declared[2])
+    if (want_v, want_f) != (n_vertices, n_faces):
+        raise MeshError(f"{path}: holds {n_vertices} vertices and {n_faces} triangles, but its first line says "
+                        f"{want_v} vertices and {want_f} faces: the file is truncated or was edited; "
+                        f"copy or write it again")
 
 
 # Registered meshes repeat the same face lines file after file; remembering the last parse
