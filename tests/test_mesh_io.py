@@ -171,3 +171,19 @@ def test_a_path_that_is_not_a_file_name_is_refused(path):
         load_mesh(path)
     with pytest.raises(MeshError, match="expected a file name"):
         save_mesh(path, np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".stl", ".glb"])
+def test_truncated_file_is_blamed_on_itself_with_what_was_expected(tmp_path, suffix):
+    vertices, faces = scrambled_sphere()
+    path = tmp_path / f"whole{suffix}"
+    save_mesh(path, vertices, faces)
+    data = path.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[: len(data) // 2 + 3])  # +3: inside a line of the OBJ, not at a line break
+    with pytest.raises(MeshError, match=rf"cut\{suffix}: .*(truncated|expected)") as caught:
+        load_mesh(cut)
+    assert "landmark" not in str(caught.value)
+    cut.write_bytes(b"")
+    with pytest.raises(MeshError, match=rf"cut\{suffix}: .*(empty|expected)"):
+        load_mesh(cut)
