@@ -401,7 +401,10 @@ def test_bad_input(case, env, tmp_path):
     assert problem is None, f"{case.id} ({case.door}): {problem}"
 
 
-def test_catalogue_size_and_doors(capsys):
+# The counts are in the test id, so they show in every report (also under pytest-xdist, which
+# hides a worker's prints): "test_catalogue_size_and_doors[576-bad-inputs-92-known-failures]".
+@pytest.mark.parametrize("counts", [f"{len(CASES)}-bad-inputs-{len(KNOWN_FAILURES)}-known-failures"])
+def test_catalogue_size_and_doors(counts, capsys):
     """At least 200 distinct bad inputs, and every command and library door is among them."""
     # Each id is one generated input at one door (many CLI cases share their argument list and
     # differ in the file their setup writes), so the ids count the distinct inputs.
