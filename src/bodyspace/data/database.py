@@ -382,6 +382,17 @@ def build_meta(meta: Mapping, vertices_shape: tuple, n_faces: int, joints) -> di
 # Reader
 # ----------------------------------------------------------------------------------------------
 
+def as_path(value, what: str) -> Path:
+    """``value`` (str or os.PathLike) as a Path; DatabaseError naming ``what`` for None, numbers, bytes, ''."""
+    if isinstance(value, Path):
+        return value
+    if not isinstance(value, (str, os.PathLike)) or isinstance(os.fspath(value), bytes):
+        raise DatabaseError(f"{what} {value!r} is a {type(value).__name__}, expected a path (str or pathlib.Path)")
+    if not os.fspath(value):
+        raise DatabaseError(f"{what} is an empty string, expected a path")
+    return Path(value)
+
+
 def read_meta(path: Path) -> dict:
     """meta.json -> dict, with format_version and required fields checked."""
     try:
@@ -400,6 +411,9 @@ def read_meta(path: Path) -> dict:
         raise DatabaseError(f"{path}: missing field(s) {', '.join(missing)}, expected {', '.join(required)}")
     if not isinstance(meta["units"], dict) or meta["units"].get("length") != "m":
         raise DatabaseError(f"{path}: units {meta['units']!r}, expected {{\"length\": \"m\", ...}}")
+    joints = meta.get("joints")
+    if joints is not None and (not isinstance(joints, list) or not all(isinstance(j, str) for j in joints)):
+        raise DatabaseError(f"{path}: joints {joints!r}, expected a list of joint names (str)")
     return meta
 
 
@@ -461,7 +475,7 @@ def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> 
     (default: the mesh file stem) and ``pose`` (default 'rest'), plus per-subject label columns
     with unit suffixes whose values must agree across the scans of one subject.
     """
-    if length_unit not in _LENGTH_UNITS:
+    if not isinstance(length_unit, str) or length_unit not in _LENGTH_UNITS:
         raise DatabaseError(f"length_unit '{length_unit}', expected one of {', '.join(_LENGTH_UNITS)}")
     if not folder.is_dir():
         raise DatabaseError(f"{folder}: not a folder, expected a folder of registered meshes")
@@ -590,7 +604,8 @@ class ScanDatabase:
 
         ``check_values=False`` skips the NaN scan of vertices.npy (a full read of the file).
         """
-        return cls(**load_database_arrays(Path(folder), check_values=check_values), _checked=True)
+        return cls(**load_database_arrays(as_path(folder, "database folder"), check_values=check_values),
+                   _checked=True)
 
     @classmethod
     def from_meshes(cls, folder: str | os.PathLike, labels_csv: str | os.PathLike,
@@ -600,7 +615,8 @@ class ScanDatabase:
         See ``read_mesh_folder`` for the CSV columns; ``length_unit`` ('m', 'cm', 'mm') is the
         unit of the mesh coordinates, converted to metres.
         """
-        return cls(**read_mesh_folder(Path(folder), Path(labels_csv), length_unit), _checked=True)
+        return cls(**read_mesh_folder(as_path(folder, "mesh folder"), as_path(labels_csv, "labels CSV"), length_unit),
+                   _checked=True)
 
     def save(self, folder: str | os.PathLike, overwrite: bool = False) -> Path:
         """Write this database as a folder (atomically); returns the folder path."""

@@ -28,6 +28,8 @@ import gzip
 import hashlib
 import json
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -359,30 +361,73 @@ def _compiled_path(root: Path) -> Path:
     return assets.cache_dir() / "compiled" / f"template-{key}.npz"
 
 
+# What a damaged cache file raises when it is opened or an array of it is read: a truncated
+# zip (BadZipFile, EOFError, OSError), a garbled member (ValueError from numpy's header parser,
+# zlib.error from a bad deflate stream), a missing array (KeyError).
+_DAMAGED_CACHE_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
+
+
 @lru_cache(maxsize=4)
 def _load_compiled(root: Path) -> Template:
+    """The compiled template of ``root``: read from the cache, compiled (again) when the cache
+    file is missing, damaged (a run killed while copying it, a full disk) or of another version.
+
+    The cache is ours and derived only from the assets, so a bad one is rebuilt rather than
+    reported: it would otherwise fail on every later run.
+    """
     path = _compiled_path(root)
-    if not path.is_file():
+    if path.is_file():
+        try:
+            return read_compiled(path)
+        except (AssetError, *_DAMAGED_CACHE_ERRORS):
+            pass  # rebuilt below, written over the damaged file
+    try:
         arrays = _compile(root)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
+    except AssetError:
+        raise
+    except (OSError, EOFError, ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
+        # A user's MPFB2-style folder holds every required file, but one of them is not what
+        # MakeHuman writes (a truncated target, a JSON file of another layout...).
+        raise AssetError(f"{root}: the MakeHuman files do not compile into the template ({type(exc).__name__}: "
+                         f"{exc}); expected the hm08 files of MakeHuman/MPFB2. Point --assets (or "
+                         "BODYSPACE_ASSETS) at a complete folder, or unset it to use the verified cache "
+                         "(`bodyspace assets --fetch`)") from exc
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+    try:
+        return read_compiled(path)
+    except _DAMAGED_CACHE_ERRORS as exc:
+        raise AssetError(f"{path}: the compiled template just written cannot be read back ({exc}); "
+                         f"check the free space and permissions of {path.parent}") from exc
+
+
+def read_compiled(path: Path) -> Template:
+    """A compiled template ``.npz`` (written by ``_compile``) -> Template.
+
+    Raises AssetError for another ``COMPILED_VERSION``; a truncated or garbled file raises one of
+    ``_DAMAGED_CACHE_ERRORS`` (the caller rebuilds it).
+    """
     with np.load(path, allow_pickle=False) as z:
-        if int(z["version"]) != COMPILED_VERSION:
-            raise AssetError(f"{path}: compiled template version {int(z['version'])}, expected "
-                             f"{COMPILED_VERSION}; delete the file to rebuild it")
+        version = z["version"]
+        if version.shape != () or version.dtype.kind not in "iu" or int(version) != COMPILED_VERSION:
+            raise AssetError(f"{path}: compiled template version {version!r}, expected {COMPILED_VERSION}")
         groups = {str(g): z[f"group/{g}"] for g in z["group_names"]}
         rigs = {}
         for rig in map(str, z["rig_names"]):
             rigs[rig] = Rig(rig, tuple(map(str, z[f"rig/{rig}/bones"])), z[f"rig/{rig}/parents"],
                             _get_sparse(z, f"rig/{rig}/head"), _get_sparse(z, f"rig/{rig}/tail"),
                             z[f"rig/{rig}/roll"], _get_sparse(z, f"rig/{rig}/weights"))
-        return Template(
+        template = Template(
             vertices=z["vertices"], faces=z["faces"], left=groups["Left"], right=groups["Right"],
             mid=groups["Mid"], mirror=z["mirror"], joint_names=tuple(map(str, z["joint_names"])),
             joint_regressor=_get_sparse(z, "joint_regressor"),
             target_names=tuple(map(str, z["target_names"])), target_deltas=z["target_deltas"],
             rigs=rigs, vertex_groups=groups)
+    if template.vertices.shape != (N_BODY_VERTICES, 3) or template.target_deltas.shape[1:] != (N_BODY_VERTICES, 3):
+        raise AssetError(f"{path}: compiled template holds vertices {template.vertices.shape} and targets "
+                         f"{template.target_deltas.shape}, expected ({N_BODY_VERTICES}, 3) and (T, {N_BODY_VERTICES}, 3)")
+    return template
 
 
 def load_template(assets_root: str | os.PathLike | None = None) -> Template:

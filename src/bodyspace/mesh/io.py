@@ -45,7 +45,7 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     Returns ``vertices`` (V, 3) float64 and ``faces`` (F, 3) int64. Raises MeshError naming the
     file if it is missing, unreadable, has no faces, indexes missing vertices or holds NaN/inf.
     """
-    path = Path(path)
+    path = mesh_path(path)
     suffix = path.suffix.lower()
     if suffix not in READ_SUFFIXES:
         raise MeshError(f"{path}: unsupported mesh format '{suffix}', expected one of {', '.join(READ_SUFFIXES)}")
@@ -64,7 +64,7 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
 
     The file appears complete or not at all (written to a temporary name, then renamed).
     """
-    path = Path(path)
+    path = mesh_path(path)
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise MeshError(f"{path}: cannot write mesh format '{suffix}', expected one of {', '.join(WRITE_SUFFIXES)}")
@@ -86,8 +86,22 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
             mesh.export(file_obj=str(tmp), file_type=suffix[1:])
 
 
+def mesh_path(path) -> Path:
+    """``path`` (str or os.PathLike) as a Path; MeshError for anything else (None, a number, bytes)."""
+    if isinstance(path, Path):
+        return path
+    if not isinstance(path, (str, os.PathLike)) or isinstance(os.fspath(path), bytes):
+        raise MeshError(f"mesh path {path!r} is a {type(path).__name__}, expected a file name (str or pathlib.Path)")
+    if not os.fspath(path):
+        raise MeshError("mesh path is empty, expected a file name such as body.obj")
+    return Path(path)
+
+
 def _check_loaded(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Raise MeshError unless ``faces`` (F, 3) is non-empty and indexes finite ``vertices`` (V, 3)."""
+    if len(vertices) == 0 and len(faces) == 0:
+        raise MeshError(f"{path}: found no vertices and no faces; the file is empty, cut short, binary or of "
+                        f"another format than its suffix says (expected {_EXPECTED[path.suffix.lower()[1:]]})")
     if len(faces) == 0:
         raise MeshError(f"{path}: found {len(vertices)} vertices and no faces, expected a triangle mesh")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -99,6 +113,17 @@ def _check_loaded(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
                         f"(first: vertex {int(np.argmax(bad))}), expected finite coordinates")
 
 
+# What each format must hold, for the messages about a file that does not read.
+_EXPECTED = {
+    "obj": "text lines 'v x y z' and 'f i j k'",
+    "ply": "a PLY file (binary or ASCII) with a 'vertex' and a 'face' element",
+    "stl": "an STL file of triangles (binary: 80-byte header, triangle count, 50 bytes per triangle; or ASCII)",
+    "glb": "a binary glTF 2.0 file holding a triangle mesh",
+    "gltf": "a glTF 2.0 JSON file holding a triangle mesh, with its buffer files beside it",
+}
+_TRUNCATED_HINT = "it may be truncated (an interrupted copy or download) or of another format than its suffix says"
+
+
 def _read_with_trimesh(path: Path, file_type: str) -> tuple[np.ndarray, np.ndarray]:
     """PLY / glTF / STL through trimesh without any merging or reordering."""
     import trimesh
@@ -106,11 +131,13 @@ def _read_with_trimesh(path: Path, file_type: str) -> tuple[np.ndarray, np.ndarr
     try:
         loaded = trimesh.load(str(path), file_type=file_type, process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for a damaged file
-        raise MeshError(f"{path}: could not read as {file_type.upper()}: {exc}") from exc
+        raise MeshError(f"{path}: could not read as {file_type.upper()} ({str(exc)[:120]}); expected "
+                        f"{_EXPECTED[file_type]}; {_TRUNCATED_HINT}") from exc
     if isinstance(loaded, trimesh.Scene):
         meshes = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
         if not meshes:
-            raise MeshError(f"{path}: found no triangle mesh in the {file_type.upper()} scene, expected one")
+            raise MeshError(f"{path}: found no triangle mesh ({path.stat().st_size} bytes); expected "
+                            f"{_EXPECTED[file_type]}; {_TRUNCATED_HINT}")
         loaded = meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
     if not isinstance(loaded, trimesh.Trimesh):
         n_points = len(getattr(loaded, "vertices", []))
@@ -126,11 +153,28 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
         text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as exc:
         raise MeshError(f"{path}: could not read: {exc}") from exc
-    vertices = _parse_obj_vertices(path, _obj_statements(text, "v"))
+    vertices = _parse_obj_vertices(path, _obj_statements(text, "v"), text)
     face_lines = _obj_statements(text, "f")
-    if not face_lines:
-        return vertices, np.zeros((0, 3), dtype=np.int64)
-    return vertices, _parse_obj_faces(path, face_lines, text)
+    faces = _parse_obj_faces(path, face_lines, text) if face_lines else np.zeros((0, 3), dtype=np.int64)
+    _check_declared_counts(path, text, len(vertices), len(faces))
+    return vertices, faces
+
+
+# The first line _write_obj writes: a file cut short (a killed copy, a full disk) still parses
+# when it ends at a line break, so the counts it declares are how such a cut is caught.
+_OBJ_COUNTS_HEADER = re.compile(r"# bodyspace mesh: (\d+) vertices, (\d+) faces")
+
+
+def _check_declared_counts(path: Path, text: str, n_vertices: int, n_faces: int) -> None:
+    """MeshError if a file written by bodyspace holds fewer or more vertices/faces than its header says."""
+    declared = _OBJ_COUNTS_HEADER.match(text[:100])
+    if declared is None:
+        return  # written by another program: nothing to compare with
+    want_v, want_f = int(declared[1]), int(declared[2])
+    if (want_v, want_f) != (n_vertices, n_faces):
+        raise MeshError(f"{path}: holds {n_vertices} vertices and {n_faces} triangles, but its first line says "
+                        f"{want_v} vertices and {want_f} faces: the file is truncated or was edited; "
+                        f"copy or write it again")
 
 
 # Registered meshes repeat the same face lines file after file; remembering the last parse
@@ -148,8 +192,9 @@ def _parse_obj_faces(path: Path, face_lines: list[str], text: str) -> np.ndarray
     corner_counts = np.fromiter(map(len, map(str.split, face_lines)), dtype=np.int64, count=len(face_lines)) - 1
     if corner_counts.min() < 3:
         bad = int(np.argmax(corner_counts < 3))
+        cut = bad == len(face_lines) - 1 and not text.endswith("\n")
         raise MeshError(f"{path}: face {bad} ('{face_lines[bad].strip()}') has {corner_counts[bad]} corners, "
-                        f"expected at least 3")
+                        f"expected at least 3" + ("; the file ends inside this line: it is truncated" if cut else ""))
     indices = None
     if joined.count("f") == len(face_lines):  # the keywords are the only letters
         indices = _parse_numbers(_OBJ_CORNER_TAIL.sub("", joined.replace("f", " ")), np.int64,
@@ -203,8 +248,11 @@ def _parse_numbers(text: str, dtype, expected: int) -> np.ndarray | None:
     return values if values.size == expected else None
 
 
-def _parse_obj_vertices(path: Path, vertex_lines: list[str]) -> np.ndarray:
-    """``v x y z [w | r g b]`` lines -> (V, 3) float64 (extra values are dropped)."""
+def _parse_obj_vertices(path: Path, vertex_lines: list[str], text: str = "\n") -> np.ndarray:
+    """``v x y z [w | r g b]`` lines -> (V, 3) float64 (extra values are dropped).
+
+    ``text`` (the whole file) tells whether a bad last line is where the file was cut off.
+    """
     joined = " ".join(vertex_lines)
     if joined.count("v") == len(vertex_lines):  # the keywords are the only 'v's: blank them out
         values = _parse_numbers(joined.replace("v", " "), np.float64, 3 * len(vertex_lines))
@@ -214,11 +262,14 @@ def _parse_obj_vertices(path: Path, vertex_lines: list[str]) -> np.ndarray:
     rows = [line.split()[1:4] for line in vertex_lines]
     for i, row in enumerate(rows):
         if len(row) < 3:
-            raise MeshError(f"{path}: vertex {i} ('{vertex_lines[i].strip()}') has fewer than 3 coordinates")
+            cut = i == len(rows) - 1 and text.rstrip("\n").endswith(vertex_lines[i].rstrip("\n"))
+            raise MeshError(f"{path}: vertex {i} ('{vertex_lines[i].strip()[:60]}') has fewer than 3 coordinates"
+                            + ("; the file ends inside this line: it is truncated" if cut else ""))
     try:
         return np.array(rows, dtype=np.float64).reshape(-1, 3)
     except ValueError as exc:
-        raise MeshError(f"{path}: a 'v' line holds a non-numeric coordinate ({exc})") from exc
+        raise MeshError(f"{path}: a 'v' line holds a non-numeric coordinate ({str(exc)[:80]!r}); "
+                        "expected 'v x y z' with decimal numbers") from exc
 
 
 def _vertices_defined_before_each_face(text: str) -> np.ndarray:
