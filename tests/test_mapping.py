@@ -121,7 +121,7 @@ def test_measure_bodies_matches_the_linear_path_and_chains_the_basis(model):
 
 
 def test_decoder_linearization_fits_a_linear_decoder_exactly_and_round_trips(model):
-    from bodyspace.mapping.linearize import DecoderLinearization
+    from bodyspace.encoding.linearize import DecoderLinearization
     sd = np.sqrt(model.space.explained_variance_[:5])
     z = np.random.default_rng(2).uniform(-3, 3, (12, 5)) * sd
     v = model.reconstruct(z)

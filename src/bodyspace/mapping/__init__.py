@@ -10,6 +10,6 @@ stand-in for the RRE decoder that exact refinement of RRE models steps with (lin
 
 from bodyspace.mapping.forest import LinearLeafForest, grow_tree
 from bodyspace.mapping.linear import LinearMapping, fit_affine
-from bodyspace.mapping.linearize import DecoderLinearization
+from bodyspace.encoding.linearize import DecoderLinearization
 
 __all__ = ["DecoderLinearization", "LinearLeafForest", "LinearMapping", "fit_affine", "grow_tree"]
