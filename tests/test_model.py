@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
-from bodyspace.encoding import VertexEncoder
-from bodyspace.errors import BodyspaceError
+from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
+from bodyspace.errors import BodyspaceError, MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.model import BodyModel, ModelError
 from bodyspace.report.shape_report import (
@@ -234,6 +234,32 @@ def test_cli_build_and_sample(db, tmp_path):
     bad = runner.invoke(app, ["sample", str(folder / "faces.npy"), "--out", str(tmp_path / "t")])
     assert bad.exit_code == 2 and "not a BodyModel file" in bad.output
     del db_path
+    banana = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "b.npz"), "--on-flipped", "banana"])
+    assert banana.exit_code == 2 and "Traceback" not in banana.output
+    assert "--on-flipped 'banana', expected one of accept, warn, raise, ignore" in banana.output
+    assert not (tmp_path / "b.npz").exists()
+
+
+def test_flipped_scans_are_accepted_and_counted_once_by_default(db, template, tmp_path):
+    """The LBS-posed scans fold triangles: the default encodes them and counts the scans (not the
+    warnings); "raise" refuses; the CLI prints the count."""
+    folder = tmp_path / "db"
+    db.save(folder)
+    result = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "m.npz"), "--selection", "all",
+                                 "--components", "3"])
+    assert result.exit_code == 0, result.output
+    model = BodyModel.load(tmp_path / "m.npz")
+    probe = RelativeRotationEncoder(template.vertices, template.faces).fit(template.vertices[None])
+    probe.encode(np.asarray(db.vertices, dtype=float))
+    expected = int(np.count_nonzero(probe.last_flipped_))
+    assert 0 < expected < db.n_scans
+    assert model.provenance["flipped_scans"] == expected
+    assert model.provenance["flipped_triangles_max"] == int(probe.last_flipped_.max())
+    assert f"{expected} of {db.n_scans} scan(s) have flipped (folded) triangles" in " ".join(result.output.split())
+    with pytest.raises(MeshError, match="flipped triangle"):
+        BodyModel.fit(db, "rre", "all", n_components=3, template=template, on_flipped="raise")
+    with pytest.raises(ParameterError, match="on_flipped='banana'"):
+        BodyModel.fit(db, "rre", "all", template=template, on_flipped="banana")
 
 
 def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):

@@ -124,27 +124,30 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                         help="rest: rest-pose scans (shape only); all: pose and shape."),
           components: Optional[int] = typer.Option(None, "--components", min=1,
                                                    help="PCA components (default: all with variance, at most 100)."),
-          on_flipped: str = typer.Option("warn", "--on-flipped",
-                                         help="Folded triangles in scans: raise, warn (counted) or ignore."),
+          on_flipped: str = typer.Option("accept", "--on-flipped",
+                                         help="Scans with folded (flipped) triangles: accept (encode them and "
+                                              "count the scans), warn (also a warning each), raise (refuse) "
+                                              "or ignore (do not look)."),
           force: bool = typer.Option(False, "--force", help="Replace an existing model file.")):
     """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
-    import warnings
-
     from bodyspace.data.database import ScanDatabase
-    from bodyspace.model import BodyModel
+    from bodyspace.model import ON_FLIPPED, BodyModel
+    if on_flipped not in ON_FLIPPED:
+        _fail(BodyspaceError(f"--on-flipped {on_flipped!r}, expected one of {', '.join(ON_FLIPPED)}"))
     if out.exists() and not force:
         _fail(FileExistsError(f"{out}: already exists; pass --force to replace it"))
     try:
         db = ScanDatabase.load(database)
-        with _progress("build") as cb, warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", RuntimeWarning)
+        with _progress("build") as cb:
             model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
         model.save(out)
     except BodyspaceError as exc:
         _fail(exc)
-    folded = [w for w in caught if "flipped triangle" in str(w.message)]
+    folded = model.provenance.get("flipped_scans")
     if folded:
-        console.print(f"{len(folded)} scan(s) had flipped (folded) triangles; encoded anyway (--on-flipped warn)")
+        console.print(f"{folded} of {len(model.fitted_scans)} scan(s) have flipped (folded) triangles (at most "
+                      f"{model.provenance['flipped_triangles_max']} in a scan); encoded anyway (--on-flipped "
+                      f"{on_flipped}; raise refuses them)", highlight=False)
     ratio = float(model.space.explained_variance_ratio_.sum())
     t = model.provenance["timings_s"]
     Console().print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "
