@@ -362,8 +362,6 @@ class BodyModel:
             required = ["template_vertices", "faces", "fitted_scans", "encoder_mean_vertices"] + [
                 PCA_PREFIX + s for s in ("mean", "components", "explained_variance", "explained_variance_ratio",
                                          "singular_values")]
-            if version == 1 and encoding == "rre":
-                required += list(V1_RENAMES)
             for name in required:
                 if name not in a:
                     a[name] = field(name)  # raises when missing from the file

@@ -103,6 +103,8 @@ from bodyspace.mesh.topology import (
 from bodyspace.parallel import halves, run_both
 
 FEATURES_PER_FACE = 15
+# linearize(space) without k: the leading coefficients the tangent covers (Rupprecht's k = 25).
+LINEARIZED_COEFFICIENTS = 25
 # What encode does with a flipped (folded) triangle; see RelativeRotationEncoder.
 ON_FLIPPED = ("accept", "warn", "raise", "ignore")
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:
@@ -743,12 +745,13 @@ class RelativeRotationEncoder:
         enc.mean_vertices_ = mean_vertices
         return enc
 
-    def linearize(self, space, k: int = 25) -> DecoderLinearization:
+    def linearize(self, space, k: int | None = None) -> DecoderLinearization:
         """Affine stand-in ``v ~ base + z @ basis`` of ``space.reconstruct`` on the first ``k``
-        coefficients: the tangent at the mean by forward differences (``k + 1`` decodes, cached).
+        coefficients (default ``LINEARIZED_COEFFICIENTS``, each costs a decode): the tangent at
+        the mean by forward differences (``k + 1`` decodes, cached).
         A least-squares fit over sampled bodies (``DecoderLinearization.partial_fit``) is better
         over a whole box; mapping makes one on its training set since ``is_linear`` is False."""
-        return DecoderLinearization.at_mean(space, k)
+        return DecoderLinearization.at_mean(space, LINEARIZED_COEFFICIENTS if k is None else k)
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
         """Meshes (N, V, 3) from codes (N, 15 F) or (15 F,), placed on the mean model.

@@ -75,7 +75,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     """Refine coefficients so the bodies measure ``targets`` exactly (see the module docstring).
 
     Args:
-        model: a ``BodyModel``, vertex or RRE encoding (selected by ``model.encoding``).
+        model: a ``BodyModel``, vertex or RRE encoding (selected by ``model.encoder.is_linear``).
         coefficients0: (N, K') or (K',) start, e.g. the forest's prediction (only the first ``k`` are refined).
         targets: (N, M) or (M,) requested measurements in cm, columns in the order of ``names``.
         names: the measurements (loop, distance or path methods); mset: their set (default hm08).
@@ -118,7 +118,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     k = measurer.n_coefficients
     sd = np.sqrt(model.space.explained_variance_[:k])
     s = np.clip(z0[:, :k] / sd, -max_sigma, max_sigma)
-    if model.encoding == "vertex":
+    if model.encoder.is_linear:
         decodes = 0
         s, m, iters = _refine_linear(measurer, s, t, sd, float(prior_weight), max_sigma, max_iter, xtol, ftol,
                                       progress)
