@@ -162,9 +162,9 @@ class ShapeSpace:
         """Exact PCA in float64 (Gram matrix eigen-decomposition, ``solvers.pca_full``)."""
         own = x.dtype == np.float64 and not self.copy
         x = x if own else np.array(x, dtype=np.float64)
-        if not np.isfinite(x).all():
-            raise ParameterError("X: contains NaN or infinity")
         mean = x.mean(axis=0)
+        if not np.isfinite(mean).all():  # a NaN or infinity anywhere reaches its column's mean
+            raise ParameterError("X: contains NaN or infinity")
         s, vt = pca_full(x, mean)                       # centres x in place
         total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
         var = s ** 2 / (n - 1)
