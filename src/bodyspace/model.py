@@ -62,7 +62,12 @@ from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.shape import ShapeSpace
-from bodyspace.shape.pca import FULL_PCA_MAX_BYTES, MAX_DEFAULT_COMPONENTS, SOLVERS, resolve_solver
+from bodyspace.shape.pca import (
+    FULL_PCA_MAX_BYTES,
+    MAX_DEFAULT_COMPONENTS,
+    SOLVERS,
+    resolve_solver,
+)
 from bodyspace.shape.solvers import KRYLOV_DEPTH
 
 FORMAT = "bodyspace.BodyModel"

@@ -18,7 +18,7 @@ vertices through ``L^T``.
 
 With the RRE encoding bodies are not linear in z: ``LinearBodyMeasures.measure_bodies`` measures
 the truly decoded bodies (exact values) and chains the exact vertex gradients with a fitted
-linearization of the decoder (``linearize.DecoderLinearization``) for dv/dz.
+linearization of the decoder (``encoding.linearize.DecoderLinearization``) for dv/dz.
 
 Slices (plane cross-sections, convex-hull girths) are not differentiated yet:
 ``LinearBodyMeasures`` refuses them with a message, and ``training.make_training_set`` measures
@@ -278,7 +278,7 @@ class LinearBodyMeasures:
         """Measurements (N, M) in metres of given bodies ``vertices`` (N, V, 3) (e.g. truly decoded
         RRE bodies); with ``jacobian`` also d measurement / d z (N, M, K): the exact gradients with
         respect to those bodies' vertices, chained with this object's ``basis`` as dv/dz (for a
-        non-linear decoder, its linearization: see ``linearize.DecoderLinearization``). The values
+        non-linear decoder, its linearization: see ``encoding.linearize.DecoderLinearization``). The values
         are exact whatever the basis; the floor is searched over all vertices."""
         v = np.asarray(vertices, dtype=float)
         if v.ndim != 3 or v.shape[1:] != (self.n_vertices, 3):

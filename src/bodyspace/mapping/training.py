@@ -41,7 +41,7 @@ DECODED_CHUNK = 32
 class TrainingSet:
     """coefficients (N, K) (the first ``k`` vary), measurements (N, M) in cm for lengths,
     names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed; linearization: RRE
-    models only, the least-squares ``linearize.DecoderLinearization`` of the decoded bodies (None
+    models only, the least-squares ``encoding.linearize.DecoderLinearization`` of the decoded bodies (None
     for the vertex encoding, which is linear)."""
 
     coefficients: np.ndarray
