@@ -20,7 +20,7 @@ from bodyspace.encoding.rotations import (
     rotation_exp,
     rotation_log,
 )
-from bodyspace.errors import MeshError
+from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.shape.compare import interpolation_distortion
 
@@ -151,8 +151,10 @@ def test_decode_of_modified_codes_matches_direct_solve(sphere):
 def test_rotation_solver_names():
     v, f = tube()
     assert RelativeRotationEncoder(v, f, rotation_solver="pcg").rotation_solver == "exact"  # older files
-    with pytest.raises(ValueError, match="rotation_solver"):
+    with pytest.raises(ParameterError, match="rotation_solver"):
         RelativeRotationEncoder(v, f, rotation_solver="cg")
+    with pytest.raises(ParameterError, match="on_flipped='banana', expected one of accept, warn, raise, ignore"):
+        RelativeRotationEncoder(v, f, on_flipped="banana")
 
 
 def test_vertex_encoder_round_trip(sphere):
@@ -214,7 +216,7 @@ def test_decode_with_positional_constraints():
 @pytest.fixture(scope="module")
 def fitted(sphere):
     v, f = sphere
-    return RelativeRotationEncoder(v, f).fit(v[None]), v, f
+    return RelativeRotationEncoder(v, f, on_flipped="raise").fit(v[None]), v, f
 
 
 def test_not_fitted(sphere):
@@ -262,6 +264,21 @@ def test_fold_policy_warn(sphere):
     with pytest.warns(RuntimeWarning, match="flipped"):
         code = enc.encode(x)
     assert np.abs(enc.decode(code)[0] - aligned(x[None], enc.mean_vertices_)[0]).max() < 1e-6
+    assert enc.last_flipped_.tolist() == [2]  # the two triangles on the swapped edge
+
+
+def test_fold_policy_accept_is_the_default_and_counts_per_mesh(sphere, recwarn):
+    v, f = sphere
+    enc = RelativeRotationEncoder(v, f).fit(v[None])
+    assert enc.on_flipped == "accept"
+    x = v.copy()
+    x[[f[0, 0], f[0, 1]]] = x[[f[0, 1], f[0, 0]]]
+    codes = enc.encode(np.stack([v, x, x]))
+    assert enc.last_flipped_.tolist() == [0, 2, 2] and not recwarn.list
+    assert np.abs(enc.decode(codes[1])[0] - aligned(x[None], enc.mean_vertices_)[0]).max() < 1e-6
+    enc.on_flipped = "ignore"
+    enc.encode(x)
+    assert enc.last_flipped_.tolist() == [0]  # not looked for
 
 
 @pytest.mark.parametrize("codes, message", [

@@ -102,12 +102,15 @@ def test_coefficient_jacobians_match_finite_differences_and_evaluate(model, mset
     np.testing.assert_allclose(vals[ok], want[ok], atol=1e-10)
 
 
-def test_slices_and_unknown_encodings_are_refused_with_a_reason(model, mset):
+def test_slices_are_refused_with_a_reason_and_the_encoder_linearizes_itself(model, mset):
     with pytest.raises(ParameterError, match="no analytic Jacobian"):
         LinearBodyMeasures.from_model(model, mset, ("waist_girth",))
-    fake = type("M", (), {"encoding": "other", "space": model.space})()
-    with pytest.raises(ParameterError, match="'vertex' or 'rre'"):
-        LinearBodyMeasures.from_model(fake)
+    # mapping asks the encoder, never its kind: the vertex encoder's linearization is exact
+    assert model.encoder.is_linear
+    lin = model.encoder.linearize(model.space, 4)
+    assert lin.method_ == "exact" and lin.k == 4
+    z = np.random.default_rng(8).uniform(-2, 2, (3, 4)) * np.sqrt(model.space.explained_variance_[:4])
+    np.testing.assert_allclose(lin.predict(z), model.reconstruct(z), atol=1e-12)
 
 
 def test_measure_bodies_matches_the_linear_path_and_chains_the_basis(model):
@@ -121,7 +124,7 @@ def test_measure_bodies_matches_the_linear_path_and_chains_the_basis(model):
 
 
 def test_decoder_linearization_fits_a_linear_decoder_exactly_and_round_trips(model):
-    from bodyspace.mapping.linearize import DecoderLinearization
+    from bodyspace.encoding.linearize import DecoderLinearization
     sd = np.sqrt(model.space.explained_variance_[:5])
     z = np.random.default_rng(2).uniform(-3, 3, (12, 5)) * sd
     v = model.reconstruct(z)
@@ -224,6 +227,20 @@ def rre_model(db, template):
 def rre_evaluation(rre_model):
     from bodyspace.studies.mapping import evaluate_mapping
     return evaluate_mapping(rre_model, samples=32, held_out=4, seed=0, k=RRE_K, n_trees=2, n_jobs=1, sweep=False)
+
+
+def test_rre_encoder_linearizes_by_forward_differences_at_the_mean(rre_model):
+    enc = rre_model.encoder
+    assert not enc.is_linear
+    lin = enc.linearize(rre_model.space, 3)
+    assert lin.method_ == "finite_differences" and lin.k == 3
+    np.testing.assert_allclose(lin.base_, rre_model.reconstruct(np.zeros((1, rre_model.n_components)))[0],
+                               atol=1e-12)
+    h = 1e-3 * np.sqrt(rre_model.space.explained_variance_[0])
+    z = np.zeros((1, rre_model.n_components))
+    z[0, 0] = h
+    step = (rre_model.reconstruct(z)[0] - lin.base_) / h
+    assert np.abs(step - lin.basis_[0]).max() < 0.05 * np.abs(lin.basis_[0]).max()
 
 
 def test_rre_refinement_meets_held_out_requests_within_1mm(rre_evaluation):

@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
-from bodyspace.encoding import VertexEncoder
-from bodyspace.errors import BodyspaceError
+from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
+from bodyspace.errors import BodyspaceError, MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.model import BodyModel, ModelError
 from bodyspace.report.shape_report import write_generalization_report, write_interpolation_report
@@ -94,6 +94,58 @@ def test_model_files_of_the_iterative_decoder_still_load(model, tmp_path):
     np.testing.assert_allclose(back.reconstruct(z), model.reconstruct(z), atol=1e-9)
 
 
+def _save_v1(model, path):
+    """A frozen copy of the writer of format version 1 (bodyspace up to commit 90b48a0): its array
+    names and header, so files of that version stay loadable whatever the current writer does."""
+    sp, enc = model.space, model.encoder
+    arrays = {
+        "template_vertices": model.template_vertices.astype(np.float64),
+        "faces": model.faces.astype(np.int64),
+        "encoder_mean_vertices": np.asarray(enc.mean_vertices_, dtype=np.float64),
+        "pca_mean": np.asarray(sp.mean_, dtype=np.float64),
+        "pca_components": np.asarray(sp.components_, dtype=np.float32),
+        "pca_explained_variance": np.asarray(sp.explained_variance_, dtype=np.float64),
+        "pca_explained_variance_ratio": np.asarray(sp.explained_variance_ratio_, dtype=np.float64),
+        "pca_singular_values": np.asarray(sp.singular_values_, dtype=np.float64),
+        "fitted_scans": model.fitted_scans.astype(np.int64),
+    }
+    if model.encoding == "rre":
+        arrays["rre_mean_rotvecs"] = np.asarray(enc.mean_rotvecs_, dtype=np.float64)
+        arrays["rre_mean_stretch"] = np.asarray(enc.mean_stretch_, dtype=np.float64)
+    header = {
+        "format": "bodyspace.BodyModel", "format_version": 1, "encoding": model.encoding,
+        "encoder_params": model.encoder_params, "template_id": model.template_id,
+        "selection": model.selection, "n_samples": int(sp.n_samples_), "n_components": model.n_components,
+        "n_vertices": int(len(model.template_vertices)), "n_faces": int(len(model.faces)),
+        "n_features": int(sp.n_features_in_),
+        "units": {"length": "m", "rre_code": "rotation vectors (rad) and stretch (1) per triangle", "vertex_code": "m"},
+        "provenance": {"generator": "bodyspace.model.BodyModel.fit", "pca_solver": "full"}, "mapping": None,
+        "arrays": {name: {"shape": list(a.shape), "dtype": a.dtype.str} for name, a in arrays.items()},
+    }
+    arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def test_model_files_of_format_version_1_still_load(model, db, template, tmp_path):
+    vertex = BodyModel.fit(db, "vertex", "rest", n_components=2, template=template)
+    for m in (model, vertex):
+        _save_v1(m, tmp_path / "v1.npz")
+        back = BodyModel.load(tmp_path / "v1.npz")
+        assert back.encoding == m.encoding and back.space.n_samples_ == m.space.n_samples_
+        for name, a in m._arrays().items():
+            assert np.array_equal(a, back._arrays()[name]), name
+        x = np.asarray(db.vertices[:2], dtype=float)
+        np.testing.assert_array_equal(back.project(x), m.project(x))
+        z = m.sample_coefficients(2, rng=3)
+        np.testing.assert_array_equal(back.reconstruct(z), m.reconstruct(z))
+        # and a version 1 file re-saved is a version 2 file with the same content
+        again = BodyModel.load(back.save(tmp_path / "v2.npz"))
+        with np.load(tmp_path / "v2.npz") as f:
+            assert json.loads(f["header"].tobytes())["format_version"] == 2
+        np.testing.assert_array_equal(again.reconstruct(z), m.reconstruct(z))
+
+
 def test_vertex_model_rest_selection_and_sampling(db, template, tmp_path):
     m = BodyModel.fit(db, "vertex", "rest", n_components=2, template=template)
     assert m.selection == "rest" and len(m.fitted_scans) == 4 and m.n_components == 2
@@ -131,11 +183,27 @@ def test_load_refuses_garbage_pickles_versions_and_missing_fields(model, tmp_pat
         h["format_version"] = 99
         a["header"] = np.frombuffer(json.dumps(h).encode(), dtype=np.uint8)
     _rewrite(good, tmp_path / "v99.npz", bump)
-    with pytest.raises(ModelError, match="v99.npz: format_version 99.*reads version 1"):
+    with pytest.raises(ModelError, match="v99.npz: format_version 99.*reads versions 1, 2.*upgrade"):
         BodyModel.load(tmp_path / "v99.npz")
-    _rewrite(good, tmp_path / "missing.npz", lambda a: a.pop("rre_mean_stretch"))
-    with pytest.raises(ModelError, match="missing.npz: field 'rre_mean_stretch' is missing"):
+    _rewrite(good, tmp_path / "missing.npz", lambda a: a.pop("encoder_mean_stretch"))
+    with pytest.raises(ModelError, match="missing.npz: field 'encoder_mean_stretch' is missing"):
         BodyModel.load(tmp_path / "missing.npz")
+
+    def header_field(name, value):
+        def change(a):
+            h = json.loads(a["header"].tobytes())
+            h[name] = value
+            a["header"] = np.frombuffer(json.dumps(h).encode(), dtype=np.uint8)
+        return change
+    for name, value, message in [("arrays", "all of them", "header field 'arrays' is str"),
+                                 ("arrays", {"faces": 3}, "header field 'arrays' is malformed"),
+                                 ("n_samples", "many", "header field 'n_samples' is 'many', expected a count"),
+                                 ("encoder_params", [1], "header field 'encoder_params'"),
+                                 ("encoder_params", {"colour": "red"}, "do not make an encoder"),
+                                 ("template_id", 7, "header field 'template_id' is 7")]:
+        _rewrite(good, tmp_path / "h.npz", header_field(name, value))
+        with pytest.raises(ModelError, match=message):
+            BodyModel.load(tmp_path / "h.npz")
     with zipfile.ZipFile(tmp_path / "nohdr.npz", "w") as zf:
         zf.writestr("x.npy", b"")
     with pytest.raises(ModelError, match="field 'header' is missing|cannot be read"):
@@ -164,6 +232,32 @@ def test_cli_build_and_sample(db, tmp_path):
     bad = runner.invoke(app, ["sample", str(folder / "faces.npy"), "--out", str(tmp_path / "t")])
     assert bad.exit_code == 2 and "not a BodyModel file" in bad.output
     del db_path
+    banana = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "b.npz"), "--on-flipped", "banana"])
+    assert banana.exit_code == 2 and "Traceback" not in banana.output
+    assert "--on-flipped 'banana', expected one of accept, warn, raise, ignore" in banana.output
+    assert not (tmp_path / "b.npz").exists()
+
+
+def test_flipped_scans_are_accepted_and_counted_once_by_default(db, template, tmp_path):
+    """The LBS-posed scans fold triangles: the default encodes them and counts the scans (not the
+    warnings); "raise" refuses; the CLI prints the count."""
+    folder = tmp_path / "db"
+    db.save(folder)
+    result = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "m.npz"), "--selection", "all",
+                                 "--components", "3"])
+    assert result.exit_code == 0, result.output
+    model = BodyModel.load(tmp_path / "m.npz")
+    probe = RelativeRotationEncoder(template.vertices, template.faces).fit(template.vertices[None])
+    probe.encode(np.asarray(db.vertices, dtype=float))
+    expected = int(np.count_nonzero(probe.last_flipped_))
+    assert 0 < expected < db.n_scans
+    assert model.provenance["flipped_scans"] == expected
+    assert model.provenance["flipped_triangles_max"] == int(probe.last_flipped_.max())
+    assert f"{expected} of {db.n_scans} scan(s) have flipped (folded) triangles" in " ".join(result.output.split())
+    with pytest.raises(MeshError, match="flipped triangle"):
+        BodyModel.fit(db, "rre", "all", n_components=3, template=template, on_flipped="raise")
+    with pytest.raises(ParameterError, match="on_flipped='banana'"):
+        BodyModel.fit(db, "rre", "all", template=template, on_flipped="banana")
 
 
 def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):

@@ -78,6 +78,67 @@ def test_n_components_and_selection(rre):
         ShapeSpace().transform(codes)
 
 
+def test_solvers_share_one_fit_path_and_one_n_components_rule(rre, tmp_path, monkeypatch):
+    _, codes = rre
+    full = ShapeSpace(n_components=3, solver="full").fit(codes)
+    # the Krylov solver on a float32 memory map of the codes (not copied), its basis capped at
+    # the 12 codes: the exact PCA to float32 precision, the same learned attributes
+    mm = np.lib.format.open_memmap(tmp_path / "codes.npy", mode="w+", dtype=np.float32, shape=codes.shape)
+    mm[:] = codes
+    krylov = ShapeSpace(n_components=3, solver="krylov", rng=0).fit(mm)
+    assert full.solver_ == "full" and krylov.solver_ == "krylov"
+    for name in ("mean_", "singular_values_", "explained_variance_", "explained_variance_ratio_"):
+        np.testing.assert_allclose(getattr(krylov, name), getattr(full, name), rtol=1e-4, atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(np.abs(np.sum(krylov.components_ * full.components_, axis=1)), 1, atol=1e-4)
+    np.testing.assert_allclose(krylov.total_variance_, full.total_variance_, rtol=1e-5)
+    # "auto": exact below FULL_PCA_MAX_BYTES or for a variance fraction, Krylov beyond
+    assert ShapeSpace(n_components=3).fit(codes).solver_ == "full"
+    monkeypatch.setattr("bodyspace.shape.pca.FULL_PCA_MAX_BYTES", 8)
+    assert ShapeSpace(n_components=3).fit(codes).solver_ == "krylov"
+    assert ShapeSpace(n_components=0.9).fit(codes).solver_ == "full"
+    with pytest.raises(ParameterError, match="variance fraction needs the exact PCA"):
+        ShapeSpace(n_components=0.9, solver="krylov").fit(codes)
+    for bad in (0, -1, 1.5, "3", True):
+        with pytest.raises(ParameterError, match="n_components"):
+            ShapeSpace(n_components=bad).fit(codes)
+    with pytest.raises(ParameterError, match="solver='svd'"):
+        ShapeSpace(solver="svd").fit(codes)
+    with pytest.raises(ParameterError, match="n_components=12, expected 1..11"):
+        ShapeSpace(n_components=12, solver="krylov").fit(codes)
+    bad = codes.copy()
+    bad[3, 7] = np.nan
+    for solver in ("full", "krylov"):
+        with pytest.raises(ParameterError, match="NaN"):
+            ShapeSpace(solver=solver).fit(bad)
+    # copy=True (the default) leaves the caller's matrix alone
+    before = codes.copy()
+    ShapeSpace().fit(codes)
+    np.testing.assert_array_equal(codes, before)
+
+
+def test_state_round_trips_through_arrays(rre):
+    enc, codes = rre
+    space = ShapeSpace(enc, n_components=4).fit(codes)
+    arrays = space.to_arrays("pca_")
+    assert arrays["pca_components"].dtype == np.float32 and arrays["pca_n_samples"] == 12
+    back = ShapeSpace.from_arrays(arrays, "pca_", enc)
+    np.testing.assert_array_equal(back.mean_, space.mean_)
+    np.testing.assert_array_equal(back.explained_variance_ratio_, space.explained_variance_ratio_)
+    assert back.n_components_ == 4 and back.n_samples_ == 12 and back.n_features_in_ == codes.shape[1]
+    np.testing.assert_allclose(back.components_, space.components_, atol=1e-6)  # float32 on disk
+    broken = dict(arrays, pca_singular_values=arrays["pca_singular_values"][:2])
+    with pytest.raises(ParameterError, match="'pca_singular_values' has shape"):
+        ShapeSpace.from_arrays(broken, "pca_")
+    with pytest.raises(ParameterError, match="pca_mean missing"):
+        ShapeSpace.from_arrays({k: v for k, v in arrays.items() if k != "pca_mean"}, "pca_")
+    # the encoder's state too
+    enc_back = RelativeRotationEncoder.from_arrays(enc.to_arrays("e_"), "e_", enc.template_vertices, enc.faces)
+    np.testing.assert_array_equal(enc_back.encode(enc.mean_vertices_), enc.encode(enc.mean_vertices_))
+    with pytest.raises(ParameterError, match="e_mean_stretch"):
+        RelativeRotationEncoder.from_arrays({"e_mean_vertices": enc.mean_vertices_}, "e_", enc.template_vertices,
+                                            enc.faces)
+
+
 def test_sampling(rre):
     enc, codes = rre
     space = ShapeSpace(enc).fit(codes)

@@ -124,10 +124,10 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
         d_samples, d_held = default_sizes(body_model)
         samples = d_samples if samples is None else samples
         held_out = d_held if held_out is None else held_out
-        if body_model.encoding != "vertex":
+        if not body_model.encoder.is_linear:
             per_body = decode_seconds(body_model)
             eta = estimate_seconds(body_model, samples, held_out, per_body, sweep=sweep)
-            console.print(f"RRE model: every body is decoded ({1000 * per_body:.0f} ms each, measured); "
+            console.print(f"{body_model.encoding} model: every body is decoded ({1000 * per_body:.0f} ms each, measured); "
                           f"{samples} training + {held_out} held-out bodies, predictions and refinement: "
                           f"about {_duration(eta)} (--samples / --held-out make it shorter)", highlight=False)
         with progress("mapping evaluate", eta=True) as cb:

@@ -3,7 +3,6 @@ random bodies from it."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -24,7 +23,7 @@ from bodyspace.cli.common import (
 from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.io import save_mesh
-from bodyspace.model import BodyModel
+from bodyspace.model import ON_FLIPPED, BodyModel
 from bodyspace.report.render import contact_sheet
 
 SAMPLES_KIND = "samples"
@@ -41,20 +40,23 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                         help="rest: rest-pose scans (shape only); all: pose and shape."),
           components: Optional[int] = typer.Option(None, "--components", min=1,
                                                    help="PCA components (default: all with variance, at most 100)."),
-          on_flipped: str = typer.Option("warn", "--on-flipped",
-                                         help="Folded triangles in scans: raise, warn (counted) or ignore."),
+          on_flipped: str = typer.Option("accept", "--on-flipped",
+                                         help="Scans with folded (flipped) triangles: accept (encode them and "
+                                              "count the scans), warn (also a warning each), raise (refuse) "
+                                              "or ignore (do not look)."),
           force: bool = ForceOption):
     """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
-    on_flipped = check_choice(on_flipped, "--on-flipped", ("raise", "warn", "ignore"))
+    on_flipped = check_choice(on_flipped, "--on-flipped", ON_FLIPPED)
     db = ScanDatabase.load(database)
-    with progress("build") as cb, warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", RuntimeWarning)
+    with progress("build") as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
     model.save(out)
-    folded = [w for w in caught if "flipped triangle" in str(w.message)]
+    folded = model.provenance.get("flipped_scans")
     if folded:
-        console.print(f"{len(folded)} scan(s) had flipped (folded) triangles; encoded anyway (--on-flipped warn)")
+        console.print(f"{folded} of {len(model.fitted_scans)} scan(s) have flipped (folded) triangles (at most "
+                      f"{model.provenance['flipped_triangles_max']} in a scan); encoded anyway (--on-flipped "
+                      f"{on_flipped}; raise refuses them)", highlight=False)
     ratio = float(model.space.explained_variance_ratio_.sum())
     t = model.provenance["timings_s"]
     out_console.print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "

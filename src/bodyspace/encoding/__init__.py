@@ -10,12 +10,23 @@ Shared parts: ``deformation`` (per-triangle deformation gradients and their clos
 decomposition) and ``rotations`` (quaternions, rotation vectors, polar factors, batched).
 
 Both: ``Encoder(template_vertices, faces).fit(scans)``, ``encode(vertices) -> (N, D)``,
-``decode(codes, constraints=None) -> (N, V, 3)``, ``n_features_``, ``mean_vertices_``.
+``decode(codes, constraints=None) -> (N, V, 3)``, ``n_features_``, ``mean_vertices_``;
+``to_arrays(prefix)`` / ``from_arrays(arrays, prefix, template_vertices, faces, **params)``
+(their state; ``PARAMS`` names the constructor keywords a file keeps); ``linearize(space, k)``
+(a ``DecoderLinearization``: exact for the vertex encoding, the tangent at the mean for RRE);
+``is_linear`` (decoding is affine, so measuring needs no decode); ``last_flipped_`` (folded
+triangles per mesh of the last ``encode``, or None when not looked for); ``kind``, the name
+``ENCODERS`` knows it by. Nothing above this package asks which encoder it has.
 """
 
+from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.encoding.rre import RelativeRotationEncoder
 from bodyspace.encoding.vertex import VertexEncoder
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.solver import PositionConstraints
 
-__all__ = ["RelativeRotationEncoder", "VertexEncoder", "PositionConstraints", "rigid_procrustes"]
+# Encoders by the name a model file and the CLI use (``kind``).
+ENCODERS = {cls.kind: cls for cls in (RelativeRotationEncoder, VertexEncoder)}
+
+__all__ = ["ENCODERS", "DecoderLinearization", "RelativeRotationEncoder", "VertexEncoder", "PositionConstraints",
+           "rigid_procrustes"]

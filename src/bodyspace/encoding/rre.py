@@ -72,6 +72,7 @@ import scipy.sparse.linalg as sla
 from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
+from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.encoding.rotations import (
     _planar,
     _qconj,
@@ -102,6 +103,10 @@ from bodyspace.mesh.topology import (
 from bodyspace.parallel import halves, run_both
 
 FEATURES_PER_FACE = 15
+# linearize(space) without k: the leading coefficients the tangent covers (Rupprecht's k = 25).
+LINEARIZED_COEFFICIENTS = 25
+# What encode does with a flipped (folded) triangle; see RelativeRotationEncoder.
+ON_FLIPPED = ("accept", "warn", "raise", "ignore")
 # A scan triangle whose area shrank below this fraction of its template area is degenerate:
 # its deformation gradient is (nearly) singular and has no meaningful polar decomposition.
 DEGENERATE_AREA_RATIO = 1e-8
@@ -451,10 +456,13 @@ class RelativeRotationEncoder:
             that older model files carry in their header, is read as "exact".
         on_flipped: what ``encode``/``fit`` do with a flipped triangle, one whose normal points
             against the vertex normals of its corners while the template's does not (a
-            fold-over): "raise" (MeshError), "warn" or "ignore". Such triangles round-trip
+            fold-over): "accept" (the default: encode it and count it, ``last_flipped_``),
+            "warn" (the same and a RuntimeWarning per mesh), "raise" (MeshError) or "ignore"
+            (not even looked for; ``last_flipped_`` is then all 0). Such triangles round-trip
             exactly, but their relative rotations sit near 180 degrees, where rotation vectors
             wrap, so interpolation and PCA misbehave there. Note: 89 of the 576 MakeHuman
-            targets, applied at full weight, fold 2-20 small triangles this way.
+            targets, applied at full weight, fold 2-20 small triangles this way, and real
+            registered meshes have 1-11 in almost every mesh, hence the default.
 
     Attributes (after ``fit``):
         mean_rotvecs_: (F, 3, 3) mean rotation vector per face and edge slot.
@@ -462,13 +470,22 @@ class RelativeRotationEncoder:
         mean_vertices_: (V, 3) the mean model's mesh (decoded zero code), placed on the template.
         n_features_: D = 15 F (available before fit).
         slot_mask_: (F, 3) bool, True where the edge slot has a neighbour.
+        last_flipped_: (N,) int, the flipped triangles of each mesh of the last ``encode`` call.
         last_factorized_: how many bodies of the last decode call needed a factorization
             (the others were consistent codes, solved exactly by the tree rotations; with
             "direct", all of them).
     """
 
+    kind = "rre"
+    # Constructor keywords a model file keeps (header "encoder_params"), and the run-time ones.
+    PARAMS = ("rotation_solver", "on_flipped")
+    RUNTIME_PARAMS = ("n_jobs",)
+    # Decoding is two sparse solves per body: mapping samples and measures bodies by decoding
+    # them, with a fitted linearization (``linearize``, ``DecoderLinearization``) for Jacobians.
+    is_linear = False
+
     def __init__(self, template_vertices: np.ndarray, faces: np.ndarray, *, rotation_solver: str = "exact",
-                 on_flipped: str = "raise", n_jobs: int | None = None):
+                 on_flipped: str = "accept", n_jobs: int | None = None):
         check_mesh(template_vertices, faces, name="template")
         tv = np.asarray(template_vertices, dtype=float)
         if tv.ndim != 2:
@@ -476,11 +493,11 @@ class RelativeRotationEncoder:
         if rotation_solver == "pcg":
             rotation_solver = "exact"
         if rotation_solver not in ("exact", "direct"):
-            raise ValueError(f"rotation_solver={rotation_solver!r}, expected 'exact' or 'direct'")
+            raise ParameterError(f"rotation_solver={rotation_solver!r}, expected 'exact' or 'direct'")
         self.template_vertices = tv
         self.faces = np.asarray(faces, dtype=np.int64)
-        if on_flipped not in ("raise", "warn", "ignore"):
-            raise ValueError(f"on_flipped={on_flipped!r}, expected 'raise', 'warn' or 'ignore'")
+        if on_flipped not in ON_FLIPPED:
+            raise ParameterError(f"on_flipped={on_flipped!r}, expected one of {', '.join(ON_FLIPPED)}")
         self.rotation_solver = rotation_solver
         self.on_flipped = on_flipped
         self.n_jobs = n_jobs
@@ -562,11 +579,12 @@ class RelativeRotationEncoder:
             self._blocks = blocks
         return blocks
 
-    def _rotations(self, x: np.ndarray, name: str, index: int):
+    def _rotations(self, x: np.ndarray, name: str, index: int, look_for_folds: bool = True):
         """Rotations and stretches of the deformation gradients of one mesh x (V, 3), checked.
 
-        Returns ``(q, stretch)``: the rotations R_i of ``U_i = R_i S_i`` as component-first
-        quaternions (4, F) and the stretches S_i packed (F, 6). Raises MeshError for degenerate
+        Returns ``(q, stretch, n_flipped)``: the rotations R_i of ``U_i = R_i S_i`` as
+        component-first quaternions (4, F), the stretches S_i packed (F, 6) and the number of
+        flipped triangles (0 when not looked for). Raises MeshError for degenerate
         triangles and inside-out meshes, and applies ``on_flipped`` (``index``: the mesh's
         position in the caller's batch, for the messages).
         """
@@ -575,7 +593,7 @@ class RelativeRotationEncoder:
         q = np.empty((4, nf))
         stretch = np.empty((nf, 6))
         dbl = np.empty(nf)
-        check_flips = self.on_flipped != "ignore"
+        check_flips = look_for_folds and self.on_flipped != "ignore"
         normals = np.empty((nf, 3)) if check_flips else None
         volume = 0.0
         for sl, corner, rest, _, _ in self._encoding_blocks():
@@ -600,19 +618,21 @@ class RelativeRotationEncoder:
             raise MeshError(f"{name}: mesh {index} is inside out (enclosed volume {volume:.3g} m^3, "
                             f"the template's {self._rest_volume:.3g} m^3): mirrored, or every face flipped; "
                             "expected the template's orientation")
+        n_flipped = 0
         if check_flips:
             fold = _normal_agreement(normals[None], self.faces, self._incidence)[0]
             flipped = (fold < 0) & (self._rest_fold >= 0)
-            if flipped.any():
+            n_flipped = int(flipped.sum())
+            if flipped.any() and self.on_flipped in ("raise", "warn"):
                 f = int(np.flatnonzero(flipped)[0])
                 msg = (f"{name}: mesh {index} has {int(flipped.sum())} flipped triangle(s), first face {f}: "
                        "its normal points against the surface around it (the vertex normals of its corners), "
                        "the template's does not; expected an orientation-preserving registration "
-                       "(on_flipped='warn' or 'ignore' accepts it)")
+                       "(on_flipped='accept' encodes it)")
                 if self.on_flipped == "raise":
                     raise MeshError(msg)
                 warnings.warn(msg, RuntimeWarning, stacklevel=4)
-        return q, stretch
+        return q, stretch, n_flipped
 
     # ------------------------------------------------------------------ API
     def fit(self, scans: np.ndarray, faces: np.ndarray | None = None) -> "RelativeRotationEncoder":
@@ -621,6 +641,9 @@ class RelativeRotationEncoder:
         ``fit(template_vertices[None])`` makes the template itself the mean model.
         """
         x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
+        # Folds are refused here under "raise"; otherwise they are counted (and warned about)
+        # by ``encode`` alone, so a scan both fitted on and encoded is counted once.
+        look_for_folds = self.on_flipped == "raise"
         blocks = self._encoding_blocks()
         # Sums per fixed, contiguous chunk of scans, added in chunk order: the mean model is the
         # same to the last bit whatever the thread count or timing.
@@ -631,7 +654,7 @@ class RelativeRotationEncoder:
         def work(k):
             rot = np.empty(sum_rot.shape[1:])
             for m in chunks[k]:
-                q, stretch = self._rotations(x[m], "scans", m)
+                q, stretch, _ = self._rotations(x[m], "scans", m, look_for_folds)
                 for sl, _, _, nbr, _ in blocks:
                     rot[:, :, sl] = _relative_rotvecs(q[:, sl], q[:, nbr])
                 sum_rot[k] += rot
@@ -670,8 +693,10 @@ class RelativeRotationEncoder:
         blocks = self._encoding_blocks()
         conj_mean = np.ascontiguousarray(_qconj(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
 
+        flipped = np.zeros(len(x), dtype=np.int64)
+
         def work(m):
-            q, stretch = self._rotations(x[m], "vertices", m)
+            q, stretch, flipped[m] = self._rotations(x[m], "vertices", m)
             code = codes[m]
             for sl, _, _, nbr, boundary in blocks:
                 # r_ij = log(Q_ij M_ij^-1), (3, slot, B)
@@ -682,7 +707,51 @@ class RelativeRotationEncoder:
             code[:, 9:] = stretch - self.mean_stretch_
 
         self._run(work, range(len(x)))
+        self.last_flipped_ = flipped
         return out
+
+    # ------------------------------------------------------------------ state
+    def to_arrays(self, prefix: str = "encoder_") -> dict[str, np.ndarray]:
+        """The fitted state as flat float64 arrays: ``mean_vertices`` (V, 3) metres,
+        ``mean_rotvecs`` (F, 3, 3) radians, ``mean_stretch`` (F, 6). The template and the
+        constructor keywords (``PARAMS``) are the caller's to store."""
+        self._require_fit()
+        return {prefix + "mean_vertices": np.asarray(self.mean_vertices_, dtype=np.float64),
+                prefix + "mean_rotvecs": np.asarray(self.mean_rotvecs_, dtype=np.float64),
+                prefix + "mean_stretch": np.asarray(self.mean_stretch_, dtype=np.float64)}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str, template_vertices: np.ndarray, faces: np.ndarray,
+                    **params) -> "RelativeRotationEncoder":
+        """A fitted encoder from ``to_arrays`` output, without refitting (shapes checked against the
+        template; ``params``: constructor keywords). Files written while the default decoder was
+        iterative also carry its step settings ("tol", "max_iter"): dropped."""
+        params = {k: v for k, v in params.items() if k not in ("tol", "max_iter")}
+        enc = cls(template_vertices, faces, **params)
+        names = [prefix + s for s in ("mean_vertices", "mean_rotvecs", "mean_stretch")]
+        missing = [n for n in names if n not in arrays]
+        if missing:
+            raise ParameterError(f"relative rotation encoder: arrays {', '.join(missing)} missing")
+        mean_vertices, rot, stretch = (np.asarray(arrays[n], dtype=float) for n in names)
+        if rot.shape != (enc.n_faces, 3, 3) or stretch.shape != (enc.n_faces, 6) \
+                or mean_vertices.shape != (enc.n_vertices, 3):
+            raise ParameterError(f"relative rotation encoder: '{names[0]}' {mean_vertices.shape}, '{names[1]}' "
+                                 f"{rot.shape}, '{names[2]}' {stretch.shape}; expected ({enc.n_vertices}, 3), "
+                                 f"({enc.n_faces}, 3, 3) and ({enc.n_faces}, 6) for this template")
+        enc.mean_rotvecs_ = rot
+        enc.mean_stretch_ = stretch
+        # Component-first quaternions (4, F, 3), what fit derives from mean_rotvecs_.
+        enc._mean_q = np.ascontiguousarray(np.moveaxis(quaternion_exp(rot), -1, 0))
+        enc.mean_vertices_ = mean_vertices
+        return enc
+
+    def linearize(self, space, k: int | None = None) -> DecoderLinearization:
+        """Affine stand-in ``v ~ base + z @ basis`` of ``space.reconstruct`` on the first ``k``
+        coefficients (default ``LINEARIZED_COEFFICIENTS``, each costs a decode): the tangent at
+        the mean by forward differences (``k + 1`` decodes, cached).
+        A least-squares fit over sampled bodies (``DecoderLinearization.partial_fit``) is better
+        over a whole box; mapping makes one on its training set since ``is_linear`` is False."""
+        return DecoderLinearization.at_mean(space, LINEARIZED_COEFFICIENTS if k is None else k)
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
         """Meshes (N, V, 3) from codes (N, 15 F) or (15 F,), placed on the mean model.

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bodyspace.errors import MeshError
+from bodyspace.encoding.linearize import DecoderLinearization
+from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.geometry import check_mesh
 from bodyspace.mesh.operators import deformation_gradients, triangle_frames
@@ -36,6 +37,15 @@ class VertexEncoder:
         mean_vertices_: (V, 3) the generalized-Procrustes mean, aligned to the template.
         n_features_: D = 3V.
     """
+
+    kind = "vertex"
+    PARAMS = ()
+    RUNTIME_PARAMS = ()
+    # decode(mean + z C) = mean_vertices_ + (mean + z C) reshaped: affine, so mapping measures
+    # bodies through ``linearize`` without decoding them.
+    is_linear = True
+    # The vertex encoding has no rotations to wrap: folded triangles are not looked for.
+    last_flipped_ = None
 
     def __init__(self, template_vertices: np.ndarray, faces: np.ndarray):
         check_mesh(template_vertices, faces, name="template")
@@ -75,12 +85,55 @@ class VertexEncoder:
         self.mean_vertices_ = mean
         return self
 
-    def encode(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
-        """Codes (N, 3V) of meshes (V, 3) or (N, V, 3): aligned vertices minus the mean."""
+    def encode(self, vertices: np.ndarray, faces: np.ndarray | None = None, *,
+               out: np.ndarray | None = None) -> np.ndarray:
+        """Codes (N, 3V) of meshes (V, 3) or (N, V, 3): aligned vertices minus the mean.
+
+        ``out``: an optional (N, 3V) float64 or float32 array the codes are written into (and
+        returned), e.g. rows of a large code matrix.
+        """
         self._require_fit()
         x = self._check_vertices(vertices, faces)
         aligned, _, _ = rigid_procrustes(x, self.mean_vertices_)
-        return (aligned - self.mean_vertices_).reshape(len(x), -1)
+        codes = (aligned - self.mean_vertices_).reshape(len(x), -1)
+        if out is None:
+            return codes
+        if out.shape != codes.shape or out.dtype not in (np.float64, np.float32):
+            raise ParameterError(f"out: {out.dtype} array of shape {out.shape}, expected a float64 or float32 "
+                                 f"array of shape {codes.shape}")
+        out[...] = codes
+        return out
+
+    # ------------------------------------------------------------------ state
+    def to_arrays(self, prefix: str = "encoder_") -> dict[str, np.ndarray]:
+        """The fitted state: ``mean_vertices`` (V, 3) float64 metres (the template is the caller's)."""
+        self._require_fit()
+        return {prefix + "mean_vertices": np.asarray(self.mean_vertices_, dtype=np.float64)}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str, template_vertices: np.ndarray, faces: np.ndarray,
+                    **params) -> "VertexEncoder":
+        """A fitted encoder from ``to_arrays`` output (shape checked against the template)."""
+        if params:
+            raise ParameterError(f"vertex encoder: unexpected parameters {sorted(params)}; it takes none")
+        enc = cls(template_vertices, faces)
+        name = prefix + "mean_vertices"
+        if name not in arrays:
+            raise ParameterError(f"vertex encoder: array '{name}' missing")
+        mean = np.asarray(arrays[name], dtype=float)
+        if mean.shape != (enc.n_vertices, 3):
+            raise ParameterError(f"vertex encoder: '{name}' has shape {mean.shape}, expected ({enc.n_vertices}, 3)")
+        enc.mean_vertices_ = mean
+        return enc
+
+    def linearize(self, space, k: int | None = None) -> DecoderLinearization:
+        """The decoder of ``space`` (a fitted ``ShapeSpace`` over this encoder) on its first ``k``
+        coefficients (default all), exactly: ``base = mean_vertices_ + mean_``, ``basis =
+        components_[:k]``, each reshaped to vertices (V, 3)."""
+        self._require_fit()
+        k = space.n_components_ if k is None else min(int(k), space.n_components_)
+        base = self.mean_vertices_ + space.mean_.reshape(self.n_vertices, 3)
+        return DecoderLinearization.exact(base, space.components_[:k].reshape(k, self.n_vertices, 3))
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
         """Meshes (N, V, 3) from codes (N, 3V) or (3V,), in the mean mesh's frame.

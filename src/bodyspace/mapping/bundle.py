@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.forest import LinearLeafForest
 from bodyspace.mapping.gradients import RUPPRECHT_SIX
 from bodyspace.mapping.linear import LinearMapping
-from bodyspace.mapping.linearize import DecoderLinearization
 from bodyspace.mapping.refine import RefineResult, refine
 from bodyspace.mapping.training import default_sizes, make_training_set
 

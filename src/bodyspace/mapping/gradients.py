@@ -18,7 +18,7 @@ vertices through ``L^T``.
 
 With the RRE encoding bodies are not linear in z: ``LinearBodyMeasures.measure_bodies`` measures
 the truly decoded bodies (exact values) and chains the exact vertex gradients with a fitted
-linearization of the decoder (``linearize.DecoderLinearization``) for dv/dz.
+linearization of the decoder (``encoding.linearize.DecoderLinearization``) for dv/dz.
 
 Slices (plane cross-sections, convex-hull girths) are not differentiated yet:
 ``LinearBodyMeasures`` refuses them with a message, and ``training.make_training_set`` measures
@@ -189,9 +189,10 @@ class LinearBodyMeasures:
                    linearization=None):
         """For a ``BodyModel`` and its first ``k`` components (default all; 25 at most for RRE).
 
-        Vertex encoding: the model's own basis, exact. RRE encoding: the basis of
-        ``linearization`` (a ``linearize.DecoderLinearization``; default: forward differences at
-        the mean body, ``k + 1`` decodes, cached), so ``measure_bodies`` gives exact values of
+        The basis of ``model.encoder.linearize(space, k)``: exact for a linear encoding (vertex);
+        for RRE the given ``linearization`` (an ``encoding.linearize.DecoderLinearization`` fitted
+        on a training set) or by default the encoder's forward differences at the mean body
+        (``k + 1`` decodes, cached), so ``measure_bodies`` gives exact values of
         decoded bodies with approximate Jacobians, and ``__call__`` measures the linearized bodies.
         Cached per model (weakly) and arguments: a second call for one request costs nothing.
         """
@@ -212,21 +213,14 @@ class LinearBodyMeasures:
         from bodyspace.measure import load_measurement_set
         mset = load_measurement_set() if mset is None else mset
         sp = model.space
-        if model.encoding == "vertex":
-            k = sp.n_components_ if k is None else min(int(k), sp.n_components_)
-            V = model.mean_vertices.shape[0]
-            base = model.mean_vertices + sp.mean_.reshape(V, 3)
-            basis = sp.components_[:k].reshape(k, V, 3)
-        elif model.encoding == "rre":
-            from bodyspace.mapping.linearize import DecoderLinearization
-            if linearization is None:
-                linearization = DecoderLinearization.at_mean(model, 25 if k is None else k)
-            elif k is not None and linearization.k < min(int(k), sp.n_components_):
-                raise ParameterError(f"linearization: covers {linearization.k} coefficients, expected at least k={k}")
-            k = linearization.k if k is None else min(int(k), linearization.k)
-            base, basis = linearization.base_, linearization.basis_[:k]
-        else:
-            raise ParameterError(f"model encoding {model.encoding!r}: expected 'vertex' or 'rre'")
+        # The encoder's own linearization of its decoder (exact for a linear encoding, which a
+        # fitted one could only approximate), unless a fitted one is given.
+        if linearization is None or model.encoder.is_linear:
+            linearization = model.encoder.linearize(sp, k)
+        elif k is not None and linearization.k < min(int(k), sp.n_components_):
+            raise ParameterError(f"linearization: covers {linearization.k} coefficients, expected at least k={k}")
+        k = linearization.k if k is None else min(int(k), linearization.k)
+        base, basis = linearization.base_, linearization.basis_[:k]
         return cls(base, basis, mset, names).restrict_floor(4.0 * np.sqrt(sp.explained_variance_[:k]))
 
     # ------------------------------------------------------------------ evaluation
@@ -284,7 +278,7 @@ class LinearBodyMeasures:
         """Measurements (N, M) in metres of given bodies ``vertices`` (N, V, 3) (e.g. truly decoded
         RRE bodies); with ``jacobian`` also d measurement / d z (N, M, K): the exact gradients with
         respect to those bodies' vertices, chained with this object's ``basis`` as dv/dz (for a
-        non-linear decoder, its linearization: see ``linearize.DecoderLinearization``). The values
+        non-linear decoder, its linearization: see ``encoding.linearize.DecoderLinearization``). The values
         are exact whatever the basis; the floor is searched over all vertices."""
         v = np.asarray(vertices, dtype=float)
         if v.ndim != 3 or v.shape[1:] != (self.n_vertices, 3):

@@ -17,7 +17,7 @@ RRE encoding (bodies non-linear in z): the same iteration, with residuals always
 the truly decoded bodies (one batched decode of the active requests per iteration, so a request
 reported as met is met exactly) and Jacobians that are approximate: the analytic vertex gradients
 at the decoded body chained with a linearization of the decoder
-(``linearize.DecoderLinearization``), corrected per request by Broyden rank-1 updates from the
+(``encoding.linearize.DecoderLinearization``), corrected per request by Broyden rank-1 updates from the
 steps taken, a damping floor, and, once for a stalled request, finite differences at its body.
 See ``_refine_decoded`` and docs/mapping.md.
 
@@ -75,7 +75,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     """Refine coefficients so the bodies measure ``targets`` exactly (see the module docstring).
 
     Args:
-        model: a ``BodyModel``, vertex or RRE encoding (selected by ``model.encoding``).
+        model: a ``BodyModel``, vertex or RRE encoding (selected by ``model.encoder.is_linear``).
         coefficients0: (N, K') or (K',) start, e.g. the forest's prediction (only the first ``k`` are refined).
         targets: (N, M) or (M,) requested measurements in cm, columns in the order of ``names``.
         names: the measurements (loop, distance or path methods); mset: their set (default hm08).
@@ -86,7 +86,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
         tol_cm: a measurement further than this from its request is reported as missed.
         max_iter: Levenberg-Marquardt iterations at most; a request stops earlier when an
             accepted step moves less than ``xtol`` sigma or lowers the cost by less than ``ftol`` (relative).
-        linearization: RRE only: the ``linearize.DecoderLinearization`` whose basis stands for
+        linearization: RRE only: the ``encoding.linearize.DecoderLinearization`` whose basis stands for
             dv/dz (default: forward differences at the mean, ``k + 1`` decodes, cached per model;
             better: the least-squares one of a training set, ``TrainingSet.linearization``).
         stop_cm: RRE only: a request also stops once every measurement is within this of its
@@ -118,7 +118,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     k = measurer.n_coefficients
     sd = np.sqrt(model.space.explained_variance_[:k])
     s = np.clip(z0[:, :k] / sd, -max_sigma, max_sigma)
-    if model.encoding == "vertex":
+    if model.encoder.is_linear:
         decodes = 0
         s, m, iters = _refine_linear(measurer, s, t, sd, float(prior_weight), max_sigma, max_iter, xtol, ftol,
                                       progress)

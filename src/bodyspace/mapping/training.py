@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.gradients import (
     DIFFERENTIABLE,
@@ -33,14 +34,14 @@ from bodyspace.mapping.gradients import (
 
 CHUNK = 256
 # RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.
-RRE_CHUNK = 32
+DECODED_CHUNK = 32
 
 
 @dataclass
 class TrainingSet:
     """coefficients (N, K) (the first ``k`` vary), measurements (N, M) in cm for lengths,
     names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed; linearization: RRE
-    models only, the least-squares ``linearize.DecoderLinearization`` of the decoded bodies (None
+    models only, the least-squares ``encoding.linearize.DecoderLinearization`` of the decoded bodies (None
     for the vertex encoding, which is linear)."""
 
     coefficients: np.ndarray
@@ -60,7 +61,7 @@ class TrainingSet:
 def default_sizes(model) -> tuple[int, int]:
     """(training samples, held-out requests) by encoding: the paper's 10,000 / 1,000 for vertex
     models; 1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each)."""
-    return (10000, 1000) if model.encoding == "vertex" else (1000, 100)
+    return (10000, 1000) if model.encoder.is_linear else (1000, 100)
 
 
 def sample_uniform(model, n: int, k: int = 25, sigma_range: float = 3.0, rng=None) -> np.ndarray:
@@ -97,7 +98,7 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
             and (by_name[n]["method"] != "loop" or by_name[n].get("axis", "up") == "up")]
     slow = [i for i in range(len(names)) if i not in fast]
     report = progress or (lambda msg, frac: None)
-    if model.encoding == "vertex":
+    if model.encoder.is_linear:
         if fast:
             if measurer is None:
                 measurer = LinearBodyMeasures.from_model(model, mset, [names[i] for i in fast])
@@ -112,7 +113,7 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
                                          [names[i] for i in fast]) if fast else None
     if slow or fast_bodies is not None:
         sub = subset(mset, [names[i] for i in slow]) if slow else None
-        chunk = CHUNK if model.encoding == "vertex" else RRE_CHUNK
+        chunk = CHUNK if model.encoder.is_linear else DECODED_CHUNK
         for s in range(0, len(z), chunk):
             v = model.reconstruct(z[s:s + chunk])
             if linearization is not None:
@@ -145,8 +146,7 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT
     z = sample_uniform(model, n, k, sigma_range, rng)
     kk = min(int(k), model.n_components)
     lin = None
-    if model.encoding != "vertex":
-        from bodyspace.mapping.linearize import DecoderLinearization
+    if not model.encoder.is_linear:                      # an exact linearization needs no fit
         lin = DecoderLinearization(kk)
     x, units = measure_coefficients(model, z, names, mset, progress=progress, linearization=lin)
     if lin is not None and not hasattr(lin, "basis_"):

@@ -5,10 +5,15 @@ the space holds pose and shape together when fitted on the whole database, or sh
 when fitted on a selection (the rest-pose scans). With the vertex encoding it is Rupprecht's
 model ``M = M_mean + sum_i alpha_i a_i``.
 
-Estimator in the scikit-learn style: hyper-parameters in ``__init__``, ``fit`` returns self,
-learned state ends in ``_``. The PCA is a thin SVD of the centred codes (numpy only; the
-project does not depend on scikit-learn), with scikit-learn's sign convention so results
-match ``sklearn.decomposition.PCA``.
+Estimator in the scikit-learn style (``sklearn.decomposition.PCA``): hyper-parameters in
+``__init__``, ``fit`` returns self, learned state ends in ``_``. ``fit`` validates once,
+resolves ``solver="auto"`` from the data size, then ``_fit_full`` (exact, float64) or
+``_fit_truncated`` (randomized block Krylov, float32 codes welcome) set the same attributes.
+The solvers are in ``shape.solvers`` (numpy only; the project does not depend on
+scikit-learn); the sign convention is scikit-learn's, so results match its ``PCA``.
+
+This is the one PCA fit path: ``BodyModel.fit`` hands it the (N, D) code matrix it encoded
+(float64, or float32 beyond ``FULL_PCA_MAX_BYTES``), with ``copy=False``.
 """
 
 from __future__ import annotations
@@ -19,22 +24,50 @@ import numpy as np
 from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
+from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full
+
+SOLVERS = ("auto", "full", "krylov")
+# solver="auto": up to this many bytes of float64 codes the PCA is exact (Gram matrix, float64);
+# beyond, the leading components are found by the randomized block Krylov method on codes that
+# may be held in float32 (half the memory).
+FULL_PCA_MAX_BYTES = 2_000_000_000
+# n_components=None keeps every component with variance, at most this many.
+MAX_DEFAULT_COMPONENTS = 100
 
 
 def _rng(rng) -> np.random.Generator:
     return np.random.default_rng(rng)
 
 
+def resolve_solver(solver: str, n_samples: int, n_features: int, n_components=None) -> str:
+    """"full" or "krylov" for ``solver`` ("auto", "full", "krylov") on an (n_samples, n_features)
+    code matrix: "auto" is exact up to ``FULL_PCA_MAX_BYTES`` of float64 codes or when
+    ``n_components`` is a variance fraction (only the exact PCA knows the whole spectrum)."""
+    if solver not in SOLVERS:
+        raise ParameterError(f"solver={solver!r}, expected one of {', '.join(SOLVERS)}")
+    if solver != "auto":
+        return solver
+    fraction = isinstance(n_components, numbers.Real) and not isinstance(n_components, numbers.Integral)
+    return "full" if fraction or n_samples * n_features * 8 <= FULL_PCA_MAX_BYTES else "krylov"
+
+
 class ShapeSpace:
     """Principal component analysis of encoded bodies, with sampling and reconstruction.
 
     Args:
-        encoder: a fitted ``RelativeRotationEncoder`` or ``VertexEncoder`` (anything with
-            ``encode``/``decode``/``n_features_``), needed for the mesh-level methods
-            (``fit`` on meshes, ``project``, ``reconstruct``, ``sample``); None for codes only.
-        n_components: None keeps every component with variance (``min(N - 1, D)``); an int
-            keeps that many; a float in (0, 1) keeps the fewest that explain that fraction of
-            the variance.
+        encoder: a fitted encoder (``encoding.ENCODERS``; anything with ``encode``/``decode``/
+            ``n_features_``), needed for the mesh-level methods (``fit`` on meshes, ``project``,
+            ``reconstruct``, ``sample``); None for codes only.
+        n_components: None keeps every component with variance (numerical rank, at most
+            ``MAX_DEFAULT_COMPONENTS``); an int keeps that many; a float in (0, 1) keeps the
+            fewest that explain that fraction of the total variance (exact solver only).
+        solver: "full" (exact: eigen-decomposition of the (N, N) Gram matrix of the centred
+            float64 codes), "krylov" (randomized block Krylov, Musco and Musco 2015: the leading
+            components only, float32 codes kept as they are), or "auto" (``resolve_solver``).
+        copy: False lets the exact solver centre a float64 code matrix in place (what
+            ``BodyModel.fit`` does with the matrix it made); True (default) leaves X untouched.
+        rng: the Krylov start block's seed (Generator, seed or None).
+        n_jobs: threads of the Krylov products (default: all cores).
 
     Attributes (after ``fit``):
         mean_: (D,) mean code.
@@ -42,16 +75,33 @@ class ShapeSpace:
         explained_variance_: (K,) variance along each component (``s^2 / (N - 1)``).
         explained_variance_ratio_: (K,) fraction of the total variance.
         singular_values_: (K,).
+        total_variance_: float, the variance of the codes summed over all D features.
+        solver_: "full" or "krylov", the solver used.
         n_components_, n_samples_, n_features_in_: ints.
     """
 
-    def __init__(self, encoder=None, n_components: int | float | None = None):
+    def __init__(self, encoder=None, n_components: int | float | None = None, *, solver: str = "auto",
+                 copy: bool = True, rng=0, n_jobs: int | None = None):
         self.encoder = encoder
         self.n_components = n_components
+        self.solver = solver
+        self.copy = copy
+        self.rng = rng
+        self.n_jobs = n_jobs
 
     # ------------------------------------------------------------------ validation
     def _codes(self, x, name: str = "X") -> np.ndarray:
-        x = np.asarray(x)
+        x = self._code_matrix(x, name)
+        x = x.astype(float, copy=False)
+        if not np.isfinite(x).all():
+            raise ParameterError(f"{name}: contains NaN or infinity")
+        return x
+
+    def _code_matrix(self, x, name: str) -> np.ndarray:
+        """Codes (N, D) of codes or meshes (N, V, 3), any float dtype kept (a float32 memmap is
+        not copied); checked against the fitted length."""
+        if not isinstance(x, np.ndarray):
+            x = np.asarray(x)
         if x.ndim == 3:  # meshes (N, V, 3)
             if self.encoder is None:
                 raise ParameterError(f"{name}: got meshes of shape {x.shape} but the shape space has no encoder; "
@@ -61,12 +111,11 @@ class ShapeSpace:
             x = x[None]
         if x.ndim != 2:
             raise ParameterError(f"{name}: shape {x.shape}, expected codes (N, D) or meshes (N, V, 3)")
+        if not np.issubdtype(x.dtype, np.number):
+            raise ParameterError(f"{name}: dtype {x.dtype}, expected floating-point codes")
         if hasattr(self, "n_features_in_") and x.shape[1] != self.n_features_in_:
             raise ParameterError(f"{name}: codes have length {x.shape[1]}, expected {self.n_features_in_} "
                                  "(the length the shape space was fitted on)")
-        x = x.astype(float, copy=False)
-        if not np.isfinite(x).all():
-            raise ParameterError(f"{name}: contains NaN or infinity")
         return x
 
     def _require_fit(self):
@@ -79,44 +128,131 @@ class ShapeSpace:
 
     # ------------------------------------------------------------------ estimator API
     def fit(self, X, y=None, *, select=None) -> "ShapeSpace":
-        """Fit on codes (N, D) or meshes (N, V, 3); ``select`` (boolean mask or indices) restricts
-        the fit to some rows, e.g. the rest-pose scans for a shape-only space."""
-        x = self._codes(X)
+        """Fit on codes (N, D) (float64 or float32, e.g. a memmap) or meshes (N, V, 3).
+
+        ``select`` (boolean mask or indices) restricts the fit to some rows, e.g. the rest-pose
+        scans for a shape-only space. Steps (as ``sklearn.decomposition.PCA._fit``): validate X
+        and ``n_components`` once, resolve the solver, then ``_fit_full`` or ``_fit_truncated``.
+        """
+        for name in [n for n in ("components_", "n_features_in_") if hasattr(self, n)]:
+            delattr(self, name)  # a refit may change the code length
+        x = self._code_matrix(X, "X")
         if select is not None:
             x = x[np.asarray(select)]
         n, d = x.shape
         if n < 2:
             raise ParameterError(f"X: {n} sample(s) selected, expected at least 2 to fit a PCA")
-        self.mean_ = x.mean(axis=0)
-        u, s, vt = np.linalg.svd(x - self.mean_, full_matrices=False)
-        # scikit-learn's sign convention (svd_flip on the components): each component's largest
-        # |entry| is positive, so the basis does not depend on the order of the samples.
-        signs = np.sign(vt[np.arange(vt.shape[0]), np.argmax(np.abs(vt), axis=1)])
-        signs[signs == 0] = 1.0
-        vt *= signs[:, None]
+        nc = self.n_components
+        if not (nc is None or (isinstance(nc, numbers.Integral) and not isinstance(nc, bool) and nc >= 1)
+                or (isinstance(nc, numbers.Real) and not isinstance(nc, numbers.Integral) and 0 < nc < 1)):
+            raise ParameterError(f"n_components={nc!r}, expected None, an int >= 1 or a float in (0, 1)")
+        solver = resolve_solver(self.solver, n, d, nc)
+        if solver == "krylov" and not (nc is None or isinstance(nc, numbers.Integral)):
+            raise ParameterError(f"n_components={nc!r}: a variance fraction needs the exact PCA (solver='full'); "
+                                 f"the Krylov solver (chosen for {n} x {d} codes, > {FULL_PCA_MAX_BYTES / 1e9:.0f} GB "
+                                 "in float64) needs an int")
+        if solver == "full":
+            self._fit_full(x, n, d)
+        else:
+            self._fit_truncated(x, n, d)
+        self.solver_ = solver
+        return self
+
+    def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
+        """Exact PCA in float64 (Gram matrix eigen-decomposition, ``solvers.pca_full``)."""
+        own = x.dtype == np.float64 and not self.copy
+        x = x if own else np.array(x, dtype=np.float64)
+        mean = x.mean(axis=0)
+        if not np.isfinite(mean).all():  # a NaN or infinity anywhere reaches its column's mean
+            raise ParameterError("X: contains NaN or infinity")
+        s, vt = pca_full(x, mean)                       # centres x in place
+        total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
         var = s ** 2 / (n - 1)
-        total = var.sum()
-        k = self._n_keep(var, total, n, d)
+        self._set(mean, s, vt, var, total, n, d, self._n_keep(var, total, n, d))
+
+    def _fit_truncated(self, x: np.ndarray, n: int, d: int) -> None:
+        """Leading components by the randomized block Krylov method (``solvers.pca_block_krylov``),
+        on x as it is (float32 ok, never copied); mean and total variance accumulated in float64."""
+        if x.dtype not in (np.float32, np.float64):
+            x = x.astype(np.float64)
+        mean, scatter = mean_and_scatter(x)
+        if not (np.isfinite(mean).all() and np.isfinite(scatter)):
+            raise ParameterError("X: contains NaN or infinity")
+        limit = min(n - 1, d)
+        k = min(limit, MAX_DEFAULT_COMPONENTS) if self.n_components is None else int(self.n_components)
+        if not 1 <= k <= limit:
+            raise ParameterError(f"n_components={self.n_components}, expected 1..{limit} for {n} samples "
+                                 f"of length {d}")
+        s, vt = pca_block_krylov(x, mean, k, rng=self.rng, n_jobs=self.n_jobs)
+        self._set(mean, s, vt, s ** 2 / (n - 1), scatter / (n - 1), n, d, k)
+
+    def _set(self, mean, s, vt, var, total, n, d, k) -> None:
+        self.mean_ = np.asarray(mean, dtype=np.float64)
         self.components_ = vt[:k]
         self.singular_values_ = s[:k]
         self.explained_variance_ = var[:k]
         self.explained_variance_ratio_ = var[:k] / total if total > 0 else np.zeros(k)
-        self.n_components_, self.n_samples_, self.n_features_in_ = k, n, d
-        return self
+        self.total_variance_ = float(total)
+        self.n_components_, self.n_samples_, self.n_features_in_ = int(k), int(n), int(d)
 
     def _n_keep(self, var, total, n, d) -> int:
+        """Components kept by the exact solver: ``n_components`` against the ``len(var)``
+        components with variance (the numerical rank)."""
         nc = self.n_components
-        limit = min(n - 1, d)
         if nc is None:
-            return max(limit, 1)
+            return int(max(min(len(var), MAX_DEFAULT_COMPONENTS), 1))
         if isinstance(nc, numbers.Integral):
-            if not 1 <= nc <= min(n, d):
-                raise ParameterError(f"n_components={nc}, expected 1..{min(n, d)} for {n} samples of length {d}")
+            if not 1 <= nc <= len(var):
+                raise ParameterError(f"n_components={nc}, expected 1..{len(var)} (the components with variance "
+                                     f"among {n} samples of length {d})")
             return int(nc)
-        if isinstance(nc, numbers.Real) and 0 < nc < 1:
-            cum = np.cumsum(var) / total if total > 0 else np.ones_like(var)
-            return int(min(np.searchsorted(cum, nc) + 1, len(var)))
-        raise ParameterError(f"n_components={nc!r}, expected None, an int or a float in (0, 1)")
+        cum = np.cumsum(var) / total if total > 0 else np.ones_like(var)
+        return int(min(np.searchsorted(cum, nc) + 1, len(var)))
+
+    # ------------------------------------------------------------------ state
+    def to_arrays(self, prefix: str = "pca_") -> dict[str, np.ndarray]:
+        """The learned state as flat arrays for an npz file: ``mean`` (D,) float64, ``components``
+        (K, D) float32 (half the file; a model keeps its components float32-exact, so it loads
+        bit-exactly), ``explained_variance``, ``explained_variance_ratio``, ``singular_values``
+        (K,) float64 and ``n_samples`` () int64."""
+        self._require_fit()
+        return {prefix + "mean": np.asarray(self.mean_, dtype=np.float64),
+                prefix + "components": np.asarray(self.components_, dtype=np.float32),
+                prefix + "explained_variance": np.asarray(self.explained_variance_, dtype=np.float64),
+                prefix + "explained_variance_ratio": np.asarray(self.explained_variance_ratio_, dtype=np.float64),
+                prefix + "singular_values": np.asarray(self.singular_values_, dtype=np.float64),
+                prefix + "n_samples": np.asarray(self.n_samples_, dtype=np.int64)}
+
+    @classmethod
+    def from_arrays(cls, arrays, prefix: str = "pca_", encoder=None) -> "ShapeSpace":
+        """A fitted ShapeSpace from ``to_arrays`` output (names, shapes and finiteness checked;
+        raises ParameterError naming the array)."""
+        names = ("mean", "components", "explained_variance", "explained_variance_ratio", "singular_values",
+                 "n_samples")
+        missing = [prefix + s for s in names if prefix + s not in arrays]
+        if missing:
+            raise ParameterError(f"shape space: arrays {', '.join(missing)} missing")
+        mean, comps, var, ratio, sv = (np.asarray(arrays[prefix + s], dtype=np.float64) for s in names[:5])
+        n_samples = np.asarray(arrays[prefix + "n_samples"])
+        if comps.ndim != 2 or mean.shape != (comps.shape[1],):
+            raise ParameterError(f"shape space: '{prefix}components' {comps.shape} and '{prefix}mean' {mean.shape}, "
+                                 "expected (K, D) and (D,)")
+        for s, a in zip(names[2:5], (var, ratio, sv)):
+            if a.shape != (len(comps),):
+                raise ParameterError(f"shape space: '{prefix}{s}' has shape {a.shape}, expected ({len(comps)},)")
+        for s, a in zip(names[:5], (mean, comps, var, ratio, sv)):
+            if not np.isfinite(a).all():
+                raise ParameterError(f"shape space: '{prefix}{s}' contains NaN or infinity")
+        if n_samples.shape != () or n_samples.dtype.kind not in "iu" or int(n_samples) < 0:
+            raise ParameterError(f"shape space: '{prefix}n_samples' is {n_samples!r}, expected a count >= 0")
+        if encoder is not None and mean.shape[0] != encoder.n_features_:
+            raise ParameterError(f"shape space: codes of length {mean.shape[0]}, the encoder makes "
+                                 f"{encoder.n_features_}")
+        space = cls(encoder, n_components=len(comps))
+        total = float(var[0] / ratio[0]) if len(var) and ratio[0] > 0 else float(var.sum())
+        space._set(mean, sv, comps, var, total, int(n_samples), mean.shape[0], len(comps))
+        space.explained_variance_ratio_ = ratio
+        return space
 
     def transform(self, X) -> np.ndarray:
         """Coefficients (N, K) of codes (N, D) or meshes (N, V, 3)."""

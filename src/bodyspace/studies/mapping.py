@@ -86,8 +86,8 @@ def _pad(z: np.ndarray, K: int) -> np.ndarray:
 
 def decode_seconds(model, n: int = 4, k: int = 25, seed: int = 0) -> float:
     """Seconds per decoded body of ``model`` (wall clock, batched as in training), timed on ``n``
-    uniform ±3 sigma samples; 0 for the vertex encoding (nothing is decoded)."""
-    if model.encoding == "vertex":
+    uniform ±3 sigma samples; 0 for a linear encoding such as the vertex one (nothing is decoded)."""
+    if model.encoder.is_linear:
         return 0.0
     z = sample_uniform(model, n, k, 3.0, seed + 12345)
     t = time.perf_counter()
@@ -99,8 +99,8 @@ def estimate_seconds(model, samples: int, held_out: int, per_body: float | None 
                      refine_iterations: float = 6.0, sweep: bool = True) -> float:
     """Rough wall-clock estimate of ``evaluate_mapping`` for an RRE model: every training body,
     every held-out body, the linear and forest predictions and ~``refine_iterations`` refinement
-    iterations per request are one decode each. 0 for vertex models (seconds at most)."""
-    if model.encoding == "vertex":
+    iterations per request are one decode each. 0 for linear (vertex) models (seconds at most)."""
+    if model.encoder.is_linear:
         return 0.0
     per_body = decode_seconds(model) if per_body is None else per_body
     n_sweep = len(SWEEP_CM) * (2 + refine_iterations) if sweep else 0
@@ -124,7 +124,7 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     d_samples, d_held = default_sizes(model)
     samples = d_samples if samples is None else int(samples)
     held_out = d_held if held_out is None else int(held_out)
-    decoded = model.encoding != "vertex"
+    decoded = not model.encoder.is_linear
     # progress fractions of the stages (decoding dominates for RRE models)
     f_train, f_held, f_fit, f_pred, f_ref = (0.2, 0.22, 0.25, 0.6, 0.95) if not decoded else \
         _stage_fractions(samples, held_out)
@@ -209,7 +209,7 @@ def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "
     K = model.n_components
     z0 = _pad(forest.predict(req), K)
     res = refine(model, z0, req, measurer=measurer, k=train.k)
-    if model.encoding == "vertex":
+    if model.encoder.is_linear:
         start = measurer(z0[:, :train.k]) * 100.0
     else:
         start = measurer.measure_bodies(model.reconstruct(z0)) * 100.0

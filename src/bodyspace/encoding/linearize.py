@@ -11,11 +11,15 @@ that approximation once per model:
   squares of the decoded bodies on their coefficients, ``v = base + z C`` over the whole sampled
   box (a secant fit: good everywhere in the box, exact nowhere). The training set of the mapping
   decodes those bodies anyway (``training.make_training_set`` fits it on the way).
-- ``DecoderLinearization.at_mean(model, k)``: forward differences at the mean body, ``k + 1``
+- ``DecoderLinearization.at_mean(space, k)``: forward differences at the mean body, ``k + 1``
   decodes (the tangent at z = 0), when no training set is at hand.
+- ``DecoderLinearization.exact(base, basis)``: a decoder that is affine already (the vertex
+  encoding), stored as it is.
 
-``LinearBodyMeasures`` (gradients.py) chains its analytic measurement gradients (w.r.t. the
-vertices) with ``basis_``; for the vertex encoding ``base_``/``basis_`` are the model's own, exact.
+Every encoder's ``linearize(space, k)`` returns one of these (exact for the vertex encoding,
+forward differences for the relative rotation encoding), and its ``is_linear`` says whether
+the least-squares fit is worth making; ``mapping.gradients.LinearBodyMeasures`` chains its
+analytic measurement gradients (w.r.t. the vertices) with ``basis_``.
 
 Shapes: N bodies, V vertices, k coefficients. Stored as flat float arrays (``to_arrays`` /
 ``from_arrays``, npz, never pickle).
@@ -93,14 +97,23 @@ class DecoderLinearization:
 
     # ------------------------------------------------------------------ tangent at the mean
     @classmethod
-    def at_mean(cls, model, k: int = 25, step_sigma: float = 0.05) -> "DecoderLinearization":
-        """Forward differences of ``model.reconstruct`` at z = 0, ``step_sigma`` standard deviations
-        per coefficient: ``k + 1`` decodes in one batch. Cached per model (weakly) and (k, step)."""
-        sp = model.space
+    def exact(cls, base: np.ndarray, basis: np.ndarray) -> "DecoderLinearization":
+        """An affine decoder ``v = base + z @ basis`` (base (V, 3), basis (k, V, 3)) kept as it is."""
+        out = cls(len(basis))
+        out.base_, out.basis_ = np.asarray(base, dtype=float), np.asarray(basis, dtype=float)
+        out.n_samples_, out.residual_rms_, out.method_ = 0, 0.0, "exact"
+        return out
+
+    @classmethod
+    def at_mean(cls, space, k: int = 25, step_sigma: float = 0.05) -> "DecoderLinearization":
+        """Forward differences of ``space.reconstruct`` (a fitted ``ShapeSpace`` with its encoder)
+        at z = 0, ``step_sigma`` standard deviations per coefficient: ``k + 1`` decodes in one
+        batch. Cached per shape space (weakly) and (k, step)."""
+        sp = space
         k = min(int(k), sp.n_components_)
         key = (k, float(step_sigma))
         try:
-            per_model = _CACHE.setdefault(model, {})
+            per_model = _CACHE.setdefault(space, {})
         except TypeError:
             per_model = {}
         hit = per_model.get(key)
@@ -109,7 +122,7 @@ class DecoderLinearization:
         h = float(step_sigma) * np.sqrt(sp.explained_variance_[:k])
         z = np.zeros((k + 1, sp.n_components_))
         z[np.arange(1, k + 1), np.arange(k)] = h
-        v = model.reconstruct(z)
+        v = space.reconstruct(z)
         out = cls(k)
         out.base_ = v[0]
         out.basis_ = (v[1:] - v[0]) / h[:, None, None]
