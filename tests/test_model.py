@@ -234,7 +234,7 @@ def test_cli_build_and_sample(db, tmp_path):
     del db_path
     banana = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "b.npz"), "--on-flipped", "banana"])
     assert banana.exit_code == 2 and "Traceback" not in banana.output
-    assert "--on-flipped 'banana', expected one of accept, warn, raise, ignore" in banana.output
+    assert "--on-flipped 'banana': expected one of accept, warn, raise, ignore" in banana.output
     assert not (tmp_path / "b.npz").exists()
 
 
