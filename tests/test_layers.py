@@ -134,3 +134,18 @@ def test_imports_stand_at_the_top():
 def test_the_rule_itself(source, target, ok):
     src, dst = _part(source), _part(target)
     assert (dst == src or LAYERS[dst] < LAYERS[src]) is ok
+
+
+def test_no_private_name_crosses_a_module():
+    """A name starting with ``_`` is private to its module: another module that needs it gets a
+    public name (bodyspace.validation for the argument checks)."""
+    bad = []
+    for path in _sources():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("bodyspace")):
+                private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                if private:
+                    bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: imports {private} "
+                               f"from {node.module}")
+    assert not bad, "private names imported across modules (make them public):\n" + "\n".join(bad)

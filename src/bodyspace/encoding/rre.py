@@ -74,14 +74,13 @@ from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
 from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.encoding.rotations import (
-    _planar,
-    _qconj,
-    _qexp,
-    _qfrom_matrix,
+    components_first,
     project_to_rotations,
+    quaternion_conjugate_cf,
     quaternion_exp,
+    quaternion_exp_cf,
+    quaternion_from_matrix_cf,
 )
-from bodyspace.encoding.vertex import check_codes, check_scans
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
@@ -94,6 +93,7 @@ from bodyspace.mesh.solver import (
     single_threaded_blas,
 )
 from bodyspace.mesh.topology import (
+    check_registered_meshes,
     check_topology,
     dual_graph,
     face_components,
@@ -101,6 +101,7 @@ from bodyspace.mesh.topology import (
     vertex_components,
 )
 from bodyspace.parallel import halves, run_both
+from bodyspace.validation import as_codes
 
 FEATURES_PER_FACE = 15
 # linearize(space) without k: the leading coefficients the tangent covers (Rupprecht's k = 25).
@@ -557,8 +558,9 @@ class RelativeRotationEncoder:
                             "(fit(template[None]) makes the template the mean model)")
 
     def _check_codes(self, codes) -> np.ndarray:
-        return check_codes(codes, self.n_features_, "relative rotation encoding",
-                           f"15 numbers x {self.n_faces} triangles")
+        return as_codes(codes, self.n_features_,
+                        f"relative rotation encoding of this template (15 numbers x {self.n_faces} triangles)",
+                        error=MeshError)
 
     def _encoding_blocks(self) -> list:
         """Per-template constants of ``encode``/``fit``, made on first use: the faces in blocks
@@ -599,7 +601,7 @@ class RelativeRotationEncoder:
         for sl, corner, rest, _, _ in self._encoding_blocks():
             a, b, c = ([comp[corner[k]] for comp in comps] for k in range(3))
             rot, st, dbl[sl], n = polar_from_corners(a, b, c, rest)
-            q[:, sl] = _qfrom_matrix(rot)
+            q[:, sl] = quaternion_from_matrix_cf(rot)
             stretch[sl] = st.T
             # Signed volume of the tetrahedra from the origin: a . (e1 x e2) / 6, e1 x e2 = dbl n.
             volume += float(((a[0] * n[0] + a[1] * n[1] + a[2] * n[2]) * dbl[sl]).sum())
@@ -640,7 +642,7 @@ class RelativeRotationEncoder:
 
         ``fit(template_vertices[None])`` makes the template itself the mean model.
         """
-        x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
+        x = check_registered_meshes(scans, self.n_vertices, self.faces, faces, name="scans")
         # Folds are refused here under "raise"; otherwise they are counted (and warned about)
         # by ``encode`` alone, so a scan both fitted on and encoded is counted once.
         look_for_folds = self.on_flipped == "raise"
@@ -667,7 +669,7 @@ class RelativeRotationEncoder:
             total_str += sum_str[k]
         self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], total_rot.transpose(2, 1, 0) / len(x), 0.0)
         self.mean_stretch_ = total_str / len(x)
-        self._mean_q = _qexp(_planar(self.mean_rotvecs_, 3))  # (4, F, 3)
+        self._mean_q = quaternion_exp_cf(components_first(self.mean_rotvecs_, 3))  # (4, F, 3)
         self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0][0]
         return self
 
@@ -681,7 +683,7 @@ class RelativeRotationEncoder:
         Raises MeshError for wrong shapes, NaN, degenerate or flipped triangles.
         """
         self._require_fit()
-        x = check_scans(vertices, self.n_vertices, self.faces, faces)
+        x = check_registered_meshes(vertices, self.n_vertices, self.faces, faces)
         shape = (len(x), self.n_features_)
         if out is None:
             out = np.empty(shape)
@@ -691,7 +693,7 @@ class RelativeRotationEncoder:
                                  f"float32 array of shape {shape}")
         codes = out.reshape(len(x), self.n_faces, FEATURES_PER_FACE)
         blocks = self._encoding_blocks()
-        conj_mean = np.ascontiguousarray(_qconj(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
+        conj_mean = np.ascontiguousarray(quaternion_conjugate_cf(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
 
         flipped = np.zeros(len(x), dtype=np.int64)
 
@@ -923,7 +925,7 @@ def _relative_rotvecs(qi, qj, right=None):
     (the conjugate mean ``M_ij^-1``).
 
     Encoding's inner loop, fused: ``qi`` (4, B), ``qj`` and ``right`` (4, slot, B) component-
-    first quaternions; the same arithmetic as ``_qlog(_qmul(_qmul(_qconj(qi), qj), right))``
+    first quaternions; the same arithmetic as ``quaternion_log_cf(quaternion_multiply_cf(quaternion_multiply_cf(quaternion_conjugate_cf(qi), qj), right))``
     (so the same codes, to the last bit) without stacking or conjugating copies.
     """
     aw, ax, ay, az = (c[None] for c in qi)
@@ -938,7 +940,7 @@ def _relative_rotvecs(qi, qj, right=None):
                       w * qx + x * qw + y * qz - z * qy,
                       w * qy - x * qz + y * qw + z * qx,
                       w * qz + x * qy - y * qx + z * qw)
-    # _qlog: angle in [0, pi], atan2 for full precision at small angles.
+    # quaternion_log_cf: angle in [0, pi], atan2 for full precision at small angles.
     sign = np.where(w < 0, -1.0, 1.0)
     w = w * sign
     s = np.sqrt(x * x + y * y + z * z)

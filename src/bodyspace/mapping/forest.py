@@ -82,14 +82,8 @@ except ImportError:  # pragma: no cover
     threadpool_limits = None
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.linear import (
-    FORMAT_VERSION,
-    check_arrays,
-    check_ridge,
-    check_X,
-    check_Y,
-    solve_ridge,
-)
+from bodyspace.mapping.linear import FORMAT_VERSION, solve_ridge
+from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, check_state_arrays
 
 LEAF_MODELS = ("linear", "constant")
 
@@ -394,7 +388,7 @@ class LinearLeafForest:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low:
                 raise ParameterError(f"{name}={v!r}, expected an int >= {low}")
-        check_ridge(self.ridge)
+        as_nonnegative_float(self.ridge, "ridge")
         if self.leaf_model not in LEAF_MODELS:
             raise ParameterError(f"leaf_model={self.leaf_model!r}, expected one of {LEAF_MODELS}")
         rs = self.random_state
@@ -410,8 +404,8 @@ class LinearLeafForest:
     def fit(self, X, Y) -> "LinearLeafForest":
         """Grow the forest on measurements X (N, n) and coefficients Y (N, m) or (N,)."""
         self._check_params()
-        x, _ = check_X(X)
-        y, one_d = check_Y(Y, x.shape[0])
+        x, _ = as_samples(X)
+        y, one_d = as_targets(Y, x.shape[0])
         if x.shape[0] < self.min_samples_leaf:
             raise ParameterError(f"X: {x.shape[0]} samples, expected at least min_samples_leaf="
                                  f"{self.min_samples_leaf} (one leaf's worth)")
@@ -476,7 +470,7 @@ class LinearLeafForest:
     def apply(self, X) -> np.ndarray:
         """Leaf (row of ``leaf_A_``) that each sample reaches in each tree, (N, T)."""
         self._require_fit()
-        x, _ = check_X(X, self.n_features_in_)
+        x, _ = as_samples(X, self.n_features_in_)
         return self._apply(x)
 
     def _apply(self, x: np.ndarray) -> np.ndarray:
@@ -494,7 +488,7 @@ class LinearLeafForest:
         A single sample (n,) gives (m,); a forest fitted on 1-D Y gives (N,).
         """
         self._require_fit()
-        x, single = check_X(X, self.n_features_in_)
+        x, single = as_samples(X, self.n_features_in_)
         out = np.empty((x.shape[0], self.n_outputs_))
         chunk = 2048                                                   # bounds the (chunk, m, n+1) buffer
         for s in range(0, x.shape[0], chunk):
@@ -547,7 +541,7 @@ class LinearLeafForest:
         keys = ("n_trees", "max_depth", "n_trials", "min_samples_leaf", "ridge", "leaf_model", "n_features_in",
                 "n_outputs", "y_1d", "node_feature", "node_threshold", "node_left", "node_right", "node_leaf",
                 "tree_offset", "leaf_A", "leaf_b")
-        check_arrays(arrays, "LinearLeafForest", keys)
+        check_state_arrays(arrays, "LinearLeafForest", keys, FORMAT_VERSION)
         a = {k: np.asarray(arrays[k]) for k in keys}
         self = cls(n_trees=int(a["n_trees"]), max_depth=int(a["max_depth"]), n_trials=int(a["n_trials"]),
                    min_samples_leaf=int(a["min_samples_leaf"]), ridge=float(a["ridge"]),

@@ -21,9 +21,9 @@ from bodyspace.semantics.regressors import (
     FilteredLinearRegressor,
     KernelRegressor,
     SimpleLinearRegressor,
-    _as_matrix,
     kfold_indices,
 )
+from bodyspace.validation import as_matrix
 
 __all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
            "format_rmse_table", "format_angle_table"]
@@ -74,7 +74,7 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
     Returns:
         RegressionTable; RMSE is ``sqrt(mean over all held-out rows of (prediction - label)^2)``.
     """
-    x = _as_matrix(X, "X", min_rows=2)
+    x = as_matrix(X, "X", min_rows=2)
     n = x.shape[0]
     if not isinstance(labels, Mapping) or not labels:
         raise ParameterError(f"labels: got {type(labels).__name__}, expected a non-empty dict name -> (N,) values")
@@ -124,7 +124,7 @@ def direction_angles(regressor, X, reference="mean") -> tuple[float, float]:
     directions; ``"pairwise"`` every pair ``i < j``; or a (D,) vector (e.g. the filtered linear
     gradient). SD is the population SD (``ddof=0``).
     """
-    x = _as_matrix(X, "X", min_rows=2)
+    x = as_matrix(X, "X", min_rows=2)
     g = np.asarray(regressor.gradient(x), dtype=float)
     if g.shape != x.shape:
         raise ParameterError(f"regressor.gradient: shape {g.shape}, expected {x.shape}")

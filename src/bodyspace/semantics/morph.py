@@ -28,7 +28,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.semantics.regressors import _as_int, _as_matrix, _as_vector, _LinearModel
+from bodyspace.semantics.regressors import LinearModel
+from bodyspace.validation import as_int, as_matrix, as_vector
 
 __all__ = ["morph_directions", "morph", "comparison_direction", "ComparisonRegressor"]
 
@@ -48,11 +49,11 @@ def morph_directions(gradients, deltas, metric=None, rcond: float = 1e-10) -> np
     Returns:
         z (D,). With one constraint, ``z = delta s / ||s||^2``: walking the gradient.
     """
-    g = _as_matrix(gradients, "gradients", allow_vector=True)
-    dl = _as_vector(np.atleast_1d(np.asarray(deltas, dtype=float)), "deltas", g.shape[0])
+    g = as_matrix(gradients, "gradients", allow_vector=True)
+    dl = as_vector(np.atleast_1d(np.asarray(deltas, dtype=float)), "deltas", g.shape[0])
     if metric is None:
         return np.linalg.pinv(g, rcond=rcond) @ dl
-    w = _as_vector(metric, "metric", g.shape[1])
+    w = as_vector(metric, "metric", g.shape[1])
     if (w <= 0).any():
         raise ParameterError("metric: contains values <= 0, expected positive weights")
     gw = g / w                                                   # G M^-1
@@ -92,7 +93,7 @@ def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, re
     Returns:
         path (S, D): ``path[0] = x``, ``path[-1]`` the morphed body (S = steps + 1 + refinements).
     """
-    x0 = _as_vector(x, "x")
+    x0 = as_vector(x, "x")
     _check_regressors(regressors)
     if not isinstance(targets, Mapping):
         raise ParameterError(f"targets: got {type(targets).__name__}, expected a dict name -> value")
@@ -106,8 +107,8 @@ def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, re
     both = set(targets) & set(keep_map)
     if both:
         raise ParameterError(f"keep: {sorted(both)} also in targets, expected each label in one of them")
-    steps = _as_int(steps, "steps", 1)
-    refine = _as_int(refine, "refine", 0)
+    steps = as_int(steps, "steps", 1)
+    refine = as_int(refine, "refine", 0)
     regs = [regressors[n] for n in names]
     start = np.array([r.predict(x0) for r in regs], dtype=float)
     goal = np.array([float(targets[n]) for n in targets]
@@ -147,8 +148,8 @@ def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
         pairs_a, pairs_b: (M, D) (or (D,) for one pair) bodies, row ``i`` of ``pairs_b`` judged
             more X than row ``i`` of ``pairs_a``.
     """
-    a = _as_matrix(pairs_a, "pairs_a", allow_vector=True)
-    b = _as_matrix(pairs_b, "pairs_b", n_features=a.shape[1], allow_vector=True)
+    a = as_matrix(pairs_a, "pairs_a", allow_vector=True)
+    b = as_matrix(pairs_b, "pairs_b", n_features=a.shape[1], allow_vector=True)
     if a.shape != b.shape:
         raise ParameterError(f"pairs_b: shape {b.shape}, expected {a.shape} (one partner per row of pairs_a)")
     diff = b - a
@@ -166,7 +167,7 @@ def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
     return mean / length
 
 
-class ComparisonRegressor(_LinearModel):
+class ComparisonRegressor(LinearModel):
     """A semantic label learned from pairwise comparisons (§5.1), usable like any regressor.
 
     ``fit(X, pairs)``: ``X`` (N, D) the database, ``pairs`` (M, 2) row indices ``(i, j)`` meaning
@@ -185,7 +186,7 @@ class ComparisonRegressor(_LinearModel):
         pass
 
     def fit(self, X, pairs) -> "ComparisonRegressor":
-        x = _as_matrix(X, "X", min_rows=2)
+        x = as_matrix(X, "X", min_rows=2)
         p = np.asarray(pairs)
         if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 1 or not np.issubdtype(p.dtype, np.integer):
             raise ParameterError(f"pairs: shape {p.shape} dtype {p.dtype}, expected integer (M, 2) row indices "

@@ -31,62 +31,9 @@ import numbers
 import numpy as np
 
 from bodyspace.errors import ParameterError
+from bodyspace.validation import as_int, as_matrix, as_positive_grid, as_vector
 
 __all__ = ["SimpleLinearRegressor", "FilteredLinearRegressor", "KernelRegressor", "kfold_indices"]
-
-
-# ---------------------------------------------------------------------------- validation helpers
-def _as_matrix(X, name: str = "X", n_features: int | None = None, min_rows: int = 1,
-               allow_vector: bool = False) -> np.ndarray:
-    """``X`` as a finite float (N, D) array; a (D,) vector becomes (1, D) if ``allow_vector``."""
-    try:
-        x = np.asarray(X, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"{name}: could not be read as numbers ({exc}); expected a float array (N, D)") from None
-    if x.ndim == 1 and allow_vector:
-        x = x[None]
-    if x.ndim != 2:
-        raise ParameterError(f"{name}: shape {x.shape}, expected a 2-D array (N, D)")
-    if x.shape[0] < min_rows:
-        raise ParameterError(f"{name}: {x.shape[0]} row(s), expected at least {min_rows}")
-    if x.shape[1] < 1:
-        raise ParameterError(f"{name}: shape {x.shape}, expected at least one column")
-    if n_features is not None and x.shape[1] != n_features:
-        raise ParameterError(f"{name}: rows have length {x.shape[1]}, expected {n_features} "
-                             "(the length the model was fitted on)")
-    if not np.isfinite(x).all():
-        raise ParameterError(f"{name}: contains NaN or infinity, expected finite values")
-    return x
-
-
-def _as_vector(y, name: str, n: int | None = None) -> np.ndarray:
-    """``y`` as a finite float (n,) array."""
-    try:
-        v = np.asarray(y, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"{name}: could not be read as numbers ({exc}); expected a float array") from None
-    if v.ndim != 1:
-        raise ParameterError(f"{name}: shape {v.shape}, expected a 1-D array" + (f" ({n},)" if n else ""))
-    if n is not None and v.shape[0] != n:
-        raise ParameterError(f"{name}: length {v.shape[0]}, expected {n} (one value per row of X)")
-    if not np.isfinite(v).all():
-        raise ParameterError(f"{name}: contains NaN or infinity, expected finite values")
-    return v
-
-
-def _as_int(value, name: str, lo: int, hi: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo \
-            or (hi is not None and value > hi):
-        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise ParameterError(f"{name}={value!r}, expected an integer {rng}")
-    return int(value)
-
-
-def _as_positive_grid(value, name: str) -> np.ndarray:
-    grid = np.atleast_1d(np.asarray(value, dtype=float))
-    if grid.ndim != 1 or grid.size == 0 or not np.isfinite(grid).all() or (grid <= 0).any():
-        raise ParameterError(f"{name}={value!r}, expected a positive number or a non-empty sequence of them")
-    return grid
 
 
 def kfold_indices(n: int, folds: int, rng=None, groups=None) -> list[np.ndarray]:
@@ -95,7 +42,7 @@ def kfold_indices(n: int, folds: int, rng=None, groups=None) -> list[np.ndarray]
     With ``groups`` (n,) (e.g. subject ids), whole groups go to one fold, so no subject is in
     both the training and the test part. Folds are capped at the number of rows (groups).
     """
-    folds = _as_int(folds, "folds", 2)
+    folds = as_int(folds, "folds", 2)
     gen = np.random.default_rng(rng)
     if groups is None:
         if n < 2:
@@ -148,7 +95,7 @@ class _SemanticRegressor:
     def _input(self, X, name: str = "X") -> tuple[np.ndarray, bool]:
         self._require_fit()
         single = np.ndim(X) == 1
-        return _as_matrix(X, name, n_features=self.n_features_in_, allow_vector=True), single
+        return as_matrix(X, name, n_features=self.n_features_in_, allow_vector=True), single
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Learned state as arrays (for ``np.savez``; scalars become 0-d arrays)."""
@@ -168,7 +115,7 @@ class _SemanticRegressor:
         return obj
 
 
-class _LinearModel(_SemanticRegressor):
+class LinearModel(_SemanticRegressor):
     """``f(x) = intercept_ + <coef_, x>``; the gradient is ``coef_`` everywhere."""
 
     def predict(self, X) -> np.ndarray:
@@ -184,7 +131,7 @@ class _LinearModel(_SemanticRegressor):
 
 
 # ---------------------------------------------------------------------------- Equation (10)
-class SimpleLinearRegressor(_LinearModel):
+class SimpleLinearRegressor(LinearModel):
     """Equation (10): ``argmin_[o, s] || [1 | A] [o; s] - l ||`` with intercept ``o``.
 
     Solved on centred data, ``s = pinv(A - mean) (l - mean(l))``, ``o = mean(l) - <s, mean>``:
@@ -207,8 +154,8 @@ class SimpleLinearRegressor(_LinearModel):
         self.rcond = rcond
 
     def fit(self, X, y) -> "SimpleLinearRegressor":
-        x = _as_matrix(X, "X", min_rows=2)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=2)
+        l = as_vector(y, "y", x.shape[0])
         mean, lmean = x.mean(axis=0), l.mean()
         coef, _, rank, _ = np.linalg.lstsq(x - mean, l - lmean, rcond=self.rcond)
         self.coef_ = coef
@@ -248,7 +195,7 @@ def _rejection_order(w: np.ndarray, var: np.ndarray, order: str) -> np.ndarray:
     return np.argsort(-var, kind="stable")
 
 
-class FilteredLinearRegressor(_LinearModel):
+class FilteredLinearRegressor(LinearModel):
     """Equation (10) in PCA space with noise components rejected by cross-validation (Hasler §4).
 
     Fit: (1) PCA of the training rows ``X`` (full encodings or PCA coefficients; for the
@@ -296,16 +243,16 @@ class FilteredLinearRegressor(_LinearModel):
     def _check_params(self):
         if self.order not in ("contribution", "variance"):
             raise ParameterError(f"order={self.order!r}, expected 'contribution' or 'variance'")
-        _as_int(self.cv, "cv", 2)
+        as_int(self.cv, "cv", 2)
         if self.n_components is not None:
-            _as_int(self.n_components, "n_components", 0)
+            as_int(self.n_components, "n_components", 0)
         if not (isinstance(self.tol, numbers.Real) and 0 <= self.tol < 1):
             raise ParameterError(f"tol={self.tol!r}, expected a number in [0, 1)")
 
     def fit(self, X, y) -> "FilteredLinearRegressor":
         self._check_params()
-        x = _as_matrix(X, "X", min_rows=3)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=3)
+        l = as_vector(y, "y", x.shape[0])
         n = x.shape[0]
         cap = np.inf if self.n_components is None else self.n_components
 
@@ -400,8 +347,8 @@ class KernelRegressor(_SemanticRegressor):
             raise ParameterError(f"method={self.method!r}, expected 'kernel_ridge' or 'svr'")
         if self.standardize not in ("global", "features", "none"):
             raise ParameterError(f"standardize={self.standardize!r}, expected 'global', 'features' or 'none'")
-        x = _as_matrix(X, "X", min_rows=3)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=3)
+        l = as_vector(y, "y", x.shape[0])
         n, d = x.shape
         if self.standardize == "none":
             self.mean_, sd = np.zeros(d), np.ones(d)
@@ -415,14 +362,14 @@ class KernelRegressor(_SemanticRegressor):
         lmean, lsd = l.mean(), l.std()
         lsd = lsd if lsd > 0 else 1.0
         ls = (l - lmean) / lsd
-        gammas = _as_positive_grid(np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0]) / d if self.gamma is None
+        gammas = as_positive_grid(np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0]) / d if self.gamma is None
                                    else self.gamma, "gamma")
         if self.method == "kernel_ridge":
-            alphas = _as_positive_grid(np.logspace(-4, 1, 11) if self.alpha is None else self.alpha, "alpha")
+            alphas = as_positive_grid(np.logspace(-4, 1, 11) if self.alpha is None else self.alpha, "alpha")
             dual = self._fit_kernel_ridge(u, ls, gammas, alphas)
             self.X_fit_, self.dual_coef_, self.intercept_ = u, dual * lsd, float(lmean)
         else:
-            cs = _as_positive_grid((1.0, 10.0, 100.0) if self.C is None else self.C, "C")
+            cs = as_positive_grid((1.0, 10.0, 100.0) if self.C is None else self.C, "C")
             if not (isinstance(self.epsilon, numbers.Real) and self.epsilon >= 0):
                 raise ParameterError(f"epsilon={self.epsilon!r}, expected a number >= 0")
             sv, dual, b = self._fit_svr(u, ls, gammas, cs)
@@ -465,7 +412,7 @@ class KernelRegressor(_SemanticRegressor):
         self.cv_rmse_ = np.zeros((gammas.size, cs.size))
         if gammas.size * cs.size > 1:
             n = len(ls)
-            for test in kfold_indices(n, min(_as_int(self.cv, "cv", 2), n), self.rng):
+            for test in kfold_indices(n, min(as_int(self.cv, "cv", 2), n), self.rng):
                 train = np.setdiff1d(np.arange(n), test)
                 for gi, g in enumerate(gammas):
                     for ci, c in enumerate(cs):
