@@ -60,7 +60,7 @@ from bodyspace.atomic import atomic_path
 from bodyspace.data.database import REST_POSE
 from bodyspace.data.template import load_template
 from bodyspace.encoding import ENCODERS
-from bodyspace.errors import BodyspaceError, ParameterError
+from bodyspace.errors import BodyspaceError, ModelError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
@@ -94,10 +94,6 @@ ENCODE_BATCH = 64
 _ZIP_MAGIC = b"PK\x03\x04"
 
 __all__ = ["BodyModel", "ModelError", "FORMAT_VERSION", "FULL_PCA_MAX_BYTES", "MAX_DEFAULT_COMPONENTS"]
-
-
-class ModelError(BodyspaceError):
-    """A BodyModel file is not one, has another format version, or misses or garbles a field."""
 
 
 def _float32_exact(a: np.ndarray) -> np.ndarray:

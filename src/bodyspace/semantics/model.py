@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyspace.data.template import load_template
-from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError
+from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError, TargetError
 from bodyspace.measure import load_measurement_set, measure
 from bodyspace.semantics.closed_loop import closed_loop
 from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
@@ -74,10 +74,6 @@ LENGTH_TOLERANCE = 0.009
 MAX_CACHED_MASKS = 8
 _REGRESSOR_KINDS = {"FilteredLinearRegressor": FilteredLinearRegressor,
                     "SimpleLinearRegressor": SimpleLinearRegressor, "KernelRegressor": KernelRegressor}
-
-
-class TargetError(ParameterError):
-    """A requested label value is outside what the model can reach, or was not met."""
 
 
 def semantics_path(model_path) -> Path:
