@@ -19,7 +19,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from bodyspace.errors import ParameterError, UnitError
+from bodyspace.errors import UnitError
 
 __all__ = ["UnitError", "Target", "UNITS", "KINDS", "ALIASES", "kind_of", "parse_quantity", "parse_target",
            "parse_assignment", "format_value", "example"]
