@@ -112,13 +112,13 @@ def main() -> None:
         def run():
             fitted[name] = make().fit(x_train, y_train)
         return best_time(run, repeat=2)
-    t_ours = fit("ours", lambda: LinearLeafForest(random_state=0, n_jobs=2))
+    t_ours = fit("ours", lambda: LinearLeafForest(rng=0, n_jobs=2))
     t_sk = fit("sk", lambda: RandomForestRegressor(n_estimators=50, max_depth=15, min_samples_leaf=30,
                                                    max_features=1.0, bootstrap=False, random_state=0, n_jobs=2))
     t_sk_rnd = fit("sk_rnd", lambda: RandomForestRegressor(n_estimators=50, max_depth=15, min_samples_leaf=30,
                                                            max_features=1, bootstrap=False, random_state=0,
                                                            n_jobs=2))
-    t_ours_1 = fit("ours_1", lambda: LinearLeafForest(random_state=0, n_jobs=1))
+    t_ours_1 = fit("ours_1", lambda: LinearLeafForest(rng=0, n_jobs=1))
     forest, sk, sk_rnd = fitted["ours"], fitted["sk"], fitted["sk_rnd"]
     same = all(np.array_equal(a, b) for a, b in zip(forest.to_arrays().values(), fitted["ours_1"].to_arrays().values()))
     linear = LinearMapping().fit(x_train, y_train)

@@ -73,6 +73,7 @@ from bodyspace.shape.pca import (
     resolve_solver,
 )
 from bodyspace.shape.solvers import KRYLOV_DEPTH
+from bodyspace.validation import as_seed
 
 FORMAT = "bodyspace.BodyModel"
 FORMAT_VERSION = 2
@@ -282,12 +283,12 @@ class BodyModel:
         components, truncated to ``sigma_range`` standard deviations (s or (lo, hi))."""
         return self.space.sample(n, n_components, sigma_range, rng)
 
-    def fit_mapping(self, samples: int | None = None, k: int = 25, seed: int = 0, n_trees: int = 50,
+    def fit_mapping(self, samples: int | None = None, k: int = 25, rng=0, n_trees: int = 50,
                     progress=None) -> "BodyModel":
         """Fit the measurements-to-shape mapping (forest, linear baseline; Rupprecht et al.) on a
         training set drawn from this model, keep it as ``self.mapping`` (saved with the model);
-        returns self. See ``mapping.bundle.fit_mapping``."""
-        self.mapping = fit_mapping(self, samples, k, seed=seed, n_trees=n_trees, progress=progress)
+        returns self. ``rng``: Generator, seed or None. See ``mapping.bundle.fit_mapping``."""
+        self.mapping = fit_mapping(self, samples, k, seed=as_seed(rng), n_trees=n_trees, progress=progress)
         return self
 
     def __repr__(self) -> str:

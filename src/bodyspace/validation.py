@@ -20,7 +20,7 @@ import numpy as np
 from bodyspace.errors import BodyspaceError, ParameterError
 
 __all__ = ["as_matrix", "as_vector", "as_int", "as_positive_grid", "as_samples", "as_targets",
-           "as_nonnegative_float", "as_codes", "check_state_arrays"]
+           "as_nonnegative_float", "as_codes", "check_state_arrays", "check_rng", "as_generator", "as_seed"]
 
 
 def as_matrix(X, name: str = "X", n_features: int | None = None, min_rows: int = 1,
@@ -180,3 +180,29 @@ def check_state_arrays(arrays, kind: str, keys: tuple[str, ...], format_version:
     if version > format_version:
         raise ParameterError(f"arrays['format_version']: {version}, expected <= {format_version} "
                              "(written by a newer bodyspace)")
+
+
+# ---------------------------------------------------------------------- randomness
+def check_rng(rng, name: str = "rng"):
+    """``rng`` unchanged if it is what every random function of bodyspace takes: a
+    ``numpy.random.Generator``, a ``SeedSequence``, an integer seed >= 0, or None (fresh entropy)."""
+    if rng is None or isinstance(rng, (np.random.Generator, np.random.SeedSequence, np.random.BitGenerator)):
+        return rng
+    if isinstance(rng, numbers.Integral) and not isinstance(rng, bool) and rng >= 0:
+        return rng
+    raise ParameterError(f"{name}={rng!r}, expected an integer seed >= 0, a numpy Generator or None")
+
+
+def as_generator(rng, name: str = "rng") -> np.random.Generator:
+    """``np.random.default_rng(rng)`` after ``check_rng``: a Generator passes through unchanged
+    (the caller's stream advances), a seed gives the same numbers every time."""
+    return np.random.default_rng(check_rng(rng, name))
+
+
+def as_seed(rng, name: str = "rng") -> int:
+    """An integer seed from ``rng``: an int passes unchanged (so ``seed + 1`` derivations and the
+    recorded seed stay as they were), a Generator gives one draw (advancing it), None a fresh one."""
+    rng = check_rng(rng, name)
+    if isinstance(rng, numbers.Integral):
+        return int(rng)
+    return int(np.random.default_rng(rng).integers(2 ** 31))

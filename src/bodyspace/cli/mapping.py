@@ -51,7 +51,7 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
     try:
         body_model = BodyModel.load(model)
         with progress("mapping fit", eta=True) as cb:
-            body_model.fit_mapping(samples, seed=seed, n_trees=trees, progress=cb)
+            body_model.fit_mapping(samples, rng=seed, n_trees=trees, progress=cb)
         path = body_model.save(out or model)
     except BodyspaceError as exc:
         _fail(console, exc)

@@ -125,7 +125,7 @@ class MeasurementMapping:
 def forest_for(n_samples: int, seed: int = 0, n_trees: int = 50, n_jobs: int | None = None) -> LinearLeafForest:
     """The unfitted forest for a training set of ``n_samples``: the paper's defaults, leaves of at
     least 30 samples, or of one for tiny (test) training sets."""
-    return LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
+    return LinearLeafForest(n_trees=n_trees, rng=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
 
 
 def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, seed: int = 0,

@@ -53,7 +53,7 @@ wasted on an empty side.
 
 Trees grow in parallel (``n_jobs``) in worker processes: the Python between numpy calls holds
 the GIL, so threads overlap less (measured, 20 trees: 1 thread 2.03 s, 2 threads 1.40 s,
-2 processes 1.13 s). Every tree has its own seed spawned from ``random_state``, so the forest
+2 processes 1.13 s). Every tree has its own seed spawned from ``rng``, so the forest
 is the same for any ``n_jobs``.
 
 Storage: flat arrays (``to_arrays``), no pickle. Node i of the forest has ``node_feature[i]``
@@ -83,7 +83,7 @@ except ImportError:  # pragma: no cover
 
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.linear import FORMAT_VERSION, solve_ridge
-from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, check_state_arrays
+from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, check_rng, check_state_arrays
 
 LEAF_MODELS = ("linear", "constant")
 
@@ -222,17 +222,17 @@ def _batches(sizes: list[int]) -> list[list[int]]:
     return out + [groups[c] for c in sorted(groups)]
 
 
-def grow_tree(x: np.ndarray, y: np.ndarray, seed, *, x_mean: np.ndarray, x_scale: np.ndarray,
+def grow_tree(x: np.ndarray, y: np.ndarray, rng, *, x_mean: np.ndarray, x_scale: np.ndarray,
               max_depth: int, n_trials: int, min_samples_leaf: int, ridge: float,
               linear: bool = True) -> dict[str, np.ndarray]:
     """Grow one tree on x (N, n), y (N, m); returns its flat arrays (local node indices).
 
     ``x_mean``/``x_scale`` (n,) standardize the inputs for the statistics (the ridge is then
-    relative to unit-variance inputs); ``seed`` is anything ``np.random.default_rng`` takes.
+    relative to unit-variance inputs); ``rng`` is a Generator, a SeedSequence, a seed or None.
     The tree grows level by level (all nodes of a depth are split in a few batches); nodes are
     numbered in that breadth-first order, so children always come after their parent.
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(rng)
     n_all, p = x.shape
     xs = (x - x_mean) / x_scale
     # Rows [standardized x, 1, y, scratch] and the raw x transposed, each with a padding sample.
@@ -320,12 +320,12 @@ def _grow_in_processes(x, y, seeds, kwargs, workers: int):
         return None
 
 
-def _seed_sequence(random_state) -> np.random.SeedSequence:
-    if isinstance(random_state, np.random.SeedSequence):
-        return random_state
-    if isinstance(random_state, np.random.Generator):                  # draws from (advances) the generator
-        return np.random.SeedSequence(int(random_state.integers(2 ** 63)))
-    return np.random.SeedSequence(random_state)
+def _seed_sequence(rng) -> np.random.SeedSequence:
+    if isinstance(rng, np.random.SeedSequence):
+        return rng
+    if isinstance(rng, np.random.Generator):                  # draws from (advances) the generator
+        return np.random.SeedSequence(int(rng.integers(2 ** 63)))
+    return np.random.SeedSequence(rng)
 
 
 def _n_workers(n_jobs, n_tasks: int) -> int:
@@ -355,8 +355,8 @@ class LinearLeafForest:
             the split criterion, so a split is scored by the model the leaf will hold.
         leaf_model: "linear" (Eq. 2, the paper) or "constant" (mean of y, CART's criterion):
             the ablation of the paper's contribution with everything else equal.
-        random_state: None, an int, a ``np.random.SeedSequence`` or a ``np.random.Generator``
-            (the project's ``rng``: one draw seeds the forest). Equal ints give bit-identical
+        rng: None, an int, a ``np.random.SeedSequence`` or a ``np.random.Generator`` (one draw
+            seeds the forest). Equal ints give bit-identical
             forests, for any ``n_jobs``.
         n_jobs: worker processes for growing trees: None or 1 = in this process, -1 = all cores.
             Where processes start by spawning (Windows, macOS, Linux from Python 3.14), a
@@ -372,14 +372,14 @@ class LinearLeafForest:
     """
 
     def __init__(self, n_trees: int = 50, max_depth: int = 15, n_trials: int = 13, min_samples_leaf: int = 30,
-                 ridge: float = 1e-6, leaf_model: str = "linear", random_state=None, n_jobs: int | None = None):
+                 ridge: float = 1e-6, leaf_model: str = "linear", rng=None, n_jobs: int | None = None):
         self.n_trees = n_trees
         self.max_depth = max_depth
         self.n_trials = n_trials
         self.min_samples_leaf = min_samples_leaf
         self.ridge = ridge
         self.leaf_model = leaf_model
-        self.random_state = random_state
+        self.rng = rng
         self.n_jobs = n_jobs
 
     # ------------------------------------------------------------------ validation
@@ -391,10 +391,7 @@ class LinearLeafForest:
         as_nonnegative_float(self.ridge, "ridge")
         if self.leaf_model not in LEAF_MODELS:
             raise ParameterError(f"leaf_model={self.leaf_model!r}, expected one of {LEAF_MODELS}")
-        rs = self.random_state
-        if not (rs is None or isinstance(rs, (np.random.SeedSequence, np.random.Generator))
-                or (isinstance(rs, numbers.Integral) and not isinstance(rs, bool) and rs >= 0)):
-            raise ParameterError(f"random_state={rs!r}, expected None, an int >= 0, a numpy Generator or SeedSequence")
+        check_rng(self.rng)
 
     def _require_fit(self):
         if not hasattr(self, "leaf_A_"):
@@ -414,7 +411,7 @@ class LinearLeafForest:
         x_mean = x.mean(axis=0)
         x_scale = x.std(axis=0)
         x_scale[x_scale == 0] = 1.0
-        seeds = _seed_sequence(self.random_state).spawn(self.n_trees)  # one stream per tree: n_jobs-independent
+        seeds = _seed_sequence(self.rng).spawn(self.n_trees)  # one stream per tree: n_jobs-independent
         kwargs = dict(x_mean=x_mean, x_scale=x_scale, max_depth=int(self.max_depth), n_trials=int(self.n_trials),
                       min_samples_leaf=int(self.min_samples_leaf), ridge=float(self.ridge),
                       linear=self.leaf_model == "linear")
@@ -509,8 +506,8 @@ class LinearLeafForest:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat arrays (no object dtype) for an npz loadable with ``allow_pickle=False``.
 
-        Keys: ``kind``, ``format_version``, the hyper-parameters (``random_state`` only if it
-        was an int), ``n_features_in``, ``n_outputs``, ``y_1d``, ``node_feature``,
+        Keys: ``kind``, ``format_version``, the hyper-parameters (``rng`` only if it was an int,
+        stored under the key ``random_state`` of format version 1), ``n_features_in``, ``n_outputs``, ``y_1d``, ``node_feature``,
         ``node_threshold``, ``node_left``, ``node_right``, ``node_leaf``, ``tree_offset``,
         ``leaf_A``, ``leaf_b``. A bundle holding several estimators should prefix the keys.
         """
@@ -528,8 +525,8 @@ class LinearLeafForest:
             "n_outputs": np.array(self.n_outputs_),
             "y_1d": np.array(self._y_1d),
         }
-        if isinstance(self.random_state, numbers.Integral):
-            out["random_state"] = np.array(int(self.random_state))
+        if isinstance(self.rng, numbers.Integral):
+            out["random_state"] = np.array(int(self.rng))
         for name in ("node_feature", "node_threshold", "node_left", "node_right", "node_leaf", "tree_offset",
                      "leaf_A", "leaf_b"):
             out[name] = getattr(self, name + "_").copy()
@@ -546,7 +543,7 @@ class LinearLeafForest:
         self = cls(n_trees=int(a["n_trees"]), max_depth=int(a["max_depth"]), n_trials=int(a["n_trials"]),
                    min_samples_leaf=int(a["min_samples_leaf"]), ridge=float(a["ridge"]),
                    leaf_model=str(a["leaf_model"]),
-                   random_state=int(np.asarray(arrays["random_state"])) if "random_state" in arrays else None)
+                   rng=int(np.asarray(arrays["random_state"])) if "random_state" in arrays else None)
         self.n_features_in_, self.n_outputs_ = int(a["n_features_in"]), int(a["n_outputs"])
         self._y_1d = bool(a["y_1d"])
         for name in ("node_feature", "node_left", "node_right", "node_leaf"):

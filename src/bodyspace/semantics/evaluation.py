@@ -23,7 +23,7 @@ from bodyspace.semantics.regressors import (
     SimpleLinearRegressor,
     kfold_indices,
 )
-from bodyspace.validation import as_matrix
+from bodyspace.validation import as_generator, as_matrix
 
 __all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
            "format_rmse_table", "format_angle_table"]
@@ -78,7 +78,7 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
     n = x.shape[0]
     if not isinstance(labels, Mapping) or not labels:
         raise ParameterError(f"labels: got {type(labels).__name__}, expected a non-empty dict name -> (N,) values")
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     if regressors is None:
         regressors = default_regressors(gen)
     if not isinstance(regressors, Mapping) or not regressors:

@@ -31,7 +31,7 @@ import numbers
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.validation import as_int, as_matrix, as_positive_grid, as_vector
+from bodyspace.validation import as_generator, as_int, as_matrix, as_positive_grid, as_vector
 
 __all__ = ["SimpleLinearRegressor", "FilteredLinearRegressor", "KernelRegressor", "kfold_indices"]
 
@@ -43,7 +43,7 @@ def kfold_indices(n: int, folds: int, rng=None, groups=None) -> list[np.ndarray]
     both the training and the test part. Folds are capped at the number of rows (groups).
     """
     folds = as_int(folds, "folds", 2)
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     if groups is None:
         if n < 2:
             raise ParameterError(f"X: {n} row(s), expected at least 2 for cross-validation")
