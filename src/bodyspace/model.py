@@ -486,12 +486,6 @@ def _selected_rows(db, selection) -> tuple[np.ndarray, str]:
     return rows, "indices"
 
 
-def _read(db, rows: np.ndarray) -> np.ndarray:
-    """(n, V, 3) float64 scans ``rows``: ``db.read(rows)``. Kept for ``semantics/model.py``, which
-    imports it until it calls ``ScanDatabase.read`` itself."""
-    return db.read(rows)
-
-
 def _template_for(db, faces: np.ndarray) -> np.ndarray:
     """The template mesh of a database: the installed template when the database names it
     (``meta['template']``) and the topology matches, else the mean of its rest-pose scans."""

@@ -36,7 +36,7 @@ import weakref
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.measure.definitions import MeasurementSet
+from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 
 RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length", "shoulder_size")
 UP = np.array([0.0, 1.0, 0.0])
@@ -210,7 +210,6 @@ class LinearBodyMeasures:
 
     @classmethod
     def _from_model(cls, model, mset, names, k, linearization=None):
-        from bodyspace.measure import load_measurement_set
         mset = load_measurement_set() if mset is None else mset
         sp = model.space
         # The encoder's own linearization of its decoder (exact for a linear encoding, which a
