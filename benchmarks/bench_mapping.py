@@ -1,4 +1,4 @@
-"""Benchmark: training data from the model and exact refinement (Rupprecht et al. Sec. 3.1.2, 4.1).
+"""Benchmark: training data from the model and exact refinement (Rupprecht §3.1.2, Rupprecht §4.1).
 
 A vertex-encoding BodyModel (shape only) is fitted on a synthetic population (60 subjects by
 default, built into a temporary folder; not timed). Printed, all in the same run:

@@ -1,8 +1,8 @@
 """The BodyModel bundle: template, encoder statistics and PCA shape space in one versioned file.
 
 ``BodyModel.fit(db, encoding="rre", selection="rest")`` encodes a scan database and fits the
-shape space (Hasler et al. 2009, Sec. 4): on the rest-pose scans it is the shape-only model
-(their Sec. 5.2), on all scans the model of pose and shape together. The algorithms live in
+shape space (Hasler §4): on the rest-pose scans it is the shape-only model
+(Hasler §5.2), on all scans the model of pose and shape together. The algorithms live in
 their owners (``encoding``, ``shape.ShapeSpace``, ``mapping``); this module orchestrates them
 and owns the file format. ``save(path)`` writes one ``.npz`` (numpy's zip of ``.npy`` arrays,
 no pickle) whose ``header`` array is UTF-8 JSON (format name, ``format_version``, encoder kind

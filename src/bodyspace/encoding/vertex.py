@@ -1,4 +1,4 @@
-"""The plain vertex encoding (Rupprecht et al., Eq. 1), after rigid Procrustes alignment.
+"""The plain vertex encoding (Rupprecht Equation 1), after rigid Procrustes alignment.
 
 A body is the flattened offset of its aligned vertices from the mean mesh:
 ``code = (align(x) - mean).ravel()`` (D = 3V), and ``x = mean + code`` back. Alignment is

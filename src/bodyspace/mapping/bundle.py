@@ -1,6 +1,6 @@
 """The fitted measurements-to-shape mapping a ``BodyModel`` carries in its file.
 
-``fit_mapping(model)`` draws the training set from the model (Rupprecht et al. Sec. 4.1), fits the
+``fit_mapping(model)`` draws the training set from the model (Rupprecht §4.1), fits the
 linear baseline and the linear-leaf forest on it and, for RRE models, keeps the decoder's
 least-squares linearization that exact refinement steps with. ``MeasurementMapping.shape``
 turns requested measurements (cm) into coefficients: the forest's prediction, then the exact

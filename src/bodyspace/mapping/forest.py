@@ -1,10 +1,10 @@
-"""Regression forest with linear leaves: the semantic mapping of Rupprecht et al., Sec. 3.2.
+"""Regression forest with linear leaves: the semantic mapping of Rupprecht §3.2.
 
 Measurements x (n = 6, cm) map to shape coefficients y (m = 25) through T decision trees
-whose leaves each hold an affine map ``g(x) = A x + b`` (Eq. 2) fitted by least squares to
-the training samples that reach it (Eq. 3); the forest averages the trees (Sec. 3.2.2).
+whose leaves each hold an affine map ``g(x) = A x + b`` (Rupprecht Equation 2) fitted by least squares to
+the training samples that reach it (Rupprecht Equation 3); the forest averages the trees (Rupprecht §3.2.2).
 
-Growing a tree (Sec. 3.2.1, randomized node optimization after Criminisi et al. 2012):
+Growing a tree (Rupprecht §3.2.1, randomized node optimization after Criminisi et al. 2012):
 at each node, ``n_trials`` candidate splits are drawn, each an axis-aligned test
 ``x[d] <= t`` on one random input dimension d with a random threshold t, and the one with the
 largest information gain is kept. A node becomes a leaf at ``max_depth``, when it holds fewer
@@ -14,14 +14,14 @@ Split criterion (the "information gain"). We minimise the summed least-squares r
 leaf model in the two children,
 
     gain = R(S) - R(S_left) - R(S_right),
-    R(S) = sum_{(x,y) in S} ||A_S x + b_S - y||^2,   (A_S, b_S) = the ridge fit of Eq. 3 on S,
+    R(S) = sum_{(x,y) in S} ||A_S x + b_S - y||^2,   (A_S, b_S) = the ridge fit of Rupprecht Equation 3 on S,
 
 i.e. the reduction of the trace of the *residual* scatter of the linear fit (for constant
 leaves, ``leaf_model="constant"``, A = 0 and R is the plain sum of squared errors: CART's
 variance reduction). Why not the differential entropy of a Gaussian, ``log det Cov``, that the
 forest literature writes: with m = 25 outputs and 30-sample leaves the covariance is near
 singular, and when an output is an exact linear function of the inputs (stature is carried by
-one PCA coefficient, Sec. 4.2) its residual variance is 0 and ``log det`` is -inf: the gain is
+one PCA coefficient, Rupprecht §4.2) its residual variance is 0 and ``log det`` is -inf: the gain is
 then decided by the smallest, least visible coefficients. ``log det`` is also invariant to
 rescaling outputs, so a coefficient that moves the mesh by 0.1 mm counts as much as one that
 moves it by 10 cm. The residual sum of squares weights outputs by their squared size, which
@@ -41,7 +41,7 @@ residual is then ``S_yy - <C_xy, W> - lambda ||W||^2`` with ``W = (C_xx + lambda
 from centred statistics, one batched 6x6 inverse for all 2T children. With 13 random
 thresholds per node this is cheaper than sorting and prefix-summing every column (which scores
 all N thresholds to use 13). The winning children's W are kept: a child that ends as a leaf
-takes its Eq. 3 fit from there, without another pass over its samples.
+takes its Rupprecht Equation 3 fit from there, without another pass over its samples.
 
 A tree grows level by level: the nodes of one depth are scored together, small ones in
 padded batches (``_best_splits``), so numpy's per-call overhead is paid per batch, not per node.
@@ -342,7 +342,7 @@ def _n_workers(n_jobs, n_tasks: int) -> int:
 class LinearLeafForest:
     """Regression forest with affine leaf models, measurements -> shape coefficients.
 
-    Rupprecht et al., Sec. 3.2 (Eq. 2 and 3); defaults from Sec. 4.2.
+    Rupprecht §3.2 (Rupprecht Equations 2 and 3); defaults from Rupprecht §4.2.
 
     Args:
         n_trees: number of trees T; predictions are their mean.
@@ -353,7 +353,7 @@ class LinearLeafForest:
         ridge: Tikhonov weight on each leaf's A, relative to the node's mean input variance
             (inputs standardized over the training set); see ``linear.fit_affine``. Also used in
             the split criterion, so a split is scored by the model the leaf will hold.
-        leaf_model: "linear" (Eq. 2, the paper) or "constant" (mean of y, CART's criterion):
+        leaf_model: "linear" (Rupprecht Equation 2, the paper) or "constant" (mean of y, CART's criterion):
             the ablation of the paper's contribution with everything else equal.
         rng: None, an int, a ``np.random.SeedSequence`` or a ``np.random.Generator`` (one draw
             seeds the forest). Equal ints give bit-identical
@@ -480,7 +480,7 @@ class LinearLeafForest:
         return self.node_leaf_[node]
 
     def predict(self, X) -> np.ndarray:
-        """Coefficients (N, m) of measurements (N, n): the mean of the trees' A x + b (Sec. 3.2.2).
+        """Coefficients (N, m) of measurements (N, n): the mean of the trees' A x + b (Rupprecht §3.2.2).
 
         A single sample (n,) gives (m,); a forest fitted on 1-D Y gives (N,).
         """

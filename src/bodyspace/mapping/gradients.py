@@ -2,7 +2,7 @@
 
 With the vertex encoding a body is ``v(z) = base + sum_k z_k C_k`` (``base`` (V, 3) the mean
 body, ``C`` (K, V, 3) the principal components reshaped), so ``dv/dz = C`` exactly. The
-measurements of Rupprecht et al. Sec. 3.1.2 and the ISO lengths are piecewise smooth functions of
+measurements of Rupprecht §3.1.2 and the ISO lengths are piecewise smooth functions of
 a few vertices; their derivatives with respect to those vertices are written out here (pure,
 batched functions), then chained with ``C``:
 

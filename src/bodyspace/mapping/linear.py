@@ -2,8 +2,8 @@
 
 Allen et al. (2003), Hasler et al. (2009) and MovieReshape (Jain et al. 2010) map semantic
 measurements to PCA coefficients with a single linear regression over the whole shape space;
-Rupprecht et al. (Sec. 2, Table 2) use it as the baseline their regression forest beats. It is
-also the leaf model of that forest (Eq. 2 and 3), so the least-squares solve lives here, once,
+(Rupprecht §2, Rupprecht Table 2) use it as the baseline their regression forest beats. It is
+also the leaf model of that forest (Rupprecht Equations 2 and 3), so the least-squares solve lives here, once,
 as the pure function ``fit_affine`` that both estimators call.
 
 Shapes: ``X`` (N, n) measurements, ``Y`` (N, m) coefficients, ``A`` (m, n), ``b`` (m,).
@@ -20,9 +20,9 @@ from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, c
 FORMAT_VERSION = 1
 
 
-# ---------------------------------------------------------------------- Eq. 3
+# ---------------------------------------------------------------------- Rupprecht Equation 3
 def fit_affine(X: np.ndarray, Y: np.ndarray, ridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares affine map (Rupprecht et al., Eq. 3): ``argmin sum ||A x + b - y||^2``.
+    """Least-squares affine map (Rupprecht Equation 3): ``argmin sum ||A x + b - y||^2``.
 
     Args:
         X: (N, n) inputs, Y: (N, m) outputs.
@@ -79,7 +79,7 @@ def solve_ridge(gram: np.ndarray, cross: np.ndarray, ridge: float, return_lambda
 class LinearMapping:
     """One affine map ``y = A x + b`` from measurements to shape coefficients, over all data.
 
-    The baseline of Rupprecht et al. (Table 2), after Allen et al. (2003) and Hasler et al.
+    The baseline of Rupprecht Table 2, after Allen et al. (2003) and Hasler et al.
     (2009); same interface as ``LinearLeafForest``.
 
     Args:

@@ -252,7 +252,7 @@ def _cm_kg(values: dict) -> dict:
 def semantic_demo(db, template, bm: BodyModel, out: Path, rng, timings: dict, report) -> dict:
     """Fit the SemanticModel of shape-only model ``bm``, then: requested bodies
     (``requested.png``), taller at the same mass (``taller_same_weight.png``), a masked morph
-    (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Table 1 and Table 2
+    (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Hasler Table 1 and Hasler Table 2
     (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``).
     ``rng`` (Generator, seed or None) gives one seed ``s``; the i-th requested body uses ``s + i``."""
     seed = as_seed(rng)
@@ -354,7 +354,7 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, rng, timings: dict, re
                   title=f"crowd of {k}: women of 65 kg, stature 155-185 cm")
     timings["semantic_crowd_s"] = time.perf_counter() - t
 
-    # Table 1 and Table 2
+    # Hasler Table 1 and Hasler Table 2
     t = time.perf_counter()
     report("Table 1 and Table 2", 0.45)
     folds = min(10, n_subj)

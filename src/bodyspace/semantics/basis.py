@@ -1,4 +1,4 @@
-"""Semantic model basis (Hasler et al. 2009, §4.1).
+"""Semantic model basis (Hasler §4.1).
 
 Rotate the shape space so that its first vectors are semantic morphing directions (e.g. the
 gradients of the stature and weight regressors) and the rest is a PCA basis of what those
@@ -59,7 +59,7 @@ def gram_schmidt(vectors, tol: float = 1e-8) -> np.ndarray:
 
 
 class SemanticBasis:
-    """§4.1: orthonormal basis whose first vectors are semantic directions, the rest a PCA.
+    """Hasler §4.1: orthonormal basis whose first vectors are semantic directions, the rest a PCA.
 
     Args:
         n_components: residual PCA components to keep (None: every one with variance above

@@ -1,22 +1,22 @@
-"""Semantic morphing (Hasler et al. 2009, §4 Equation 11, and §5.1 comparison directions).
+"""Semantic morphing (Hasler §4, Hasler Equation 11, and Hasler §5.1 comparison directions).
 
 One constraint: walk the regressor's gradient, ``d' = d + lambda s``; to change the label by
 ``delta``, ``lambda = delta / ||s||^2``.
 
-Several constraints at once (Equation 11): each constraint ``i`` alone would move the body by
+Several constraints at once (Hasler Equation 11): each constraint ``i`` alone would move the body by
 ``v_i = delta_i s_i / ||s_i||^2``. Find one step ``z`` with ``<z, v_i> / ||v_i|| = ||v_i||`` for
 every ``i``; multiplying row ``i`` by ``||s_i||^2 / delta_i`` shows it is the same row as
 ``<s_i, z> = delta_i``: the first-order change of label ``i`` is exactly ``delta_i``. The rows
 ``G z = delta`` (``G`` stacks the gradients) are usually under-determined; the minimum-norm
 solution ``z = G^+ delta`` changes the subject as little as possible. The ``<s_i, z> = delta_i``
-form also covers ``delta_i = 0`` ("keep this label"), where Equation (11) degenerates
+form also covers ``delta_i = 0`` ("keep this label"), where Hasler Equation 11 degenerates
 (``v_i = 0``): "taller but the same weight" is the pair (stature +5 cm, weight +0 kg).
 
 For non-linear regressors the gradients change along the way, so ``morph`` takes several such
 minimum-norm steps (a Gauss-Newton walk) towards label values interpolated from the start to
 the targets, then refines until the labels are met.
 
-§5.1: when a quality is easier to compare than to measure (muscularity), a judge says which of
+Hasler §5.1: when a quality is easier to compare than to measure (muscularity), a judge says which of
 two scans is more so; the mean of the normalized differences "b - a" is the direction
 (``comparison_direction``), and ``ComparisonRegressor`` makes it usable like any regressor.
 """
@@ -35,14 +35,14 @@ __all__ = ["morph_directions", "morph", "comparison_direction", "ComparisonRegre
 
 
 def morph_directions(gradients, deltas, metric=None, rcond: float = 1e-10) -> np.ndarray:
-    """Equation (11): the smallest step ``z`` (D,) with ``<gradients[i], z> = deltas[i]`` for all i.
+    """Hasler Equation 11: the smallest step ``z`` (D,) with ``<gradients[i], z> = deltas[i]`` for all i.
 
     Args:
         gradients: (C, D) one label gradient (morphing direction) per constraint, or (D,).
         deltas: (C,) requested change of every label (0 holds a label fixed, to first order).
         metric: optional (D,) positive weights: minimise ``sum metric_j z_j^2`` instead of
             ``||z||^2`` (e.g. ``1 / explained_variance_`` on PCA coefficients for the most
-            probable change). None: the plain minimum norm of Equation (11).
+            probable change). None: the plain minimum norm of Hasler Equation 11.
         rcond: relative singular-value cut-off of the pseudo-inverse; contradictory or
             parallel constraints are met in the least-squares sense.
 
@@ -72,7 +72,7 @@ def _check_regressors(regressors: Mapping) -> None:
 
 def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, refine: int = 10,
           tol: float = 1e-6, metric=None) -> np.ndarray:
-    """Walk body ``x`` to the requested label values while holding others (Eq. 11, iterated).
+    """Walk body ``x`` to the requested label values while holding others (Hasler Equation 11, iterated).
 
     At step ``t = 1..steps`` every targeted label aims at ``start + (target - start) t / steps``
     and every kept label at its start value; the minimum-norm step (``morph_directions``) at the
@@ -137,9 +137,9 @@ def _step(x, regs, aim, metric):
     return x + morph_directions(grads, deltas, metric=metric)
 
 
-# ---------------------------------------------------------------------------- §5.1 comparisons
+# ---------------------------------------------------------------------------- Hasler §5.1 comparisons
 def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
-    """§5.1: the unit direction (D,) from judged pairs "b is more X than a".
+    """Hasler §5.1: the unit direction (D,) from judged pairs "b is more X than a".
 
     Every pair defines a direction ``b - a``; they are normalized, averaged, and the mean is
     normalized: ``u = mean_i (b_i - a_i)/||b_i - a_i||``, ``u / ||u||``.
@@ -168,7 +168,7 @@ def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
 
 
 class ComparisonRegressor(LinearModel):
-    """A semantic label learned from pairwise comparisons (§5.1), usable like any regressor.
+    """A semantic label learned from pairwise comparisons (Hasler §5.1), usable like any regressor.
 
     ``fit(X, pairs)``: ``X`` (N, D) the database, ``pairs`` (M, 2) row indices ``(i, j)`` meaning
     "``X[j]`` is more X than ``X[i]``". The direction is ``comparison_direction(X[i], X[j])``; the

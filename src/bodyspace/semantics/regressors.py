@@ -1,11 +1,11 @@
-"""Semantic regressors: a label value as a function of a body (Hasler et al. 2009, §4, Table 1).
+"""Semantic regressors: a label value as a function of a body (Hasler §4, Hasler Table 1).
 
 From encoded scans ``A`` (rows ``a_i``) and one label per scan ``l_i`` (stature, mass, body fat,
-sex, ...), learn ``f(a) ~ l``. Three regressors, the three rows of Table 1:
+sex, ...), learn ``f(a) ~ l``. Three regressors, the three rows of Hasler Table 1:
 
-- ``SimpleLinearRegressor``: Equation (10), ``argmin_[o, s] || [1 | A] [o; s] - l ||``, solved in
+- ``SimpleLinearRegressor``: Hasler Equation 10, ``argmin_[o, s] || [1 | A] [o; s] - l ||``, solved in
   the least-squares (minimum-norm when ``N <= D``) sense.
-- ``FilteredLinearRegressor``: Equation (10) solved in the PCA space of ``A``, then PCA
+- ``FilteredLinearRegressor``: Hasler Equation 10 solved in the PCA space of ``A``, then PCA
   components *rejected in ascending order of their contribution* to the label (not in the
   classic smallest-eigenvalue order), the number kept chosen by k-fold cross-validation.
 - ``KernelRegressor``: the non-linear row; RBF kernel ridge regression (numpy) or support vector
@@ -130,14 +130,14 @@ class LinearModel(_SemanticRegressor):
         return self.coef_.copy() if single else np.tile(self.coef_, (x.shape[0], 1))
 
 
-# ---------------------------------------------------------------------------- Equation (10)
+# ---------------------------------------------------------------------------- Hasler Equation 10
 class SimpleLinearRegressor(LinearModel):
-    """Equation (10): ``argmin_[o, s] || [1 | A] [o; s] - l ||`` with intercept ``o``.
+    """Hasler Equation 10: ``argmin_[o, s] || [1 | A] [o; s] - l ||`` with intercept ``o``.
 
     Solved on centred data, ``s = pinv(A - mean) (l - mean(l))``, ``o = mean(l) - <s, mean>``:
     the least-squares solution, and of all of them the one of minimum norm when the system is
     under-determined (``N <= D``: then it interpolates the training labels, which is why its
-    generalisation is limited, Table 1 row 1).
+    generalisation is limited, Hasler Table 1 row 1).
 
     Args:
         rcond: relative cut-off for small singular values (``numpy.linalg.lstsq``); None uses
@@ -165,9 +165,9 @@ class SimpleLinearRegressor(LinearModel):
         return self
 
 
-# ---------------------------------------------------------------------------- filtered Eq. (10)
+# ---------------------------------------------------------------------------- filtered Hasler Equation 10
 def _pca_solve(x: np.ndarray, l: np.ndarray, tol: float):
-    """PCA of ``x`` and Equation (10) in its coordinates.
+    """PCA of ``x`` and Hasler Equation 10 in its coordinates.
 
     Returns ``mean (D,), components V (K, D), variances (K,), w (K,), lmean``. The PCA scores
     ``T = (x - mean) V^T`` have orthogonal columns, so least squares decouples:
@@ -196,11 +196,11 @@ def _rejection_order(w: np.ndarray, var: np.ndarray, order: str) -> np.ndarray:
 
 
 class FilteredLinearRegressor(LinearModel):
-    """Equation (10) in PCA space with noise components rejected by cross-validation (Hasler §4).
+    """Hasler Equation 10 in PCA space with noise components rejected by cross-validation (Hasler §4).
 
     Fit: (1) PCA of the training rows ``X`` (full encodings or PCA coefficients; for the
     latter the PCA is a rotation, the identity up to signs on the rows the shape space was
-    fitted on); (2) solve Equation (10) in the PCA scores ``T``, ``l ~ o + T w`` (the scores are
+    fitted on); (2) solve Hasler Equation 10 in the PCA scores ``T``, ``l ~ o + T w`` (the scores are
     orthogonal, so every ``w_k`` is independent of the others and rejecting a component never
     changes the remaining weights); (3) rank the components by their **contribution**
     ``c_k = |w_k| sqrt(var_k)``, the standard deviation of component k's term ``w_k t_k`` over
@@ -294,7 +294,7 @@ def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class KernelRegressor(_SemanticRegressor):
-    """Non-linear regressor (Table 1, row 3): RBF kernel expansion on scaled inputs.
+    """Non-linear regressor (Hasler Table 1, row 3): RBF kernel expansion on scaled inputs.
 
     ``f(x) = intercept_ + sum_i dual_coef_i exp(-gamma_ ||u - u_i||^2)``, ``u = (x - mean_) / scale_``,
     over the support points ``u_i`` (``X_fit_``). Its analytic gradient, the local morphing

@@ -1,4 +1,4 @@
-"""PCA shape space over encoded bodies (Hasler et al. 2009, Sec. 4; Rupprecht et al., Eq. 1).
+"""PCA shape space over encoded bodies (Hasler §4; Rupprecht Equation 1).
 
 A body's code is ``mean_ + coefficients @ components_``. With the relative rotation encoding
 the space holds pose and shape together when fitted on the whole database, or shape alone

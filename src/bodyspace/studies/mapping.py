@@ -1,11 +1,11 @@
-"""Evaluation of the semantic mapping (Rupprecht et al. Sec. 4.2, Tables 1-2, Figures 4 and 6).
+"""Evaluation of the semantic mapping (Rupprecht §4.2, Rupprecht Tables 1-2, Rupprecht Figures 4 and 6).
 
 Three methods side by side on held-out *feasible* requests (the measurements of bodies sampled
 like the training set, so some body meets each exactly): the linear mapping of the related work
-(Table 2), the linear-leaf forest (Table 1), and the forest followed by ``refine.refine``. For
+(Rupprecht Table 2), the linear-leaf forest (Rupprecht Table 1), and the forest followed by ``refine.refine``. For
 each, the body of the predicted coefficients is measured again and ``measured - requested`` (cm)
 is summarized per parameter by its mean and variance, as in the paper's tables; plus the share
-of requests with all six within 1 mm. Figure 6: shoulder size swept from 100 to 140 cm, the
+of requests with all six within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
 other five held at the training set's median.
 
 RRE models: every body is decoded (training set, held-out requests, both predictions, each
@@ -200,7 +200,7 @@ def _measure_decoded(model, measurer, z, k, progress, chunk: int = 32) -> np.nda
 
 
 def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "shoulder_size") -> dict:
-    """Figure 6: ``name`` set to each of ``sizes`` (cm), the other parameters at the training median.
+    """Rupprecht Figure 6: ``name`` set to each of ``sizes`` (cm), the other parameters at the training median.
 
     Returns requests (S, M), coefficients (S, K) (forest + refinement), measured (S, M) cm,
     forest_measured (S, M) cm (forest alone), misses (per size: what refinement could not meet).

@@ -1,4 +1,4 @@
-"""Synthetic scan database: realistic adults in many poses (the analogue of Hasler et al. §2.1).
+"""Synthetic scan database: realistic adults in many poses (the analogue of Hasler §2.1).
 
 Subjects are drawn per sex from an adult anthropometric survey (``surveys/ansur1988.json``):
 target stature ~ Normal(mean, SD) and target BMI ~ log-normal with the survey's mean and SD.
