@@ -3,7 +3,7 @@
 Prints, in one run:
 - decode ms per body, one body at a time, with the chosen method (``rotation_solver="exact"``:
   consistent codes by the tree rotations, all others by a compiled block Cholesky
-  factorization of Eq. 9 on a pattern analysed once, on two threads for one body), the same on
+  factorization of Hasler Equation 9 on a pattern analysed once, on two threads for one body), the same on
   one thread (``n_jobs=1``), and the baseline that assembles and factors the rotation system
   with SuperLU for every body (``"direct"``), for: a round trip (encoded scan), halfway
   between rest and each pose of one subject, PCA samples of the shape-only (rest scans) and of

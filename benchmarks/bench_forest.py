@@ -1,7 +1,7 @@
-"""The semantic-mapping forest (Rupprecht et al., Sec. 3.2 / 4.2) against scikit-learn's forest.
+"""The semantic-mapping forest (Rupprecht §3.2 / Rupprecht §4.2) against scikit-learn's forest.
 
-Data: 10,000 synthetic bodies sampled as in Sec. 3.1.2 (25 PCA coefficients uniform in +-3 sigma)
-and measured as in Fig. 2: stature and leg length are vertical extents (linear in the
+Data: 10,000 synthetic bodies sampled as in Rupprecht §3.1.2 (25 PCA coefficients uniform in +-3 sigma)
+and measured as in Rupprecht Figure 2: stature and leg length are vertical extents (linear in the
 coefficients), chest, waist and hip girths are perimeters of horizontal rings of vertices that
 every coefficient displaces linearly, and shoulder size is the length of an open arc over the
 shoulders -- sums of norms of affine functions, so measurements are smooth, convex and nonlinear
@@ -15,7 +15,7 @@ Printed, all in the same run (the machine is shared; ratios are what to compare)
     1 core, and whether both give the identical forest.
   * prediction ms/request in a batch of 1,000 vs scikit-learn's; target < 1 ms.
   * held-out accuracy of both, and of the linear mapping (the related work's baseline):
-    coefficient RMSE, and the paper's protocol (Sec. 4.2): build the body from the predicted
+    coefficient RMSE, and the paper's protocol (Rupprecht §4.2): build the body from the predicted
     coefficients, measure it, and compare with the requested measurements (cm).
 """
 
@@ -36,7 +36,7 @@ NAMES = ("stature", "chest", "waist", "hip", "leg length", "shoulder")
 
 
 class SyntheticBodies:
-    """Rings of vertices moved linearly by K coefficients; measured like Fig. 2 of the paper.
+    """Rings of vertices moved linearly by K coefficients; measured like Rupprecht Figure 2.
 
     Every vertex of ring r sits at ``base_r + sum_i alpha_i * mode_ri`` (cm, horizontal plane),
     with modes smooth in the angle around the ring (low Fourier orders), weaker for later
@@ -56,7 +56,7 @@ class SyntheticBodies:
         arc = np.linspace(-0.5 * np.pi, 0.5 * np.pi, 24)
         base = np.stack([20.0 * np.sin(arc), 8.0 * np.cos(arc)], axis=1)
         self.rings["shoulder"] = (base, self._modes(rng, arc, scale=1.0))
-        # Stature and leg length: linear in the coefficients, the first one dominant (Sec. 4.2).
+        # Stature and leg length: linear in the coefficients, the first one dominant (Rupprecht §4.2).
         self.height_w = rng.normal(0, 3.0, K) * self.sigma
         self.height_w[0] = 4.0
         self.leg_w = 0.45 * self.height_w + rng.normal(0, 3.0, K) * self.sigma
@@ -72,7 +72,7 @@ class SyntheticBodies:
         return scale * modes * self.sigma[:, None, None]
 
     def sample(self, n: int, rng) -> np.ndarray:
-        """Coefficients (n, K), uniform in +-3 sigma (Sec. 3.1.2)."""
+        """Coefficients (n, K), uniform in +-3 sigma (Rupprecht §3.1.2)."""
         return rng.uniform(-3, 3, (n, K)) * self.sigma
 
     def measure(self, alpha: np.ndarray) -> np.ndarray:
@@ -112,13 +112,13 @@ def main() -> None:
         def run():
             fitted[name] = make().fit(x_train, y_train)
         return best_time(run, repeat=2)
-    t_ours = fit("ours", lambda: LinearLeafForest(random_state=0, n_jobs=2))
+    t_ours = fit("ours", lambda: LinearLeafForest(rng=0, n_jobs=2))
     t_sk = fit("sk", lambda: RandomForestRegressor(n_estimators=50, max_depth=15, min_samples_leaf=30,
                                                    max_features=1.0, bootstrap=False, random_state=0, n_jobs=2))
     t_sk_rnd = fit("sk_rnd", lambda: RandomForestRegressor(n_estimators=50, max_depth=15, min_samples_leaf=30,
                                                            max_features=1, bootstrap=False, random_state=0,
                                                            n_jobs=2))
-    t_ours_1 = fit("ours_1", lambda: LinearLeafForest(random_state=0, n_jobs=1))
+    t_ours_1 = fit("ours_1", lambda: LinearLeafForest(rng=0, n_jobs=1))
     forest, sk, sk_rnd = fitted["ours"], fitted["sk"], fitted["sk_rnd"]
     same = all(np.array_equal(a, b) for a, b in zip(forest.to_arrays().values(), fitted["ours_1"].to_arrays().values()))
     linear = LinearMapping().fit(x_train, y_train)
@@ -145,7 +145,7 @@ def main() -> None:
               "sklearn RF, max_features=1": sk_rnd, "linear mapping (baseline)": linear}
     spread = rmse(y_test, y_train.mean(0))
     print(f"held-out accuracy ({N_TEST:,} bodies); coefficient RMSE (prior spread {spread:.3f}); "
-          "measurement error of the body built from the prediction, cm, mean +- sd (Sec. 4.2 protocol):")
+          "measurement error of the body built from the prediction, cm, mean +- sd (Rupprecht §4.2 protocol):")
     print(f"  {'model':32s} {'coef RMSE':>9s}  " + "  ".join(f"{n:>13s}" for n in NAMES))
     for name, m in models.items():
         pred = m.predict(x_test)

@@ -1,4 +1,4 @@
-"""Benchmark: training data from the model and exact refinement (Rupprecht et al. Sec. 3.1.2, 4.1).
+"""Benchmark: training data from the model and exact refinement (Rupprecht §3.1.2, Rupprecht §4.1).
 
 A vertex-encoding BodyModel (shape only) is fitted on a synthetic population (60 subjects by
 default, built into a temporary folder; not timed). Printed, all in the same run:
@@ -108,7 +108,7 @@ def main() -> None:
     report("training set", fast, naive, args.samples, "bodies")
 
     # 2. the three methods, refinement timing
-    ev, fitted = evaluate_mapping(model, args.samples, args.held_out, seed=0, n_jobs=2, sweep=True)
+    ev, fitted = evaluate_mapping(model, args.samples, args.held_out, rng=0, n_jobs=2, sweep=True)
     per = ev.timings["refine_ms_per_request"]
     print(f"refinement: {per:.2f} ms/request over {args.held_out} requests (target < 50 ms)")
     n_slow = 3
@@ -135,7 +135,7 @@ def bench_rre(model, args) -> None:
     per_body = decode_seconds(model)
     print(f"decode: {1000 * per_body:.0f} ms per ±3σ body; estimated run "
           f"{estimate_seconds(model, args.samples, args.held_out, per_body, sweep=False):.0f} s")
-    ev, fitted = evaluate_mapping(model, args.samples, args.held_out, seed=0, n_trees=10, n_jobs=2, sweep=False)
+    ev, fitted = evaluate_mapping(model, args.samples, args.held_out, rng=0, n_trees=10, n_jobs=2, sweep=False)
     lin = fitted["linearization"]
     print(f"training set of {args.samples}: {ev.timings['training_set_s']:.1f} s "
           f"({ev.timings['training_set_s'] / (args.samples + args.held_out):.2f} s/body, held-out included); "

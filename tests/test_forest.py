@@ -71,7 +71,7 @@ def test_exactly_linear_data_gives_single_leaf_trees_and_exact_predictions():
     x = rng.normal(100, 20, (400, 6))
     a, b = rng.normal(size=(5, 6)), rng.normal(size=5)
     y = x @ a.T + b
-    f = LinearLeafForest(n_trees=5, ridge=0.0, random_state=0).fit(x, y)
+    f = LinearLeafForest(n_trees=5, ridge=0.0, rng=0).fit(x, y)
     assert f.n_leaves_ == 5 and f.max_depth_ == 0                # no split gains anything
     xt = rng.normal(100, 20, (50, 6))
     assert np.allclose(f.predict(xt), xt @ a.T + b, atol=1e-8)
@@ -80,7 +80,7 @@ def test_exactly_linear_data_gives_single_leaf_trees_and_exact_predictions():
 
 def test_linear_leaves_are_exact_on_each_piece_of_piecewise_linear_data(kinked):
     x, y, _, (a_neg, a_pos, b) = kinked
-    f = LinearLeafForest(n_trees=8, min_samples_leaf=20, ridge=0.0, random_state=0).fit(x, y)
+    f = LinearLeafForest(n_trees=8, min_samples_leaf=20, ridge=0.0, rng=0).fit(x, y)
     leaves = f.apply(x)
     exact = 0
     for t in range(f.n_trees_):
@@ -100,7 +100,7 @@ def test_each_leaf_holds_the_least_squares_fit_of_its_samples():
     rng = np.random.default_rng(12)
     x = rng.normal(170, 10, (2000, 6))
     y = np.sin(x / 15) @ rng.normal(size=(6, 25))
-    f = LinearLeafForest(n_trees=2, ridge=0.0, random_state=0).fit(x, y)
+    f = LinearLeafForest(n_trees=2, ridge=0.0, rng=0).fit(x, y)
     leaves = f.apply(x)
     for leaf in range(0, f.n_leaves_, 7):
         inside = (leaves == leaf).any(axis=1)
@@ -111,7 +111,7 @@ def test_each_leaf_holds_the_least_squares_fit_of_its_samples():
 def test_linear_leaves_beat_constant_leaves(kinked):
     x, y, fn, _ = kinked
     xt = sample_kinked(np.random.default_rng(3), 500)
-    kw = dict(n_trees=10, min_samples_leaf=20, random_state=0)
+    kw = dict(n_trees=10, min_samples_leaf=20, rng=0)
     err_lin = rmse(LinearLeafForest(**kw).fit(x, y).predict(xt), fn(xt))
     err_const = rmse(LinearLeafForest(leaf_model="constant", **kw).fit(x, y).predict(xt), fn(xt))
     assert err_lin < 0.05 * err_const
@@ -123,7 +123,7 @@ def test_forest_beats_the_linear_mapping_on_a_nonlinear_problem():
     def f(x):
         return np.stack([np.sin(2 * x[:, 0]) + x[:, 1], x[:, 1] ** 2 - x[:, 2], x[:, 0] * x[:, 2]], axis=1)
     x, xt = rng.uniform(-2, 2, (3000, 3)), rng.uniform(-1.8, 1.8, (500, 3))
-    forest = LinearLeafForest(n_trees=10, random_state=0).fit(x, f(x))
+    forest = LinearLeafForest(n_trees=10, rng=0).fit(x, f(x))
     linear = LinearMapping().fit(x, f(x))
     err_forest, err_linear = rmse(forest.predict(xt), f(xt)), rmse(linear.predict(xt), f(xt))
     assert err_forest < 0.25 * err_linear
@@ -134,7 +134,7 @@ def test_min_samples_leaf_and_max_depth_are_respected():
     x = rng.normal(size=(2000, 4))
     y = np.stack([np.sin(3 * x[:, 0]) * x[:, 1], np.abs(x[:, 2]) + x[:, 3] ** 2], axis=1)
     for msl, depth in ((30, 15), (7, 4)):
-        f = LinearLeafForest(n_trees=4, min_samples_leaf=msl, max_depth=depth, random_state=1).fit(x, y)
+        f = LinearLeafForest(n_trees=4, min_samples_leaf=msl, max_depth=depth, rng=1).fit(x, y)
         assert min(s.min() for s in leaf_sizes(f, x)) >= msl
         assert f.max_depth_ == tree_depth(f) <= depth
         assert all(s.sum() == len(x) for s in leaf_sizes(f, x))
@@ -142,7 +142,7 @@ def test_min_samples_leaf_and_max_depth_are_respected():
     # Ties: on a column that is 0 but for 15 samples, every rank's threshold is 0 and would leave
     # 15 on the right; such trials must be rejected, not produce a short leaf.
     x[:1985, 0] = 0.0
-    f = LinearLeafForest(n_trees=4, min_samples_leaf=30, random_state=2).fit(x, y)
+    f = LinearLeafForest(n_trees=4, min_samples_leaf=30, rng=2).fit(x, y)
     assert min(s.min() for s in leaf_sizes(f, x)) >= 30
 
 
@@ -150,7 +150,7 @@ def test_shapes_single_sample_and_one_output():
     rng = np.random.default_rng(6)
     x = rng.normal(size=(300, 6))
     y = x @ rng.normal(size=(6, 25)) + np.sin(x[:, :1])
-    for est in (LinearLeafForest(n_trees=3, random_state=0), LinearMapping()):
+    for est in (LinearLeafForest(n_trees=3, rng=0), LinearMapping()):
         est.fit(x, y)
         assert est.predict(x[:7]).shape == (7, 25)
         assert np.array_equal(est.predict(x[3]), est.predict(x[3:4])[0])
@@ -160,21 +160,21 @@ def test_shapes_single_sample_and_one_output():
 
 
 # ---------------------------------------------------------------------- determinism
-def test_same_random_state_same_forest_for_any_n_jobs():
+def test_same_rng_same_forest_for_any_n_jobs():
     rng = np.random.default_rng(7)
     x = rng.normal(size=(1500, 6))
     y = np.tanh(x @ rng.normal(size=(6, 8)))
-    a = LinearLeafForest(n_trees=6, random_state=42).fit(x, y).to_arrays()
-    b = LinearLeafForest(n_trees=6, random_state=42).fit(x, y).to_arrays()
-    c = LinearLeafForest(n_trees=6, random_state=42, n_jobs=2).fit(x, y).to_arrays()
-    d = LinearLeafForest(n_trees=6, random_state=43).fit(x, y).to_arrays()
+    a = LinearLeafForest(n_trees=6, rng=42).fit(x, y).to_arrays()
+    b = LinearLeafForest(n_trees=6, rng=42).fit(x, y).to_arrays()
+    c = LinearLeafForest(n_trees=6, rng=42, n_jobs=2).fit(x, y).to_arrays()
+    d = LinearLeafForest(n_trees=6, rng=43).fit(x, y).to_arrays()
     for k in a:
         assert np.array_equal(a[k], b[k]) and np.array_equal(a[k], c[k]), k
     assert not np.array_equal(a["node_threshold"], d["node_threshold"])
 
 
 # ---------------------------------------------------------------------- serialization
-@pytest.mark.parametrize("make", [lambda: LinearLeafForest(n_trees=5, random_state=3), lambda: LinearMapping()])
+@pytest.mark.parametrize("make", [lambda: LinearLeafForest(n_trees=5, rng=3), lambda: LinearMapping()])
 def test_round_trip_through_npz_without_pickle_is_bit_exact(make):
     rng = np.random.default_rng(8)
     x = rng.normal(150, 15, (800, 6))
@@ -197,7 +197,7 @@ def test_round_trip_through_npz_without_pickle_is_bit_exact(make):
 def test_from_arrays_rejects_corrupt_input():
     rng = np.random.default_rng(9)
     x = rng.normal(size=(300, 3))
-    arrays = LinearLeafForest(n_trees=2, random_state=0).fit(x, np.sin(x)).to_arrays()
+    arrays = LinearLeafForest(n_trees=2, rng=0).fit(x, np.sin(x)).to_arrays()
     with pytest.raises(ParameterError, match="missing.*leaf_A"):
         LinearLeafForest.from_arrays({k: v for k, v in arrays.items() if k != "leaf_A"})
     with pytest.raises(ParameterError, match="kind"):
@@ -243,6 +243,6 @@ def test_too_few_samples_and_bad_hyper_parameters():
     for kw, field in ((dict(n_trees=0), "n_trees=0"), (dict(max_depth=-1), "max_depth=-1"),
                       (dict(n_trials=2.5), "n_trials=2.5"), (dict(min_samples_leaf=0), "min_samples_leaf=0"),
                       (dict(ridge=-1.0), "ridge=-1.0"), (dict(leaf_model="quadratic"), "leaf_model='quadratic'"),
-                      (dict(n_jobs=0), "n_jobs=0"), (dict(random_state="seed"), "random_state='seed'")):
+                      (dict(n_jobs=0), "n_jobs=0"), (dict(rng="seed"), "rng='seed'")):
         with pytest.raises(ParameterError, match=field.replace("(", r"\(").replace(".", r"\.")):
             LinearLeafForest(**{"min_samples_leaf": 5, **kw}).fit(x, y)

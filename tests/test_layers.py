@@ -134,3 +134,39 @@ def test_imports_stand_at_the_top():
 def test_the_rule_itself(source, target, ok):
     src, dst = _part(source), _part(target)
     assert (dst == src or LAYERS[dst] < LAYERS[src]) is ok
+
+
+def test_no_private_name_crosses_a_module():
+    """A name starting with ``_`` is private to its module: another module that needs it gets a
+    public name (bodyspace.validation for the argument checks)."""
+    bad = []
+    for path in _sources():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("bodyspace")):
+                private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                if private:
+                    bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: imports {private} "
+                               f"from {node.module}")
+    assert not bad, "private names imported across modules (make them public):\n" + "\n".join(bad)
+
+
+BUILTIN_ERRORS = {"ValueError", "KeyError", "TypeError", "RuntimeError", "IndexError", "Exception"}
+
+
+def test_every_error_is_a_bodyspace_error():
+    """Library code raises the classes of errors.py (a user catches BodyspaceError), and defines
+    error classes only there."""
+    bad = []
+    for path in _sources():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        where = path.relative_to(PACKAGE.parent)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Raise) and node.exc is not None:
+                exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+                if isinstance(exc, ast.Name) and exc.id in BUILTIN_ERRORS:
+                    bad.append(f"{where}:{node.lineno}: raises {exc.id}")
+            if isinstance(node, ast.ClassDef) and path.name != "errors.py" and \
+                    any(isinstance(b, ast.Name) and b.id.endswith(("Error", "Exception")) for b in node.bases):
+                bad.append(f"{where}:{node.lineno}: defines {node.name} outside errors.py")
+    assert not bad, "use (or add) a class of bodyspace/errors.py:\n" + "\n".join(bad)

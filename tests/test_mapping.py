@@ -44,7 +44,7 @@ def fitted(model):
     held = make_training_set(model, 100, rng=1)
     X, Y = train.measurements, train.coefficients[:, :train.k]
     return (train, held, LinearMapping().fit(X, Y),
-            LinearLeafForest(n_trees=20, random_state=0, n_jobs=1).fit(X, Y))
+            LinearLeafForest(n_trees=20, rng=0, n_jobs=1).fit(X, Y))
 
 
 def _fd(f, x, h=1e-6):
@@ -200,7 +200,7 @@ def test_infeasible_request_gets_closest_plausible_body_and_report(model, fitted
 def test_evaluation_report_files(model, tmp_path):
     from bodyspace.report.mapping_report import write_mapping_report
     from bodyspace.studies.mapping import METHODS, evaluate_mapping
-    ev, fitted = evaluate_mapping(model, samples=600, held_out=30, seed=0, n_trees=4, n_jobs=1)
+    ev, fitted = evaluate_mapping(model, samples=600, held_out=30, rng=0, n_trees=4, n_jobs=1)
     assert tuple(ev.errors) == METHODS and ev.errors["forest"].shape == (30, 6)
     assert ev.within("forest + refinement") >= 0.96
     files = write_mapping_report(model, ev, tmp_path / "out")
@@ -226,7 +226,7 @@ def rre_model(db, template):
 @pytest.fixture(scope="module")
 def rre_evaluation(rre_model):
     from bodyspace.studies.mapping import evaluate_mapping
-    return evaluate_mapping(rre_model, samples=32, held_out=4, seed=0, k=RRE_K, n_trees=2, n_jobs=1, sweep=False)
+    return evaluate_mapping(rre_model, samples=32, held_out=4, rng=0, k=RRE_K, n_trees=2, n_jobs=1, sweep=False)
 
 
 def test_rre_encoder_linearizes_by_forward_differences_at_the_mean(rre_model):

@@ -25,6 +25,18 @@ class ParameterError(BodyspaceError):
     """A phenotype or pose parameter is unknown or out of range."""
 
 
+class UnitError(ParameterError):
+    """A quantity has no unit, an unknown unit, or a unit of the wrong kind for its field."""
+
+
+class TargetError(ParameterError):
+    """A requested label value is outside what the model can reach, or was not met."""
+
+
+class ModelError(BodyspaceError):
+    """A BodyModel file is not one, has another format version, or misses or garbles a field."""
+
+
 class MeasurementError(BodyspaceError):
     """A measurement set, a landmark file, or a measurement on a given mesh is invalid."""
 

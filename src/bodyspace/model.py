@@ -1,8 +1,8 @@
 """The BodyModel bundle: template, encoder statistics and PCA shape space in one versioned file.
 
 ``BodyModel.fit(db, encoding="rre", selection="rest")`` encodes a scan database and fits the
-shape space (Hasler et al. 2009, Sec. 4): on the rest-pose scans it is the shape-only model
-(their Sec. 5.2), on all scans the model of pose and shape together. The algorithms live in
+shape space (Hasler §4): on the rest-pose scans it is the shape-only model
+(Hasler §5.2), on all scans the model of pose and shape together. The algorithms live in
 their owners (``encoding``, ``shape.ShapeSpace``, ``mapping``); this module orchestrates them
 and owns the file format. ``save(path)`` writes one ``.npz`` (numpy's zip of ``.npy`` arrays,
 no pickle) whose ``header`` array is UTF-8 JSON (format name, ``format_version``, encoder kind
@@ -60,7 +60,7 @@ from bodyspace.atomic import atomic_path
 from bodyspace.data.database import REST_POSE
 from bodyspace.data.template import load_template
 from bodyspace.encoding import ENCODERS
-from bodyspace.errors import BodyspaceError, ParameterError
+from bodyspace.errors import BodyspaceError, ModelError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
@@ -73,6 +73,7 @@ from bodyspace.shape.pca import (
     resolve_solver,
 )
 from bodyspace.shape.solvers import KRYLOV_DEPTH
+from bodyspace.validation import as_seed
 
 FORMAT = "bodyspace.BodyModel"
 FORMAT_VERSION = 2
@@ -94,10 +95,6 @@ ENCODE_BATCH = 64
 _ZIP_MAGIC = b"PK\x03\x04"
 
 __all__ = ["BodyModel", "ModelError", "FORMAT_VERSION", "FULL_PCA_MAX_BYTES", "MAX_DEFAULT_COMPONENTS"]
-
-
-class ModelError(BodyspaceError):
-    """A BodyModel file is not one, has another format version, or misses or garbles a field."""
 
 
 def _float32_exact(a: np.ndarray) -> np.ndarray:
@@ -286,12 +283,12 @@ class BodyModel:
         components, truncated to ``sigma_range`` standard deviations (s or (lo, hi))."""
         return self.space.sample(n, n_components, sigma_range, rng)
 
-    def fit_mapping(self, samples: int | None = None, k: int = 25, seed: int = 0, n_trees: int = 50,
+    def fit_mapping(self, samples: int | None = None, k: int = 25, rng=0, n_trees: int = 50,
                     progress=None) -> "BodyModel":
         """Fit the measurements-to-shape mapping (forest, linear baseline; Rupprecht et al.) on a
         training set drawn from this model, keep it as ``self.mapping`` (saved with the model);
-        returns self. See ``mapping.bundle.fit_mapping``."""
-        self.mapping = fit_mapping(self, samples, k, seed=seed, n_trees=n_trees, progress=progress)
+        returns self. ``rng``: Generator, seed or None. See ``mapping.bundle.fit_mapping``."""
+        self.mapping = fit_mapping(self, samples, k, seed=as_seed(rng), n_trees=n_trees, progress=progress)
         return self
 
     def __repr__(self) -> str:
@@ -487,12 +484,6 @@ def _selected_rows(db, selection) -> tuple[np.ndarray, str]:
     if len(rows) and (rows.min() < 0 or rows.max() >= db.n_scans):
         raise ParameterError(f"selection: indices {rows.min()}..{rows.max()}, expected 0..{db.n_scans - 1}")
     return rows, "indices"
-
-
-def _read(db, rows: np.ndarray) -> np.ndarray:
-    """(n, V, 3) float64 scans ``rows``: ``db.read(rows)``. Kept for ``semantics/model.py``, which
-    imports it until it calls ``ScanDatabase.read`` itself."""
-    return db.read(rows)
 
 
 def _template_for(db, faces: np.ndarray) -> np.ndarray:

@@ -19,14 +19,11 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from bodyspace.errors import ParameterError
+from bodyspace.errors import UnitError
 
 __all__ = ["UnitError", "Target", "UNITS", "KINDS", "ALIASES", "kind_of", "parse_quantity", "parse_target",
            "parse_assignment", "format_value", "example"]
 
-
-class UnitError(ParameterError):
-    """A quantity has no unit, an unknown unit, or a unit of the wrong kind for its field."""
 
 
 # kind -> {unit: factor to SI}; the first unit is the one used for display.

@@ -35,7 +35,7 @@ def demo(out: Path = typer.Option(Path("bodyspace-demo"), "--out",
     check_folder_output(out, "--out", force, DEMO_KIND)
     check_poses(poses)
     with progress("demo") as cb:
-        summary = run_demo(out, subjects=subjects, poses=poses, seed=seed, assets_root=assets, progress=cb,
+        summary = run_demo(out, subjects=subjects, poses=poses, rng=seed, assets_root=assets, progress=cb,
                            overwrite=force, flag="--force")
     table = Table(title="population vs. survey (mean ± SD)")
     for col in ("sex", "n", "stature cm", "target", "BMI kg/m²", "target", "mass kg"):

@@ -1,5 +1,5 @@
 """``bodyspace mapping fit | shape | evaluate``: Rupprecht et al.'s measurements-to-shape mapping
-stored in a model file, bodies from six measurements, and Tables 1-2 / Figures 4 and 6."""
+stored in a model file, bodies from six measurements, and Rupprecht Tables 1-2 / Rupprecht Figures 4 and 6."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
     try:
         body_model = BodyModel.load(model)
         with progress("mapping fit", eta=True) as cb:
-            body_model.fit_mapping(samples, seed=seed, n_trees=trees, progress=cb)
+            body_model.fit_mapping(samples, rng=seed, n_trees=trees, progress=cb)
         path = body_model.save(out or model)
     except BodyspaceError as exc:
         _fail(console, exc)
@@ -107,17 +107,17 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
                      out: Path = typer.Option(Path("mapping_report"), "--out", "-o",
                                               help="Output folder (must not exist, see --force)."),
                      samples: Optional[int] = typer.Option(
-                         None, help="Training bodies (Sec. 4.1: 10,000; default 10,000 for vertex models, "
+                         None, help="Training bodies (Rupprecht §4.1: 10,000; default 10,000 for vertex models, "
                                     "1,000 for RRE models, whose every body is decoded)."),
                      held_out: Optional[int] = typer.Option(
                          None, help="Held-out feasible requests (default 1,000 vertex, 100 RRE)."),
                      seed: int = SeedOption("Seed of the training set (held-out: seed + 1) and forest "
                                             "(an integer >= 0)."),
                      trees: int = typer.Option(50, min=1, help="Trees of the forest."),
-                     sweep: bool = typer.Option(True, help="The shoulder-size sweep of Figure 6 (5 more requests)."),
+                     sweep: bool = typer.Option(True, help="The shoulder-size sweep of Rupprecht Figure 6 (5 more requests)."),
                      force: bool = ForceOption):
     """Linear vs forest vs forest + exact refinement: measured − requested (cm) per parameter,
-    a Figure-4-like PNG and the shoulder-size sweep of Figure 6."""
+    a PNG like Rupprecht Figure 4 and the shoulder-size sweep of Rupprecht Figure 6."""
     check_folder_output(out, "--out", force, MAPPING_REPORT_KIND)
     try:
         body_model = BodyModel.load(model)

@@ -158,7 +158,7 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              folds: int = typer.Option(10, "--folds", min=2, help="Cross-validation folds."),
              seed: int = SeedOption("Fold shuffle seed (an integer >= 0)."),
              force: bool = ForceOption):
-    """Table 1 (10-fold cross-validated RMSE per label and regressor) and Table 2 (angles between
+    """Hasler Table 1 (10-fold cross-validated RMSE per label and regressor) and Hasler Table 2 (angles between
     the non-linear model's morphing directions at every subject)."""
     out = out or model_file.with_name(model_file.name.removesuffix(".npz") + ".evaluation.md")
     check_file_output(out, "--out", force, (".md",), example="evaluation.md")

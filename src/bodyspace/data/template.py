@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 
 from bodyspace.atomic import atomic_path
 from bodyspace.data import assets
-from bodyspace.errors import AssetError
+from bodyspace.errors import AssetError, ParameterError
 
 TEMPLATE_ID = "makehuman-hm08-body-v1"
 N_BODY_VERTICES = 13380
@@ -80,7 +80,8 @@ class Rig:
         try:
             return self.bone_names.index(name)
         except ValueError:
-            raise KeyError(f"rig {self.name!r} has no bone {name!r}; it has {', '.join(self.bone_names)}") from None
+            raise ParameterError(f"bone {name!r}: not a bone of rig {self.name!r}; expected one of "
+                                 f"{', '.join(self.bone_names)}") from None
 
     def heads(self, vertices: np.ndarray) -> np.ndarray:
         """Bone heads (..., B, 3) of bodies (..., V, 3)."""
@@ -122,7 +123,8 @@ class Template:
         try:
             j = self.joint_names.index(name)
         except ValueError:
-            raise KeyError(f"no joint {name!r}; known: {', '.join(self.joint_names)}") from None
+            raise ParameterError(f"joint {name!r}: not a joint of the template; expected one of "
+                                 f"{', '.join(self.joint_names)}") from None
         return self.joints(vertices)[..., j, :]
 
 

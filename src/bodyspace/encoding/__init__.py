@@ -1,10 +1,10 @@
 """Encodings of registered meshes as flat feature vectors (codes), and back.
 
-- ``RelativeRotationEncoder`` (``rre``): Hasler et al. (2009), Sec. 3: per-triangle stretch and
+- ``RelativeRotationEncoder`` (``rre``): Hasler §3: per-triangle stretch and
   relative rotations to the edge neighbours, relative to the mean model; decoded by two sparse
   solves (rotations, then Poisson).
 - ``VertexEncoder`` (``vertex``): vertex positions after rigid Procrustes alignment
-  (Rupprecht et al., Eq. 1).
+  (Rupprecht Equation 1).
 
 Shared parts: ``deformation`` (per-triangle deformation gradients and their closed-form polar
 decomposition) and ``rotations`` (quaternions, rotation vectors, polar factors, batched).

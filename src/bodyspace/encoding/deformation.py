@@ -2,7 +2,7 @@
 
 The deformation gradient of a triangle (Sumner and Popovic 2004) maps the rest frame
 ``[e1, e2, n]`` onto the deformed one, ``n = (e1 x e2) / sqrt|e1 x e2|`` (the "fourth vertex":
-a normal that scales like an edge). Hasler et al. (2009, Sec. 3) split it by the polar
+a normal that scales like an edge). Hasler §3 split it by the polar
 decomposition ``U = R S`` into a rotation and a symmetric stretch.
 
 Closed form. Take orthonormal frames ``T = [t1, t2, t3]`` of the rest triangle (``t1`` along

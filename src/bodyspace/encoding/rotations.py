@@ -1,8 +1,8 @@
 """Rotations as batched arrays: unit quaternions (w, x, y, z), rotation vectors (axis times
 angle), 3x3 matrices, and the polar factor (the nearest rotation) of 3x3 matrices.
 
-Public functions take and return (..., 4), (..., 3) and (..., 3, 3) arrays. The private ones
-(``_q*``) work on *component-first* arrays (a leading axis of 4 quaternion or 9 matrix entries,
+The functions without suffix take and return (..., 4), (..., 3) and (..., 3, 3) arrays. The
+``*_cf`` ones (and ``components_first``, which makes their input) work on *component-first* arrays (a leading axis of 4 quaternion or 9 matrix entries,
 each a contiguous array over all faces): elementwise passes over contiguous memory are 3-5x
 faster in numpy than np.cross, np.stack or matmul on stacks of tiny matrices.
 """
@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def _planar(a: np.ndarray, n: int) -> np.ndarray:
+def components_first(a: np.ndarray, n: int) -> np.ndarray:
     """(..., n) -> contiguous (n, ...)."""
     return np.ascontiguousarray(np.moveaxis(a, -1, 0))
 
 
-def _qmul(p, q):
+def quaternion_multiply_cf(p, q):
     """Hamilton product of component-first quaternions (4, ...): rotation q, then p."""
     pw, px, py, pz = p
     qw, qx, qy, qz = q
@@ -27,11 +27,11 @@ def _qmul(p, q):
                      pw * qz + px * qy - py * qx + pz * qw])
 
 
-def _qconj(q):
+def quaternion_conjugate_cf(q):
     return np.stack([q[0], -q[1], -q[2], -q[3]])
 
 
-def _qlog(q):
+def quaternion_log_cf(q):
     """Rotation vectors (3, ...) of component-first unit quaternions (4, ...), angle in [0, pi].
 
     ``atan2`` keeps full precision for tiny angles, where ``arccos`` of the trace would not.
@@ -45,7 +45,7 @@ def _qlog(q):
     return q[1:] * factor
 
 
-def _qexp(r):
+def quaternion_exp_cf(r):
     """Component-first unit quaternions (4, ...) of rotation vectors (3, ...)."""
     theta = np.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
     small = theta < 1e-6
@@ -54,7 +54,7 @@ def _qexp(r):
     return np.concatenate([np.cos(0.5 * theta)[None], r * sinc])
 
 
-def _qmatrix(q):
+def matrix_from_quaternion_cf(q):
     """Row-major entries (9, ...) of the rotation matrices of unit quaternions (4, ...)."""
     w, x, y, z = q
     xx, yy, zz = x * x, y * y, z * z
@@ -64,7 +64,7 @@ def _qmatrix(q):
                      2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)])
 
 
-def _qfrom_matrix(m):
+def quaternion_from_matrix_cf(m):
     """Component-first unit quaternions (4, ...), w >= 0, of row-major rotations (9, ...).
 
     Shepperd (1978): the largest of 4w^2, 4x^2, 4y^2, 4z^2 is the pivot, so no branch divides
@@ -125,19 +125,19 @@ def _polar9(x, tol: float = 1e-14, max_iter: int = 60):
 def quaternion_from_matrix(r: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4), w >= 0, of rotation matrices (..., 3, 3)."""
     r = np.asarray(r, dtype=float)
-    return np.moveaxis(_qfrom_matrix(_planar(r.reshape(r.shape[:-2] + (9,)), 9)), 0, -1)
+    return np.moveaxis(quaternion_from_matrix_cf(components_first(r.reshape(r.shape[:-2] + (9,)), 9)), 0, -1)
 
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) of unit quaternions (..., 4)."""
     q = np.asarray(q, dtype=float)
-    return np.moveaxis(_qmatrix(_planar(q, 4)), 0, -1).reshape(q.shape[:-1] + (3, 3))
+    return np.moveaxis(matrix_from_quaternion_cf(components_first(q, 4)), 0, -1).reshape(q.shape[:-1] + (3, 3))
 
 
 def quaternion_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p q (..., 4): the rotation q followed by p."""
     p, q = np.broadcast_arrays(np.asarray(p, dtype=float), np.asarray(q, dtype=float))
-    return np.moveaxis(_qmul(_planar(p, 4), _planar(q, 4)), 0, -1)
+    return np.moveaxis(quaternion_multiply_cf(components_first(p, 4), components_first(q, 4)), 0, -1)
 
 
 def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
@@ -147,12 +147,12 @@ def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
 
 def quaternion_log(q: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3), angle in [0, pi], of unit quaternions (..., 4)."""
-    return np.moveaxis(_qlog(_planar(np.asarray(q, dtype=float), 4)), 0, -1)
+    return np.moveaxis(quaternion_log_cf(components_first(np.asarray(q, dtype=float), 4)), 0, -1)
 
 
 def quaternion_exp(rotvec: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) of rotation vectors (..., 3)."""
-    return np.moveaxis(_qexp(_planar(np.asarray(rotvec, dtype=float), 3)), 0, -1)
+    return np.moveaxis(quaternion_exp_cf(components_first(np.asarray(rotvec, dtype=float), 3)), 0, -1)
 
 
 def rotation_exp(rotvec: np.ndarray) -> np.ndarray:
@@ -171,7 +171,7 @@ def polar_decomposition(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R (..., 3, 3) orthogonal with the sign of det(U) as determinant; S = R^T U symmetric.
     """
     u = np.asarray(u, dtype=float)
-    r = np.moveaxis(_polar9(_planar(u.reshape(u.shape[:-2] + (9,)), 9)), 0, -1).reshape(u.shape)
+    r = np.moveaxis(_polar9(components_first(u.reshape(u.shape[:-2] + (9,)), 9)), 0, -1).reshape(u.shape)
     s = np.swapaxes(r, -1, -2) @ u
     return r, 0.5 * (s + np.swapaxes(s, -1, -2))
 
@@ -183,7 +183,7 @@ def project_to_rotations(x: np.ndarray) -> np.ndarray:
     with the smallest singular vector flipped.
     """
     x = np.asarray(x, dtype=float)
-    x9 = _planar(x.reshape(x.shape[:-2] + (9,)), 9)
+    x9 = components_first(x.reshape(x.shape[:-2] + (9,)), 9)
     _, det = _cofactor9(x9)
     good = det > 1e-12 * np.abs(x9).max(axis=0) ** 3
     if good.all():

@@ -1,11 +1,11 @@
-"""Relative rotation encoding (RRE) of registered meshes (Hasler et al. 2009, Sec. 3).
+"""Relative rotation encoding (RRE) of registered meshes (Hasler §3).
 
 Encoding, per triangle i of a mesh registered to the template:
 
 1. deformation gradient ``U_i`` from the template triangle to the scan triangle (Sumner and
    Popovic's frame with a scaled normal, so ``U_i`` is a full 3x3 map);
 2. polar decomposition ``U_i = R_i S_i``: rotation R_i, symmetric stretch S_i;
-3. relative rotations to the edge neighbours (Eq. 8), one per edge slot. Eq. 8 is written for
+3. relative rotations to the edge neighbours (Hasler Equation 8), one per edge slot. Hasler Equation 8 is written for
    the rotations ``Q_i = R_i^T`` that take each scan triangle back to its rest frame:
    ``Q_ij = Q_i Q_j^-1 = R_i^T R_j``. That order is the one a global turn of the body
    (``R_i -> G R_i``) leaves unchanged; ``R_i R_j^-1`` would change with it;
@@ -18,9 +18,9 @@ triangle's edge ``(faces[i, k], faces[i, (k+1) % 3])`` and ``r`` are rotation ve
 angle, radians). A boundary edge has no neighbour: its three numbers are zero in every code and
 ignored by ``decode`` (``slot_mask_`` says which), so every code has the same length, 15 F.
 
-Decoding, two sparse solves (Sec. 3):
+Decoding, two sparse solves (Hasler §3):
 
-1. rotations from the relative rotations by least squares on Eq. 9, ``Q_ij Q_j - Q_i = 0`` for
+1. rotations from the relative rotations by least squares on Hasler Equation 9, ``Q_ij Q_j - Q_i = 0`` for
    every stored pair (both directions), with one *anchor* triangle per connected part fixed to
    the identity (the "global rotation fixed");
 2. projection onto SO(3) (the polar factor, i.e. the SVD projection, computed by a Newton
@@ -33,14 +33,14 @@ Decoding, two sparse solves (Sec. 3):
    trip ``decode(encode(x))`` returns ``x`` rigidly aligned to the mean model. The mean
    model's own vertices ``mean_vertices_`` are placed the same way onto the template.
 
-How step 1 is made fast (its matrix changes with every code): the normal matrix of Eq. 9 is a
+How step 1 is made fast (its matrix changes with every code): the normal matrix of Hasler Equation 9 is a
 *connection Laplacian*, diagonal blocks ``2 deg_i I`` (relative rotations are orthogonal) and
 off-diagonal blocks ``-(Q_ij + Q_ji^T)``: its values change with the code, its pattern (one
 3x3 block per pair of adjacent faces) never. So
 
 * a consistent code (every round trip) is recognised and solved without any factorization:
   the rotations ``T_i`` chained from the anchor along a breadth-first spanning tree satisfy
-  Eq. 9 exactly, which one pass over the edges checks;
+  Hasler Equation 9 exactly, which one pass over the edges checks;
 * every other code (interpolations, PCA samples, edited codes) is solved exactly by
   ``FixedPatternRotationSolver``: the ordering and the symbolic factorization of the pattern
   are made once per template (``mesh.block_cholesky``) and each body pays the compiled numeric
@@ -74,14 +74,13 @@ from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
 from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.encoding.rotations import (
-    _planar,
-    _qconj,
-    _qexp,
-    _qfrom_matrix,
+    components_first,
     project_to_rotations,
+    quaternion_conjugate_cf,
     quaternion_exp,
+    quaternion_exp_cf,
+    quaternion_from_matrix_cf,
 )
-from bodyspace.encoding.vertex import check_codes, check_scans
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.block_cholesky import BlockCholesky, BlockPattern
@@ -94,6 +93,7 @@ from bodyspace.mesh.solver import (
     single_threaded_blas,
 )
 from bodyspace.mesh.topology import (
+    check_registered_meshes,
     check_topology,
     dual_graph,
     face_components,
@@ -101,6 +101,7 @@ from bodyspace.mesh.topology import (
     vertex_components,
 )
 from bodyspace.parallel import halves, run_both
+from bodyspace.validation import as_codes
 
 FEATURES_PER_FACE = 15
 # linearize(space) without k: the leading coefficients the tangent covers (Rupprecht's k = 25).
@@ -120,7 +121,7 @@ DECODE_CHUNK = 1
 # single thread, under load: 10-12 ms of CPU a body for blocks of 4096 to 32768 faces, 14 ms
 # for 2048 (per-call overhead), against 24 ms for the previous whole-body Newton iteration.
 ENCODE_BLOCK = 8192
-# A code whose tree rotations leave Eq. 9 a residual this small (as a bound on the change of
+# A code whose tree rotations leave Hasler Equation 9 a residual this small (as a bound on the change of
 # any rotation entry) is consistent: the tree rotations are its solution, no factorization.
 CONSISTENT_TOL = 1e-7
 # The mean model sums the scans' codes in this many fixed chunks (one thread task each).
@@ -142,7 +143,7 @@ def unpack_stretch(p: np.ndarray) -> np.ndarray:
     return s
 
 
-# ---------------------------------------------------------------------------- Eq. 9 solvers
+# ---------------------------------------------------------------------------- Hasler Equation 9 solvers
 
 # Compiled kernels (numba, ``cache=True``: compiled on first use, ~10-25 s for all of them
 # with ``mesh.solver.ldl_solve`` on a loaded 2-core machine, then loaded from the cache in
@@ -197,7 +198,7 @@ def _tree_kernel(rel, order, parent, parent_slot, n_roots, t):
 
 @_kernel
 def _mismatch_kernel(rel, t, nbr, valid, lo, hi):
-    """Largest Eq. 9 residual ``|Q_ij T_j - T_i|_F`` over the edge slots of faces lo:hi."""
+    """Largest Hasler Equation 9 residual ``|Q_ij T_j - T_i|_F`` over the edge slots of faces lo:hi."""
     mx = 0.0
     for i in range(lo, hi):
         for k in range(3):
@@ -214,7 +215,7 @@ def _mismatch_kernel(rel, t, nbr, valid, lo, hi):
 
 @_kernel
 def _system_kernel(rel, nbr, bk, pair_of_slot, off, lo, hi):
-    """Off-diagonal blocks ``-(Q_ik + Q_jk'^T)`` (E, 3, 3) of the Eq. 9 normal matrix, one per
+    """Off-diagonal blocks ``-(Q_ik + Q_jk'^T)`` (E, 3, 3) of the Hasler Equation 9 normal matrix, one per
     pair of free faces, from the slot of its lower face (``pair_of_slot[i, k] >= 0``)."""
     for i in range(lo, hi):
         for k in range(3):
@@ -282,7 +283,7 @@ def _gradients_kernel(q, stretch, mean_stretch, u, bad, lo, hi):
 
 
 class RotationGraph:
-    """The arrays the Eq. 9 kernels need, built once per template, in the graph's own face order.
+    """The arrays the Hasler Equation 9 kernels need, built once per template, in the graph's own face order.
 
     The faces are renumbered by reverse Cuthill-McKee on the dual graph, so that the neighbours
     a kernel reads for a face lie close to it in memory: the per-edge kernels ran 2x faster
@@ -340,7 +341,7 @@ def _workspace(nf: int) -> dict:
 
 def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np.ndarray,
                            roots: np.ndarray) -> np.ndarray:
-    """Least-squares rotations of Eq. 9 by assembling and factoring the system for each body.
+    """Least-squares rotations of Hasler Equation 9 by assembling and factoring the system for each body.
 
     The obvious method, kept as the reference the benchmark and tests compare against: the
     (3F, 3F) normal matrix, root rows replaced by the identity, ``splu`` per body.
@@ -372,9 +373,9 @@ def solve_rotations_direct(relative: np.ndarray, neighbors: np.ndarray, back: np
 
 
 class FixedPatternRotationSolver:
-    """Exact least-squares rotations of Eq. 9, the pattern analysed once per template.
+    """Exact least-squares rotations of Hasler Equation 9, the pattern analysed once per template.
 
-    The normal matrix of Eq. 9 changes its values with every code but never its pattern (one
+    The normal matrix of Hasler Equation 9 changes its values with every code but never its pattern (one
     3x3 block per pair of adjacent faces). Anchor rows and columns are eliminated (their
     known identity moves to the right-hand side), which keeps it symmetric positive definite,
     and ``mesh.block_cholesky`` orders and analyses that pattern once; each body then costs
@@ -449,7 +450,7 @@ class RelativeRotationEncoder:
     Args:
         template_vertices: (V, 3) the rest mesh whose triangles the deformations are relative to.
         faces: (F, 3) int, shared by every scan.
-        rotation_solver: "exact" (the default: the Eq. 9 system factored for every body that
+        rotation_solver: "exact" (the default: the Hasler Equation 9 system factored for every body that
             needs it, on a pattern analysed once per template: ``FixedPatternRotationSolver``)
             or "direct" (assemble and factor with SuperLU for every body; slow, the reference
             the benchmark compares against). "pcg", the name of an earlier iterative method
@@ -538,7 +539,7 @@ class RelativeRotationEncoder:
         lap[roots, roots] = 0.5
         # For the consistency test (``_solve_one``): |(2 L)^-1|_inf = max row sum = max of
         # (2 L)^-1 1, since (2 L)^-1 >= 0 (2 L is an M-matrix); for a consistent code the
-        # Eq. 9 matrix is 2 L (x) I up to the tree's orthogonal change of basis.
+        # Hasler Equation 9 matrix is 2 L (x) I up to the tree's orthogonal change of basis.
         self._inverse_norm = float(FactorizedSolver(2.0 * lap.tocsr()).solve(np.ones(self.n_faces)).max())
 
         self._poisson = PoissonSolver(tv, self.faces)
@@ -546,7 +547,7 @@ class RelativeRotationEncoder:
         n_comp, self._vertex_part = vertex_components(self.faces, self.n_vertices)
         self._part_vertices = [np.flatnonzero(self._vertex_part == c) for c in range(n_comp)]
         self._face_part = self._vertex_part[self.faces[:, 0]]
-        # The Eq. 9 pattern analysed once, a numeric factorization per body.
+        # The Hasler Equation 9 pattern analysed once, a numeric factorization per body.
         self._exact = FixedPatternRotationSolver(self._graph)
         self.last_factorized_ = 0
 
@@ -557,8 +558,9 @@ class RelativeRotationEncoder:
                             "(fit(template[None]) makes the template the mean model)")
 
     def _check_codes(self, codes) -> np.ndarray:
-        return check_codes(codes, self.n_features_, "relative rotation encoding",
-                           f"15 numbers x {self.n_faces} triangles")
+        return as_codes(codes, self.n_features_,
+                        f"relative rotation encoding of this template (15 numbers x {self.n_faces} triangles)",
+                        error=MeshError)
 
     def _encoding_blocks(self) -> list:
         """Per-template constants of ``encode``/``fit``, made on first use: the faces in blocks
@@ -599,7 +601,7 @@ class RelativeRotationEncoder:
         for sl, corner, rest, _, _ in self._encoding_blocks():
             a, b, c = ([comp[corner[k]] for comp in comps] for k in range(3))
             rot, st, dbl[sl], n = polar_from_corners(a, b, c, rest)
-            q[:, sl] = _qfrom_matrix(rot)
+            q[:, sl] = quaternion_from_matrix_cf(rot)
             stretch[sl] = st.T
             # Signed volume of the tetrahedra from the origin: a . (e1 x e2) / 6, e1 x e2 = dbl n.
             volume += float(((a[0] * n[0] + a[1] * n[1] + a[2] * n[2]) * dbl[sl]).sum())
@@ -640,7 +642,7 @@ class RelativeRotationEncoder:
 
         ``fit(template_vertices[None])`` makes the template itself the mean model.
         """
-        x = check_scans(scans, self.n_vertices, self.faces, faces, name="scans")
+        x = check_registered_meshes(scans, self.n_vertices, self.faces, faces, name="scans")
         # Folds are refused here under "raise"; otherwise they are counted (and warned about)
         # by ``encode`` alone, so a scan both fitted on and encoded is counted once.
         look_for_folds = self.on_flipped == "raise"
@@ -667,7 +669,7 @@ class RelativeRotationEncoder:
             total_str += sum_str[k]
         self.mean_rotvecs_ = np.where(self.slot_mask_[..., None], total_rot.transpose(2, 1, 0) / len(x), 0.0)
         self.mean_stretch_ = total_str / len(x)
-        self._mean_q = _qexp(_planar(self.mean_rotvecs_, 3))  # (4, F, 3)
+        self._mean_q = quaternion_exp_cf(components_first(self.mean_rotvecs_, 3))  # (4, F, 3)
         self.mean_vertices_ = self._decode(np.zeros((1, self.n_features_)), None, self.template_vertices)[0][0]
         return self
 
@@ -681,7 +683,7 @@ class RelativeRotationEncoder:
         Raises MeshError for wrong shapes, NaN, degenerate or flipped triangles.
         """
         self._require_fit()
-        x = check_scans(vertices, self.n_vertices, self.faces, faces)
+        x = check_registered_meshes(vertices, self.n_vertices, self.faces, faces)
         shape = (len(x), self.n_features_)
         if out is None:
             out = np.empty(shape)
@@ -691,7 +693,7 @@ class RelativeRotationEncoder:
                                  f"float32 array of shape {shape}")
         codes = out.reshape(len(x), self.n_faces, FEATURES_PER_FACE)
         blocks = self._encoding_blocks()
-        conj_mean = np.ascontiguousarray(_qconj(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
+        conj_mean = np.ascontiguousarray(quaternion_conjugate_cf(self._mean_q).transpose(0, 2, 1))  # (4, slot, F)
 
         flipped = np.zeros(len(x), dtype=np.int64)
 
@@ -814,7 +816,7 @@ class RelativeRotationEncoder:
         return cache[1]
 
     def solve_rotations(self, relative: np.ndarray, solver: str | None = None) -> np.ndarray:
-        """Per-face rotations R_i (N, F, 3, 3) from relative rotations (N, F, 3, 3, 3) by Eq. 9,
+        """Per-face rotations R_i (N, F, 3, 3) from relative rotations (N, F, 3, 3, 3) by Hasler Equation 9,
         projected onto SO(3). ``solver``: "exact" or "direct" (default: ``rotation_solver``)."""
         solver = solver or self.rotation_solver
         if solver == "direct":
@@ -827,17 +829,17 @@ class RelativeRotationEncoder:
                 qm, factored = self._solve_one(rel, np.empty((self.n_faces, 3, 3)))
                 q[m] = qm[g.rank]
                 self.last_factorized_ += factored
-        # Eq. 9 solves for Q_i = R_i^T; return the rotations R_i of U_i = R_i S_i.
+        # Hasler Equation 9 solves for Q_i = R_i^T; return the rotations R_i of U_i = R_i S_i.
         return np.swapaxes(project_to_rotations(q), -1, -2)
 
     def _solve_one(self, rel: np.ndarray, t: np.ndarray, lanes: int = 1) -> tuple[np.ndarray, bool]:
-        """Least-squares ``Q`` (F, 3, 3) of Eq. 9 for one body's relative rotations (F, 3, 3, 3),
+        """Least-squares ``Q`` (F, 3, 3) of Hasler Equation 9 for one body's relative rotations (F, 3, 3, 3),
         graph order, and whether it needed a factorization. First the rotations ``T`` chained
         from the anchors along the spanning tree (into ``t``): they solve a consistent code
         exactly (every round trip), so such a body pays no factorization."""
         g = self._graph
         _tree_kernel(rel, g.sweep, g.parent, g.parent_slot, len(g.roots), t)
-        # Eq. 9's residual at T has entries <= 6 max|Q_ij T_j - T_i| (two terms per slot, three
+        # Hasler Equation 9's residual at T has entries <= 6 max|Q_ij T_j - T_i| (two terms per slot, three
         # slots), so T is within |A^-1|_inf times that of the least-squares solution.
         mismatch = max(_lanes(lanes, self.n_faces, lambda lo, hi: _mismatch_kernel(rel, t, g.nbr, g.valid, lo, hi)))
         if 6.0 * mismatch * self._inverse_norm < CONSISTENT_TOL:
@@ -919,11 +921,11 @@ def _normal_agreement(normals: np.ndarray, faces: np.ndarray, incidence: sp.csr_
 
 def _relative_rotvecs(qi, qj, right=None):
     """Rotation vectors (3, slot, B) of ``conj(q_i) q_j [right]``: the relative rotations
-    ``Q_ij = R_i^T R_j`` of faces to their neighbours (Eq. 8), optionally followed by ``right``
+    ``Q_ij = R_i^T R_j`` of faces to their neighbours (Hasler Equation 8), optionally followed by ``right``
     (the conjugate mean ``M_ij^-1``).
 
     Encoding's inner loop, fused: ``qi`` (4, B), ``qj`` and ``right`` (4, slot, B) component-
-    first quaternions; the same arithmetic as ``_qlog(_qmul(_qmul(_qconj(qi), qj), right))``
+    first quaternions; the same arithmetic as ``quaternion_log_cf(quaternion_multiply_cf(quaternion_multiply_cf(quaternion_conjugate_cf(qi), qj), right))``
     (so the same codes, to the last bit) without stacking or conjugating copies.
     """
     aw, ax, ay, az = (c[None] for c in qi)
@@ -938,7 +940,7 @@ def _relative_rotvecs(qi, qj, right=None):
                       w * qx + x * qw + y * qz - z * qy,
                       w * qy - x * qz + y * qw + z * qx,
                       w * qz + x * qy - y * qx + z * qw)
-    # _qlog: angle in [0, pi], atan2 for full precision at small angles.
+    # quaternion_log_cf: angle in [0, pi], atan2 for full precision at small angles.
     sign = np.where(w < 0, -1.0, 1.0)
     w = w * sign
     s = np.sqrt(x * x + y * y + z * z)

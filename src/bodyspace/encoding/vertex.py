@@ -1,4 +1,4 @@
-"""The plain vertex encoding (Rupprecht et al., Eq. 1), after rigid Procrustes alignment.
+"""The plain vertex encoding (Rupprecht Equation 1), after rigid Procrustes alignment.
 
 A body is the flattened offset of its aligned vertices from the mean mesh:
 ``code = (align(x) - mean).ravel()`` (D = 3V), and ``x = mean + code`` back. Alignment is
@@ -19,7 +19,8 @@ from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.geometry import check_mesh
 from bodyspace.mesh.operators import deformation_gradients, triangle_frames
 from bodyspace.mesh.solver import PoissonSolver, PositionConstraints
-from bodyspace.mesh.topology import check_same_topology, check_topology
+from bodyspace.mesh.topology import check_registered_meshes, check_topology
+from bodyspace.validation import as_codes
 
 # Generalized Procrustes stops when the mean moves less than this (metres) between rounds.
 GPA_TOL = 1e-9
@@ -60,10 +61,11 @@ class VertexEncoder:
 
     # ------------------------------------------------------------------ validation
     def _check_vertices(self, vertices, faces=None, name="vertices") -> np.ndarray:
-        return check_scans(vertices, self.n_vertices, self.faces, faces, name)
+        return check_registered_meshes(vertices, self.n_vertices, self.faces, faces, name)
 
     def _check_codes(self, codes) -> np.ndarray:
-        return check_codes(codes, self.n_features_, "vertex encoding", f"3 x {self.n_vertices} vertices")
+        return as_codes(codes, self.n_features_, f"vertex encoding of this template (3 x {self.n_vertices} vertices)",
+                        error=MeshError)
 
     def _require_fit(self):
         if not hasattr(self, "mean_vertices_"):
@@ -152,44 +154,3 @@ class VertexEncoder:
             self._rest_frames_inv = np.linalg.inv(triangle_frames(self.template_vertices, self.faces))
         u = deformation_gradients(self._rest_frames_inv, x, self.faces)
         return self._poisson.solve(u, constraints, pinned_positions=x)
-
-
-def check_scans(vertices, n_vertices: int, template_faces: np.ndarray, faces=None, name="vertices") -> np.ndarray:
-    """Validate registered meshes and return them as float (N, V, 3)."""
-    x = np.asarray(vertices)
-    if x.ndim == 2:
-        x = x[None]
-    if x.ndim != 3 or x.shape[-1] != 3:
-        raise MeshError(f"{name}: shape {np.shape(vertices)}, expected (V, 3) or (N, V, 3) with V = {n_vertices}")
-    if x.shape[1] != n_vertices:
-        raise MeshError(f"{name}: {x.shape[1]} vertices per mesh, the template has {n_vertices}; expected meshes "
-                        "registered to the template (same vertex count and order)")
-    if not np.issubdtype(x.dtype, np.number):
-        raise MeshError(f"{name}: dtype {x.dtype}, expected floating-point coordinates")
-    if faces is not None:
-        check_same_topology(faces, template_faces, name=name)
-    x = x.astype(float, copy=False)
-    bad = ~np.isfinite(x).all(axis=(1, 2))
-    if bad.any():
-        n = np.flatnonzero(bad)[0]
-        v = np.flatnonzero(~np.isfinite(x[n]).all(axis=1))
-        raise MeshError(f"{name}: mesh {n} has NaN or infinite coordinates at vertices {v[:5].tolist()}"
-                        f"{' ...' if len(v) > 5 else ''}; expected finite values")
-    return x
-
-
-def check_codes(codes, n_features: int, what: str, layout: str) -> np.ndarray:
-    """Validate codes and return them as float (N, D)."""
-    c = np.asarray(codes)
-    if c.ndim == 1:
-        c = c[None]
-    if c.ndim != 2 or c.shape[1] != n_features:
-        raise MeshError(f"codes: shape {np.shape(codes)}, expected ({n_features},) or (N, {n_features}) for the "
-                        f"{what} of this template ({layout})")
-    if not np.issubdtype(c.dtype, np.number):
-        raise MeshError(f"codes: dtype {c.dtype}, expected floating-point numbers")
-    c = c.astype(float, copy=False)
-    if not np.isfinite(c).all():
-        n, j = np.argwhere(~np.isfinite(c))[0]
-        raise MeshError(f"codes: code {n} has NaN or infinity at entry {j}; expected finite values")
-    return c

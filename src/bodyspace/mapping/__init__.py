@@ -1,4 +1,4 @@
-"""Mappings from semantic measurements to shape-space coefficients (Rupprecht et al., Sec. 3.2).
+"""Mappings from semantic measurements to shape-space coefficients (Rupprecht §3.2).
 
 ``LinearLeafForest`` is the paper's regression forest with affine leaves; ``LinearMapping`` the
 single affine map of the related work (its baseline). Both are scikit-learn-style estimators

@@ -1,6 +1,6 @@
 """The fitted measurements-to-shape mapping a ``BodyModel`` carries in its file.
 
-``fit_mapping(model)`` draws the training set from the model (Rupprecht et al. Sec. 4.1), fits the
+``fit_mapping(model)`` draws the training set from the model (Rupprecht §4.1), fits the
 linear baseline and the linear-leaf forest on it and, for RRE models, keeps the decoder's
 least-squares linearization that exact refinement steps with. ``MeasurementMapping.shape``
 turns requested measurements (cm) into coefficients: the forest's prediction, then the exact
@@ -125,7 +125,7 @@ class MeasurementMapping:
 def forest_for(n_samples: int, seed: int = 0, n_trees: int = 50, n_jobs: int | None = None) -> LinearLeafForest:
     """The unfitted forest for a training set of ``n_samples``: the paper's defaults, leaves of at
     least 30 samples, or of one for tiny (test) training sets."""
-    return LinearLeafForest(n_trees=n_trees, random_state=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
+    return LinearLeafForest(n_trees=n_trees, rng=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
 
 
 def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, seed: int = 0,

@@ -1,10 +1,10 @@
-"""Regression forest with linear leaves: the semantic mapping of Rupprecht et al., Sec. 3.2.
+"""Regression forest with linear leaves: the semantic mapping of Rupprecht §3.2.
 
 Measurements x (n = 6, cm) map to shape coefficients y (m = 25) through T decision trees
-whose leaves each hold an affine map ``g(x) = A x + b`` (Eq. 2) fitted by least squares to
-the training samples that reach it (Eq. 3); the forest averages the trees (Sec. 3.2.2).
+whose leaves each hold an affine map ``g(x) = A x + b`` (Rupprecht Equation 2) fitted by least squares to
+the training samples that reach it (Rupprecht Equation 3); the forest averages the trees (Rupprecht §3.2.2).
 
-Growing a tree (Sec. 3.2.1, randomized node optimization after Criminisi et al. 2012):
+Growing a tree (Rupprecht §3.2.1, randomized node optimization after Criminisi et al. 2012):
 at each node, ``n_trials`` candidate splits are drawn, each an axis-aligned test
 ``x[d] <= t`` on one random input dimension d with a random threshold t, and the one with the
 largest information gain is kept. A node becomes a leaf at ``max_depth``, when it holds fewer
@@ -14,14 +14,14 @@ Split criterion (the "information gain"). We minimise the summed least-squares r
 leaf model in the two children,
 
     gain = R(S) - R(S_left) - R(S_right),
-    R(S) = sum_{(x,y) in S} ||A_S x + b_S - y||^2,   (A_S, b_S) = the ridge fit of Eq. 3 on S,
+    R(S) = sum_{(x,y) in S} ||A_S x + b_S - y||^2,   (A_S, b_S) = the ridge fit of Rupprecht Equation 3 on S,
 
 i.e. the reduction of the trace of the *residual* scatter of the linear fit (for constant
 leaves, ``leaf_model="constant"``, A = 0 and R is the plain sum of squared errors: CART's
 variance reduction). Why not the differential entropy of a Gaussian, ``log det Cov``, that the
 forest literature writes: with m = 25 outputs and 30-sample leaves the covariance is near
 singular, and when an output is an exact linear function of the inputs (stature is carried by
-one PCA coefficient, Sec. 4.2) its residual variance is 0 and ``log det`` is -inf: the gain is
+one PCA coefficient, Rupprecht §4.2) its residual variance is 0 and ``log det`` is -inf: the gain is
 then decided by the smallest, least visible coefficients. ``log det`` is also invariant to
 rescaling outputs, so a coefficient that moves the mesh by 0.1 mm counts as much as one that
 moves it by 10 cm. The residual sum of squares weights outputs by their squared size, which
@@ -41,7 +41,7 @@ residual is then ``S_yy - <C_xy, W> - lambda ||W||^2`` with ``W = (C_xx + lambda
 from centred statistics, one batched 6x6 inverse for all 2T children. With 13 random
 thresholds per node this is cheaper than sorting and prefix-summing every column (which scores
 all N thresholds to use 13). The winning children's W are kept: a child that ends as a leaf
-takes its Eq. 3 fit from there, without another pass over its samples.
+takes its Rupprecht Equation 3 fit from there, without another pass over its samples.
 
 A tree grows level by level: the nodes of one depth are scored together, small ones in
 padded batches (``_best_splits``), so numpy's per-call overhead is paid per batch, not per node.
@@ -53,7 +53,7 @@ wasted on an empty side.
 
 Trees grow in parallel (``n_jobs``) in worker processes: the Python between numpy calls holds
 the GIL, so threads overlap less (measured, 20 trees: 1 thread 2.03 s, 2 threads 1.40 s,
-2 processes 1.13 s). Every tree has its own seed spawned from ``random_state``, so the forest
+2 processes 1.13 s). Every tree has its own seed spawned from ``rng``, so the forest
 is the same for any ``n_jobs``.
 
 Storage: flat arrays (``to_arrays``), no pickle. Node i of the forest has ``node_feature[i]``
@@ -82,14 +82,8 @@ except ImportError:  # pragma: no cover
     threadpool_limits = None
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.linear import (
-    FORMAT_VERSION,
-    check_arrays,
-    check_ridge,
-    check_X,
-    check_Y,
-    solve_ridge,
-)
+from bodyspace.mapping.linear import FORMAT_VERSION, solve_ridge
+from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, check_rng, check_state_arrays
 
 LEAF_MODELS = ("linear", "constant")
 
@@ -228,17 +222,17 @@ def _batches(sizes: list[int]) -> list[list[int]]:
     return out + [groups[c] for c in sorted(groups)]
 
 
-def grow_tree(x: np.ndarray, y: np.ndarray, seed, *, x_mean: np.ndarray, x_scale: np.ndarray,
+def grow_tree(x: np.ndarray, y: np.ndarray, rng, *, x_mean: np.ndarray, x_scale: np.ndarray,
               max_depth: int, n_trials: int, min_samples_leaf: int, ridge: float,
               linear: bool = True) -> dict[str, np.ndarray]:
     """Grow one tree on x (N, n), y (N, m); returns its flat arrays (local node indices).
 
     ``x_mean``/``x_scale`` (n,) standardize the inputs for the statistics (the ridge is then
-    relative to unit-variance inputs); ``seed`` is anything ``np.random.default_rng`` takes.
+    relative to unit-variance inputs); ``rng`` is a Generator, a SeedSequence, a seed or None.
     The tree grows level by level (all nodes of a depth are split in a few batches); nodes are
     numbered in that breadth-first order, so children always come after their parent.
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(rng)
     n_all, p = x.shape
     xs = (x - x_mean) / x_scale
     # Rows [standardized x, 1, y, scratch] and the raw x transposed, each with a padding sample.
@@ -326,12 +320,12 @@ def _grow_in_processes(x, y, seeds, kwargs, workers: int):
         return None
 
 
-def _seed_sequence(random_state) -> np.random.SeedSequence:
-    if isinstance(random_state, np.random.SeedSequence):
-        return random_state
-    if isinstance(random_state, np.random.Generator):                  # draws from (advances) the generator
-        return np.random.SeedSequence(int(random_state.integers(2 ** 63)))
-    return np.random.SeedSequence(random_state)
+def _seed_sequence(rng) -> np.random.SeedSequence:
+    if isinstance(rng, np.random.SeedSequence):
+        return rng
+    if isinstance(rng, np.random.Generator):                  # draws from (advances) the generator
+        return np.random.SeedSequence(int(rng.integers(2 ** 63)))
+    return np.random.SeedSequence(rng)
 
 
 def _n_workers(n_jobs, n_tasks: int) -> int:
@@ -348,7 +342,7 @@ def _n_workers(n_jobs, n_tasks: int) -> int:
 class LinearLeafForest:
     """Regression forest with affine leaf models, measurements -> shape coefficients.
 
-    Rupprecht et al., Sec. 3.2 (Eq. 2 and 3); defaults from Sec. 4.2.
+    Rupprecht §3.2 (Rupprecht Equations 2 and 3); defaults from Rupprecht §4.2.
 
     Args:
         n_trees: number of trees T; predictions are their mean.
@@ -359,10 +353,10 @@ class LinearLeafForest:
         ridge: Tikhonov weight on each leaf's A, relative to the node's mean input variance
             (inputs standardized over the training set); see ``linear.fit_affine``. Also used in
             the split criterion, so a split is scored by the model the leaf will hold.
-        leaf_model: "linear" (Eq. 2, the paper) or "constant" (mean of y, CART's criterion):
+        leaf_model: "linear" (Rupprecht Equation 2, the paper) or "constant" (mean of y, CART's criterion):
             the ablation of the paper's contribution with everything else equal.
-        random_state: None, an int, a ``np.random.SeedSequence`` or a ``np.random.Generator``
-            (the project's ``rng``: one draw seeds the forest). Equal ints give bit-identical
+        rng: None, an int, a ``np.random.SeedSequence`` or a ``np.random.Generator`` (one draw
+            seeds the forest). Equal ints give bit-identical
             forests, for any ``n_jobs``.
         n_jobs: worker processes for growing trees: None or 1 = in this process, -1 = all cores.
             Where processes start by spawning (Windows, macOS, Linux from Python 3.14), a
@@ -378,14 +372,14 @@ class LinearLeafForest:
     """
 
     def __init__(self, n_trees: int = 50, max_depth: int = 15, n_trials: int = 13, min_samples_leaf: int = 30,
-                 ridge: float = 1e-6, leaf_model: str = "linear", random_state=None, n_jobs: int | None = None):
+                 ridge: float = 1e-6, leaf_model: str = "linear", rng=None, n_jobs: int | None = None):
         self.n_trees = n_trees
         self.max_depth = max_depth
         self.n_trials = n_trials
         self.min_samples_leaf = min_samples_leaf
         self.ridge = ridge
         self.leaf_model = leaf_model
-        self.random_state = random_state
+        self.rng = rng
         self.n_jobs = n_jobs
 
     # ------------------------------------------------------------------ validation
@@ -394,13 +388,10 @@ class LinearLeafForest:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < low:
                 raise ParameterError(f"{name}={v!r}, expected an int >= {low}")
-        check_ridge(self.ridge)
+        as_nonnegative_float(self.ridge, "ridge")
         if self.leaf_model not in LEAF_MODELS:
             raise ParameterError(f"leaf_model={self.leaf_model!r}, expected one of {LEAF_MODELS}")
-        rs = self.random_state
-        if not (rs is None or isinstance(rs, (np.random.SeedSequence, np.random.Generator))
-                or (isinstance(rs, numbers.Integral) and not isinstance(rs, bool) and rs >= 0)):
-            raise ParameterError(f"random_state={rs!r}, expected None, an int >= 0, a numpy Generator or SeedSequence")
+        check_rng(self.rng)
 
     def _require_fit(self):
         if not hasattr(self, "leaf_A_"):
@@ -410,8 +401,8 @@ class LinearLeafForest:
     def fit(self, X, Y) -> "LinearLeafForest":
         """Grow the forest on measurements X (N, n) and coefficients Y (N, m) or (N,)."""
         self._check_params()
-        x, _ = check_X(X)
-        y, one_d = check_Y(Y, x.shape[0])
+        x, _ = as_samples(X)
+        y, one_d = as_targets(Y, x.shape[0])
         if x.shape[0] < self.min_samples_leaf:
             raise ParameterError(f"X: {x.shape[0]} samples, expected at least min_samples_leaf="
                                  f"{self.min_samples_leaf} (one leaf's worth)")
@@ -420,7 +411,7 @@ class LinearLeafForest:
         x_mean = x.mean(axis=0)
         x_scale = x.std(axis=0)
         x_scale[x_scale == 0] = 1.0
-        seeds = _seed_sequence(self.random_state).spawn(self.n_trees)  # one stream per tree: n_jobs-independent
+        seeds = _seed_sequence(self.rng).spawn(self.n_trees)  # one stream per tree: n_jobs-independent
         kwargs = dict(x_mean=x_mean, x_scale=x_scale, max_depth=int(self.max_depth), n_trials=int(self.n_trials),
                       min_samples_leaf=int(self.min_samples_leaf), ridge=float(self.ridge),
                       linear=self.leaf_model == "linear")
@@ -476,7 +467,7 @@ class LinearLeafForest:
     def apply(self, X) -> np.ndarray:
         """Leaf (row of ``leaf_A_``) that each sample reaches in each tree, (N, T)."""
         self._require_fit()
-        x, _ = check_X(X, self.n_features_in_)
+        x, _ = as_samples(X, self.n_features_in_)
         return self._apply(x)
 
     def _apply(self, x: np.ndarray) -> np.ndarray:
@@ -489,12 +480,12 @@ class LinearLeafForest:
         return self.node_leaf_[node]
 
     def predict(self, X) -> np.ndarray:
-        """Coefficients (N, m) of measurements (N, n): the mean of the trees' A x + b (Sec. 3.2.2).
+        """Coefficients (N, m) of measurements (N, n): the mean of the trees' A x + b (Rupprecht §3.2.2).
 
         A single sample (n,) gives (m,); a forest fitted on 1-D Y gives (N,).
         """
         self._require_fit()
-        x, single = check_X(X, self.n_features_in_)
+        x, single = as_samples(X, self.n_features_in_)
         out = np.empty((x.shape[0], self.n_outputs_))
         chunk = 2048                                                   # bounds the (chunk, m, n+1) buffer
         for s in range(0, x.shape[0], chunk):
@@ -515,8 +506,8 @@ class LinearLeafForest:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat arrays (no object dtype) for an npz loadable with ``allow_pickle=False``.
 
-        Keys: ``kind``, ``format_version``, the hyper-parameters (``random_state`` only if it
-        was an int), ``n_features_in``, ``n_outputs``, ``y_1d``, ``node_feature``,
+        Keys: ``kind``, ``format_version``, the hyper-parameters (``rng`` only if it was an int,
+        stored under the key ``random_state`` of format version 1), ``n_features_in``, ``n_outputs``, ``y_1d``, ``node_feature``,
         ``node_threshold``, ``node_left``, ``node_right``, ``node_leaf``, ``tree_offset``,
         ``leaf_A``, ``leaf_b``. A bundle holding several estimators should prefix the keys.
         """
@@ -534,8 +525,8 @@ class LinearLeafForest:
             "n_outputs": np.array(self.n_outputs_),
             "y_1d": np.array(self._y_1d),
         }
-        if isinstance(self.random_state, numbers.Integral):
-            out["random_state"] = np.array(int(self.random_state))
+        if isinstance(self.rng, numbers.Integral):
+            out["random_state"] = np.array(int(self.rng))
         for name in ("node_feature", "node_threshold", "node_left", "node_right", "node_leaf", "tree_offset",
                      "leaf_A", "leaf_b"):
             out[name] = getattr(self, name + "_").copy()
@@ -547,12 +538,12 @@ class LinearLeafForest:
         keys = ("n_trees", "max_depth", "n_trials", "min_samples_leaf", "ridge", "leaf_model", "n_features_in",
                 "n_outputs", "y_1d", "node_feature", "node_threshold", "node_left", "node_right", "node_leaf",
                 "tree_offset", "leaf_A", "leaf_b")
-        check_arrays(arrays, "LinearLeafForest", keys)
+        check_state_arrays(arrays, "LinearLeafForest", keys, FORMAT_VERSION)
         a = {k: np.asarray(arrays[k]) for k in keys}
         self = cls(n_trees=int(a["n_trees"]), max_depth=int(a["max_depth"]), n_trials=int(a["n_trials"]),
                    min_samples_leaf=int(a["min_samples_leaf"]), ridge=float(a["ridge"]),
                    leaf_model=str(a["leaf_model"]),
-                   random_state=int(np.asarray(arrays["random_state"])) if "random_state" in arrays else None)
+                   rng=int(np.asarray(arrays["random_state"])) if "random_state" in arrays else None)
         self.n_features_in_, self.n_outputs_ = int(a["n_features_in"]), int(a["n_outputs"])
         self._y_1d = bool(a["y_1d"])
         for name in ("node_feature", "node_left", "node_right", "node_leaf"):

@@ -2,7 +2,7 @@
 
 With the vertex encoding a body is ``v(z) = base + sum_k z_k C_k`` (``base`` (V, 3) the mean
 body, ``C`` (K, V, 3) the principal components reshaped), so ``dv/dz = C`` exactly. The
-measurements of Rupprecht et al. Sec. 3.1.2 and the ISO lengths are piecewise smooth functions of
+measurements of Rupprecht §3.1.2 and the ISO lengths are piecewise smooth functions of
 a few vertices; their derivatives with respect to those vertices are written out here (pure,
 batched functions), then chained with ``C``:
 
@@ -36,7 +36,7 @@ import weakref
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.measure.definitions import MeasurementSet
+from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 
 RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length", "shoulder_size")
 UP = np.array([0.0, 1.0, 0.0])
@@ -210,7 +210,6 @@ class LinearBodyMeasures:
 
     @classmethod
     def _from_model(cls, model, mset, names, k, linearization=None):
-        from bodyspace.measure import load_measurement_set
         mset = load_measurement_set() if mset is None else mset
         sp = model.space
         # The encoder's own linearization of its decoder (exact for a linear encoding, which a

@@ -2,8 +2,8 @@
 
 Allen et al. (2003), Hasler et al. (2009) and MovieReshape (Jain et al. 2010) map semantic
 measurements to PCA coefficients with a single linear regression over the whole shape space;
-Rupprecht et al. (Sec. 2, Table 2) use it as the baseline their regression forest beats. It is
-also the leaf model of that forest (Eq. 2 and 3), so the least-squares solve lives here, once,
+(Rupprecht §2, Rupprecht Table 2) use it as the baseline their regression forest beats. It is
+also the leaf model of that forest (Rupprecht Equations 2 and 3), so the least-squares solve lives here, once,
 as the pure function ``fit_affine`` that both estimators call.
 
 Shapes: ``X`` (N, n) measurements, ``Y`` (N, m) coefficients, ``A`` (m, n), ``b`` (m,).
@@ -11,89 +11,18 @@ Shapes: ``X`` (N, n) measurements, ``Y`` (N, m) coefficients, ``A`` (m, n), ``b`
 
 from __future__ import annotations
 
-import numbers
 
 import numpy as np
 
 from bodyspace.errors import ParameterError
+from bodyspace.validation import as_nonnegative_float, as_samples, as_targets, check_state_arrays
 
 FORMAT_VERSION = 1
 
 
-# ---------------------------------------------------------------------- shared validation
-def check_X(X, n_features: int | None = None, name: str = "X") -> tuple[np.ndarray, bool]:
-    """``X`` as float64 (N, n), and whether it was a single 1-D sample.
-
-    A 1-D ``X`` is one sample only when the estimator is fitted (``n_features`` known); in
-    ``fit`` a 2-D array is required so a column vector is never mistaken for a row.
-    """
-    x = np.asarray(X)
-    single = False
-    if x.ndim == 1 and n_features is not None:
-        x, single = x[None, :], True
-    if x.ndim != 2:
-        expected = f"(N, {n_features})" if n_features is not None else "(N, n_features)"
-        raise ParameterError(f"{name}: shape {x.shape}, expected a 2-D array {expected}")
-    if not (np.issubdtype(x.dtype, np.number) or x.dtype == bool):
-        raise ParameterError(f"{name}: dtype {x.dtype}, expected numbers")
-    if x.shape[1] == 0:
-        raise ParameterError(f"{name}: shape {x.shape}, expected at least one feature column")
-    if n_features is not None and x.shape[1] != n_features:
-        raise ParameterError(f"{name}: {x.shape[1]} features per sample, expected {n_features} "
-                             "(the number the mapping was fitted on)")
-    return _finite_float64(x, name), single
-
-
-def check_Y(Y, n_samples: int, name: str = "Y") -> tuple[np.ndarray, bool]:
-    """``Y`` as float64 (N, m), and whether it was given 1-D (one output; predictions are 1-D too)."""
-    y = np.asarray(Y)
-    one_d = y.ndim == 1
-    if one_d:
-        y = y[:, None]
-    if y.ndim != 2:
-        raise ParameterError(f"{name}: shape {y.shape}, expected (N, n_outputs) or (N,)")
-    if not (np.issubdtype(y.dtype, np.number) or y.dtype == bool):
-        raise ParameterError(f"{name}: dtype {y.dtype}, expected numbers")
-    if y.shape[0] != n_samples:
-        raise ParameterError(f"{name}: {y.shape[0]} rows, expected {n_samples} (one per row of X)")
-    if y.shape[1] < 1:
-        raise ParameterError(f"{name}: shape {y.shape}, expected at least one output column")
-    return _finite_float64(y, name), one_d
-
-
-def _finite_float64(a: np.ndarray, name: str) -> np.ndarray:
-    """A 2-D numeric array as float64; refuses NaN or infinity, naming the first place."""
-    a = a.astype(np.float64, copy=False)
-    if not np.isfinite(a).all():
-        bad = np.argwhere(~np.isfinite(a))[0]
-        raise ParameterError(f"{name}: contains NaN or infinity (first at row {bad[0]}, column {bad[1]}), "
-                             "expected finite numbers")
-    return a
-
-
-def check_ridge(ridge) -> float:
-    if isinstance(ridge, bool) or not isinstance(ridge, numbers.Real) or not np.isfinite(ridge) or ridge < 0:
-        raise ParameterError(f"ridge={ridge!r}, expected a finite number >= 0")
-    return float(ridge)
-
-
-def check_arrays(arrays, kind: str, keys: tuple[str, ...]) -> None:
-    """``from_arrays`` input: a mapping holding ``keys``, written by ``kind.to_arrays``."""
-    if "kind" not in arrays or str(np.asarray(arrays["kind"])) != kind:
-        found = str(np.asarray(arrays["kind"])) if "kind" in arrays else "no 'kind' key"
-        raise ParameterError(f"arrays['kind']: {found!r}, expected {kind!r} (the dict written by {kind}.to_arrays())")
-    missing = [k for k in ("format_version", *keys) if k not in arrays]
-    if missing:
-        raise ParameterError(f"arrays: missing {missing}, expected the dict written by {kind}.to_arrays()")
-    version = int(np.asarray(arrays["format_version"]))
-    if version > FORMAT_VERSION:
-        raise ParameterError(f"arrays['format_version']: {version}, expected <= {FORMAT_VERSION} "
-                             "(written by a newer bodyspace)")
-
-
-# ---------------------------------------------------------------------- Eq. 3
+# ---------------------------------------------------------------------- Rupprecht Equation 3
 def fit_affine(X: np.ndarray, Y: np.ndarray, ridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares affine map (Rupprecht et al., Eq. 3): ``argmin sum ||A x + b - y||^2``.
+    """Least-squares affine map (Rupprecht Equation 3): ``argmin sum ||A x + b - y||^2``.
 
     Args:
         X: (N, n) inputs, Y: (N, m) outputs.
@@ -150,7 +79,7 @@ def solve_ridge(gram: np.ndarray, cross: np.ndarray, ridge: float, return_lambda
 class LinearMapping:
     """One affine map ``y = A x + b`` from measurements to shape coefficients, over all data.
 
-    The baseline of Rupprecht et al. (Table 2), after Allen et al. (2003) and Hasler et al.
+    The baseline of Rupprecht Table 2, after Allen et al. (2003) and Hasler et al.
     (2009); same interface as ``LinearLeafForest``.
 
     Args:
@@ -168,9 +97,9 @@ class LinearMapping:
 
     def fit(self, X, Y) -> "LinearMapping":
         """Fit on measurements X (N, n) and coefficients Y (N, m) or (N,)."""
-        ridge = check_ridge(self.ridge)
-        x, _ = check_X(X)
-        y, one_d = check_Y(Y, x.shape[0])
+        ridge = as_nonnegative_float(self.ridge, "ridge")
+        x, _ = as_samples(X)
+        y, one_d = as_targets(Y, x.shape[0])
         if x.shape[0] < 2:
             raise ParameterError(f"X: {x.shape[0]} sample(s), expected at least 2 to fit A x + b")
         self.coef_, self.intercept_ = fit_affine(x, y, ridge)
@@ -181,7 +110,7 @@ class LinearMapping:
     def predict(self, X) -> np.ndarray:
         """Coefficients (N, m) of measurements (N, n); a single sample (n,) gives (m,)."""
         self._require_fit()
-        x, single = check_X(X, self.n_features_in_)
+        x, single = as_samples(X, self.n_features_in_)
         y = x @ self.coef_.T + self.intercept_
         if self._y_1d:
             y = y[:, 0]
@@ -207,7 +136,7 @@ class LinearMapping:
     @classmethod
     def from_arrays(cls, arrays) -> "LinearMapping":
         """Inverse of ``to_arrays`` (accepts the dict or an opened ``NpzFile``)."""
-        check_arrays(arrays, "LinearMapping", ("ridge", "y_1d", "coef", "intercept"))
+        check_state_arrays(arrays, "LinearMapping", ("ridge", "y_1d", "coef", "intercept"), FORMAT_VERSION)
         coef = np.asarray(arrays["coef"], dtype=np.float64)
         intercept = np.asarray(arrays["intercept"], dtype=np.float64)
         if coef.ndim != 2 or intercept.shape != (coef.shape[0],):

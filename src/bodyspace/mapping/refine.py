@@ -1,6 +1,6 @@
 """Exact refinement of a semantic mapping's prediction (beyond Rupprecht et al.).
 
-The forest (Sec. 3.2) returns the *mean* body with the requested measurements; measured again,
+The forest (Rupprecht §3.2) returns the *mean* body with the requested measurements; measured again,
 that body is off by a few millimetres. Starting from it, ``refine`` solves, per request,
 
     min_s  || m(sigma * s) - t ||^2  +  w ||s||^2     subject to  |s_k| <= max_sigma

@@ -1,8 +1,8 @@
-"""Training data for the semantic mapping, drawn from the shape space (Rupprecht et al. Sec. 3.1.2, 4.1).
+"""Training data for the semantic mapping, drawn from the shape space (Rupprecht §3.1.2, Rupprecht §4.1).
 
 The first ``k`` shape coefficients (25 in the paper) are drawn uniformly within ``±sigma_range``
 standard deviations (the rest are 0), the bodies are reconstructed and measured with the loop
-definitions of Sec. 3.1.2 (``height``, ``breast_size``, ``waist_size``, ``hip_size``,
+definitions of Rupprecht §3.1.2 (``height``, ``breast_size``, ``waist_size``, ``hip_size``,
 ``leg_length``, ``shoulder_size``) and, optionally, any other measurements of a set.
 
 With the vertex encoding, loops, distances and paths are computed straight from the
@@ -131,7 +131,7 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
 
 def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT_SIX, mset=None,
                       sigma_range: float = 3.0, progress=None) -> TrainingSet:
-    """Sample ``n`` bodies from ``model`` and measure them (Rupprecht et al. Sec. 4.1).
+    """Sample ``n`` bodies from ``model`` and measure them (Rupprecht §4.1).
 
     Args:
         model: a ``BodyModel`` (vertex encoding: fast path; RRE: decoded in chunks, and the

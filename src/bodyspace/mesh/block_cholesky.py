@@ -1,6 +1,6 @@
 """Sparse Cholesky factorization of SPD matrices made of 3x3 blocks on a fixed pattern.
 
-The Eq. 9 rotation system of the relative rotation encoding (``encoding.rre``) has one 3x3
+The Hasler Equation 9 rotation system of the relative rotation encoding (``encoding.rre``) has one 3x3
 block per pair of adjacent triangles: its values change with every body, its pattern never.
 So the ordering and the symbolic analysis (elimination tree, the pattern of L) are done once
 per template, and each body pays only the numeric factorization, in compiled code (numba)

@@ -63,6 +63,8 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     """Write ``vertices`` (V, 3) and ``faces`` (F, 3) to ``path``; the format follows the suffix.
 
     The file appears complete or not at all (written to a temporary name, then renamed).
+    trimesh (for PLY/STL/glTF) is imported here, not at the top: it takes 0.5-3 s to import and
+    OBJ, the format of every bodyspace command, does not need it.
     """
     path = mesh_path(path)
     suffix = path.suffix.lower()
@@ -125,7 +127,8 @@ _TRUNCATED_HINT = "it may be truncated (an interrupted copy or download) or of a
 
 
 def _read_with_trimesh(path: Path, file_type: str) -> tuple[np.ndarray, np.ndarray]:
-    """PLY / glTF / STL through trimesh without any merging or reordering."""
+    """PLY / glTF / STL through trimesh without any merging or reordering (trimesh is imported
+    here, only when such a file is read: see ``save_mesh``)."""
     import trimesh
 
     try:

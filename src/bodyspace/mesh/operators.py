@@ -79,8 +79,8 @@ def triangle_frames(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def deformation_gradients(rest_frames_inv: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Per-face deformation gradients U (..., F, 3, 3) mapping rest triangles onto ``vertices``'.
 
-    ``U_f @ [e1, e2, n]_rest = [e1, e2, n]_deformed`` (Sumner and Popovic 2004; Hasler et al.
-    2009, Sec. 3). ``rest_frames_inv`` (F, 3, 3) is ``inv(triangle_frames(rest, faces))``,
+    ``U_f @ [e1, e2, n]_rest = [e1, e2, n]_deformed`` (Sumner and Popovic 2004;
+    Hasler §3). ``rest_frames_inv`` (F, 3, 3) is ``inv(triangle_frames(rest, faces))``,
     computed once per template.
     """
     return triangle_frames(vertices, faces) @ rest_frames_inv

@@ -1,7 +1,7 @@
 """Prefactored sparse solves: a symmetric positive definite factorization reused for many
 right-hand sides, and the Poisson reconstruction of a mesh from per-triangle deformation
-gradients (Yu et al. 2004; Hasler et al. 2009, Sec. 3) with optional soft positional
-constraints (Hasler et al. 2009, Sec. 5.3 and 5.4).
+gradients (Yu et al. 2004; Hasler §3) with optional soft positional
+constraints (Hasler §5.3 and Hasler §5.4).
 
 The system matrices depend on the template only, so each is factored once and every body
 afterwards costs triangular solves alone. SuperLU makes the factorization; for a symmetric

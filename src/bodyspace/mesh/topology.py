@@ -211,3 +211,30 @@ def check_same_topology(faces: np.ndarray, expected: np.ndarray, name: str = "me
         f = diff[0]
         raise MeshError(f"{name}: face {f} is {faces[f].tolist()}, the template's is {expected[f].tolist()} "
                         f"({len(diff)} faces differ); expected the template's topology")
+
+
+def check_registered_meshes(vertices, n_vertices: int, template_faces: np.ndarray, faces=None, name="vertices") -> np.ndarray:
+    """Meshes registered to a template (same vertex count and order) as float (N, V, 3).
+
+    ``vertices`` (V, 3) or (N, V, 3); ``faces`` (F, 3), if given, must equal ``template_faces``.
+    """
+    x = np.asarray(vertices)
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[-1] != 3:
+        raise MeshError(f"{name}: shape {np.shape(vertices)}, expected (V, 3) or (N, V, 3) with V = {n_vertices}")
+    if x.shape[1] != n_vertices:
+        raise MeshError(f"{name}: {x.shape[1]} vertices per mesh, the template has {n_vertices}; expected meshes "
+                        "registered to the template (same vertex count and order)")
+    if not np.issubdtype(x.dtype, np.number):
+        raise MeshError(f"{name}: dtype {x.dtype}, expected floating-point coordinates")
+    if faces is not None:
+        check_same_topology(faces, template_faces, name=name)
+    x = x.astype(float, copy=False)
+    bad = ~np.isfinite(x).all(axis=(1, 2))
+    if bad.any():
+        n = np.flatnonzero(bad)[0]
+        v = np.flatnonzero(~np.isfinite(x[n]).all(axis=1))
+        raise MeshError(f"{name}: mesh {n} has NaN or infinite coordinates at vertices {v[:5].tolist()}"
+                        f"{' ...' if len(v) > 5 else ''}; expected finite values")
+    return x

@@ -35,6 +35,7 @@ from bodyspace.studies.mapping import evaluate_mapping
 from bodyspace.studies.requests import request_study
 from bodyspace.synth.population import build_population, load_survey
 from bodyspace.units import kind_of
+from bodyspace.validation import as_seed
 
 # Shape-space part of the demo: components of the pose+shape model, bodies sampled, subjects in
 # the interpolation study and held-out subjects in the generalization study (cost: ~0.3 s per
@@ -82,7 +83,7 @@ def population_summary(db, survey: dict) -> dict:
     return out
 
 
-def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0, assets_root=None,
+def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, rng=0, assets_root=None,
              progress: Callable[[str, float], None] | None = None, overwrite: bool = False,
              flag: str = "overwrite=True") -> dict:
     """Fetch the assets, build a population, write PNGs and ``summary.json`` into the folder ``out``.
@@ -90,8 +91,11 @@ def run_demo(out: str | Path, subjects: int = 24, poses: int = 5, seed: int = 0,
     The folder is built under a temporary name and renamed when complete (``atomic_dir``): a
     demo killed half-way leaves no half folder. An existing ``out`` is refused unless
     ``overwrite`` and it is a demo folder bodyspace wrote; ``flag`` names that switch in messages.
+    ``rng`` (Generator, seed or None) gives one integer seed ``s``; every step derives its own
+    stream from ``s`` (``s + i`` for the i-th generated body), so a seed repeats the demo.
     """
     out = Path(out)
+    seed = as_seed(rng)
     with atomic_dir(out, overwrite=overwrite, kind=DEMO_KIND, flag=flag) as folder:
         return _run_demo_into(folder, out.resolve(), subjects, poses, seed, assets_root, progress)
 
@@ -119,18 +123,18 @@ def _run_demo_into(out: Path, final: Path, subjects: int, poses: int, seed: int,
     sex, st, mass = rest.subjects["sex"], rest.subjects["stature_cm"], rest.subjects["mass_kg"]
     order = np.argsort(st)
     labels = [f"{sex[i][0].upper()} {st[i]:.0f} cm\n{mass[i]:.0f} kg" for i in order]
-    contact_sheet(np.asarray(rest.vertices)[order], db.faces, out / "lineup.png", labels=labels,
+    contact_sheet(rest.read(order), db.faces, out / "lineup.png", labels=labels,
                   title=f"{len(order)} synthetic adults, rest pose, sorted by stature")
     first = db.scans["subject"][0]
     mine = np.flatnonzero(db.scans["subject"] == first)
-    contact_sheet(np.asarray(db.vertices[mine]), db.faces, out / "poses.png",
+    contact_sheet(db.read(mine), db.faces, out / "poses.png",
                   labels=list(db.scans["pose"][mine]), views=("front", "side"),
                   title=f"subject {first} in {len(mine)} scans (front and side)")
     # A mixed sheet: one random posed scan per subject, for a feel of the database.
-    rng = np.random.default_rng(seed)
+    gen = np.random.default_rng(seed)
     per = len(db) // rest.n_scans
-    pick = np.arange(rest.n_scans) * per + rng.integers(0, per, rest.n_scans)
-    contact_sheet(np.asarray(db.vertices[np.sort(pick)]), db.faces, out / "scans.png",
+    pick = np.arange(rest.n_scans) * per + gen.integers(0, per, rest.n_scans)
+    contact_sheet(db.read(np.sort(pick)), db.faces, out / "scans.png",
                   labels=list(db.scans["pose"][np.sort(pick)]), title="one scan per subject")
     survey = load_survey()
     summary_pop = population_summary(db, survey)
@@ -178,10 +182,11 @@ def _run_demo_into(out: Path, final: Path, subjects: int, poses: int, seed: int,
     return summary
 
 
-def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) -> dict:
+def shape_space_demo(db, template, out: Path, rng, timings: dict, report) -> dict:
     """Fit the shape-only (rest scans) and pose+shape (all scans) RRE models, save the
-    shape-only one as ``model.npz``, sample bodies, and run the interpolation and
-    leave-one-subject-out studies; returns the summary entries (and ``pictures``)."""
+    shape-only one as ``model.npz``, sample bodies (``rng``: Generator, seed or None), and run
+    the interpolation and leave-one-subject-out studies; returns the summary entries (and
+    ``pictures``)."""
     t = time.perf_counter()
     report("fitting the shape-only model (rest scans)", 0.0)
     shape = BodyModel.fit(db, "rre", "rest", template=template, on_flipped="ignore")
@@ -197,13 +202,13 @@ def shape_space_demo(db, template, out: Path, seed: int, timings: dict, report) 
     t = time.perf_counter()
     report("sampling bodies", 0.35)
     kc = min(10, shape.n_components)
-    bodies = shape.sample(SAMPLES, n_components=kc, sigma_range=2.0, rng=seed)
+    bodies = shape.sample(SAMPLES, n_components=kc, sigma_range=2.0, rng=rng)
     contact_sheet(bodies, shape.faces, out / "samples.png", labels=[f"sample {i + 1}" for i in range(SAMPLES)],
                   title=f"random bodies of the shape-only model ({kc} components, within 2 SD)")
     timings["samples_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    vertex_all = VertexEncoder(template.vertices, template.faces).fit(np.asarray(db.vertices, dtype=float))
+    vertex_all = VertexEncoder(template.vertices, template.faces).fit(db.read(np.arange(db.n_scans)))
     interp = interpolation_study(db, {"rre": posed.encoder, "vertex": vertex_all}, n_subjects=INTERPOLATION_SUBJECTS,
                                  progress=lambda m, f: report(m, 0.45 + 0.25 * f))
     interp_files = write_interpolation_report(interp, db.faces, out)
@@ -244,11 +249,13 @@ def _cm_kg(values: dict) -> dict:
     return out
 
 
-def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: dict, report) -> dict:
+def semantic_demo(db, template, bm: BodyModel, out: Path, rng, timings: dict, report) -> dict:
     """Fit the SemanticModel of shape-only model ``bm``, then: requested bodies
     (``requested.png``), taller at the same mass (``taller_same_weight.png``), a masked morph
-    (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Table 1 and Table 2
-    (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``)."""
+    (``muscle_upper_body.png``), a crowd (``crowd.png``, ``crowd.csv``), Hasler Table 1 and Hasler Table 2
+    (``semantic_tables.md``) and the random-request study (``requests.md``/``.json``).
+    ``rng`` (Generator, seed or None) gives one seed ``s``; the i-th requested body uses ``s + i``."""
+    seed = as_seed(rng)
     messages: list = []
     t = time.perf_counter()
     report("fitting the semantic model (vertex encoding, rest scans)", 0.0)
@@ -347,7 +354,7 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
                   title=f"crowd of {k}: women of 65 kg, stature 155-185 cm")
     timings["semantic_crowd_s"] = time.perf_counter() - t
 
-    # Table 1 and Table 2
+    # Hasler Table 1 and Hasler Table 2
     t = time.perf_counter()
     report("Table 1 and Table 2", 0.45)
     folds = min(10, n_subj)
@@ -391,7 +398,7 @@ def semantic_demo(db, template, bm: BodyModel, out: Path, seed: int, timings: di
     }
 
 
-def mapping_demo(bm: BodyModel, out: Path, seed: int, timings: dict, report) -> dict:
+def mapping_demo(bm: BodyModel, out: Path, rng, timings: dict, report) -> dict:
     """Rupprecht's measurements-to-shape mapping on shape-only model ``bm``: a training set drawn
     from the model, the linear baseline, the linear-leaf forest and the exact refinement, scored on
     held-out requests (``mapping_tables.md``/``.json``, ``mapping_errors.png``) and the shoulder
@@ -399,7 +406,7 @@ def mapping_demo(bm: BodyModel, out: Path, seed: int, timings: dict, report) -> 
     t = time.perf_counter()
     small = bm.n_components < SEMANTIC_MIN_SUBJECTS  # a tiny database (the CLI test): a quick pass
     samples, held_out = (300, 30) if small else MAPPING_SIZES
-    ev, _ = evaluate_mapping(bm, samples=samples, held_out=held_out, seed=seed, k=min(25, bm.n_components),
+    ev, _ = evaluate_mapping(bm, samples=samples, held_out=held_out, rng=rng, k=min(25, bm.n_components),
                              n_trees=10 if small else 50, progress=report)
     files = write_mapping_report(bm, ev, out)
     timings["mapping_s"] = time.perf_counter() - t

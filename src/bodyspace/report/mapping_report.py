@@ -1,8 +1,8 @@
 """Tables and pictures of a mapping evaluation (``studies.mapping.evaluate_mapping``).
 
-``mapping_tables_markdown`` lays the three methods out as Rupprecht's Tables 1 and 2,
-``plot_errors`` draws the Figure-4-like bars, and ``write_mapping_report`` writes both, the JSON
-and the Figure-6 line-up of the shoulder sweep into one folder.
+``mapping_tables_markdown`` lays the three methods out as Rupprecht Tables 1 and 2,
+``plot_errors`` draws bars like Rupprecht Figure 4, and ``write_mapping_report`` writes both, the JSON
+and the line-up of the shoulder sweep (Rupprecht Figure 6) into one folder.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ __all__ = ["mapping_tables_markdown", "plot_errors", "write_mapping_report"]
 
 
 def mapping_tables_markdown(ev: MappingEvaluation) -> str:
-    """The layout of Tables 1 and 2, the three methods side by side (cm, cm²)."""
+    """The layout of Rupprecht Tables 1 and 2, the three methods side by side (cm, cm²)."""
     head = "| parameter | " + " | ".join(f"{m} mean | {m} variance" for m in ev.errors) + " |"
     rule = "|---|" + "---|---|" * len(ev.errors)
     rows = [head, rule]
@@ -37,7 +37,7 @@ def mapping_tables_markdown(ev: MappingEvaluation) -> str:
 
 
 def plot_errors(ev: MappingEvaluation, path) -> Path:
-    """Figure-4-like PNG: per parameter, mean error (bars) and standard deviation (whiskers), and
+    """PNG like Rupprecht Figure 4: per parameter, mean error (bars) and standard deviation (whiskers), and
     the variance on a log scale, for the three methods."""
     fig = Figure(figsize=(11, 4.2), dpi=110)
     FigureCanvasAgg(fig)
@@ -63,7 +63,7 @@ def plot_errors(ev: MappingEvaluation, path) -> Path:
 
 
 def write_mapping_report(model, ev: MappingEvaluation, out) -> dict[str, Path]:
-    """Write tables (Markdown + JSON), the Figure-4 PNG and the Figure-6 line-up into folder ``out``.
+    """Write tables (Markdown + JSON), the PNG of Rupprecht Figure 4 and the line-up of Rupprecht Figure 6 into folder ``out``.
 
     ``model`` (the evaluated BodyModel) decodes the sweep's bodies for the line-up. Returns
     {"tables", "json", "errors_png"[, "sweep_png"]: path}.
@@ -93,5 +93,5 @@ def write_mapping_report(model, ev: MappingEvaluation, out) -> dict[str, Path]:
         labels = [f"{s:.0f} cm → {m[j]:.1f}" + (" (missed)" if miss else "")
                   for s, m, miss in zip(sw["sizes_cm"], sw["measured"], sw["misses"])]
         contact_sheet(bodies, model.faces, files["sweep_png"], labels=labels, views=("front", "side"),
-                      title=f"{sw['swept']} from {sw['sizes_cm'][0]:.0f} to {sw['sizes_cm'][-1]:.0f} cm (Rupprecht Fig. 6)")
+                      title=f"{sw['swept']} from {sw['sizes_cm'][0]:.0f} to {sw['sizes_cm'][-1]:.0f} cm (Rupprecht Figure 6)")
     return files

@@ -1,16 +1,16 @@
-"""Semantic control of a body model (Hasler et al. 2009, §4, §4.1, §5.1), on arrays.
+"""Semantic control of a body model (Hasler §4, Hasler §4.1, Hasler §5.1), on arrays.
 
-- ``regressors``: label = f(body): simple linear (Eq. 10), filtered linear (PCA, rejection in
+- ``regressors``: label = f(body): simple linear (Hasler Equation 10), filtered linear (PCA, rejection in
   ascending order of contribution, cross-validated), non-linear (RBF kernel ridge / SVR), all with
   ``predict`` and ``gradient`` (the morphing direction).
-- ``morph``: minimum-norm multi-constraint steps (Eq. 11), iterated walks for non-linear
-  regressors, directions from pairwise comparisons (§5.1).
-- ``basis``: the semantic model basis (§4.1): Gram-Schmidt of the semantic directions + PCA of
+- ``morph``: minimum-norm multi-constraint steps (Hasler Equation 11), iterated walks for non-linear
+  regressors, directions from pairwise comparisons (Hasler §5.1).
+- ``basis``: the semantic model basis (Hasler §4.1): Gram-Schmidt of the semantic directions + PCA of
   the rest.
-- ``evaluation``: Table 1 (cross-validated RMSE) and Table 2 (angles between morphing directions).
+- ``evaluation``: Hasler Table 1 (cross-validated RMSE) and Hasler Table 2 (angles between morphing directions).
 - ``labels``: which labels a database gives (measured on rest scans, subject columns, lengths).
-- ``masks``: body regions and the masked Poisson solve of a masked morph (§5.1).
-- ``closed_loop``: the pure closed loop (Equation 11, then Gauss-Newton on measured values).
+- ``masks``: body regions and the masked Poisson solve of a masked morph (Hasler §5.1).
+- ``closed_loop``: the pure closed loop (Hasler Equation 11, then Gauss-Newton on measured values).
 - ``model``: ``SemanticModel``, the estimator that holds the regressors and calls these; it is
   stored inside the BodyModel file (import it from ``bodyspace.semantics.model``).
 """

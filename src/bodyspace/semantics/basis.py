@@ -1,4 +1,4 @@
-"""Semantic model basis (Hasler et al. 2009, §4.1).
+"""Semantic model basis (Hasler §4.1).
 
 Rotate the shape space so that its first vectors are semantic morphing directions (e.g. the
 gradients of the stature and weight regressors) and the rest is a PCA basis of what those
@@ -30,7 +30,7 @@ import numbers
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.semantics.regressors import _as_int, _as_matrix
+from bodyspace.validation import as_int, as_matrix
 
 __all__ = ["gram_schmidt", "SemanticBasis"]
 
@@ -42,7 +42,7 @@ def gram_schmidt(vectors, tol: float = 1e-8) -> np.ndarray:
 
     Raises ParameterError if a row is (nearly, relative ``tol``) a combination of the earlier ones.
     """
-    v = _as_matrix(vectors, "directions", allow_vector=True)
+    v = as_matrix(vectors, "directions", allow_vector=True)
     q = np.zeros_like(v)
     for i, row in enumerate(v):
         norm0 = np.linalg.norm(row)
@@ -59,7 +59,7 @@ def gram_schmidt(vectors, tol: float = 1e-8) -> np.ndarray:
 
 
 class SemanticBasis:
-    """§4.1: orthonormal basis whose first vectors are semantic directions, the rest a PCA.
+    """Hasler §4.1: orthonormal basis whose first vectors are semantic directions, the rest a PCA.
 
     Args:
         n_components: residual PCA components to keep (None: every one with variance above
@@ -86,7 +86,7 @@ class SemanticBasis:
         if not (isinstance(self.tol, numbers.Real) and 0 <= self.tol < 1):
             raise ParameterError(f"tol={self.tol!r}, expected a number in [0, 1)")
         q = gram_schmidt(directions)
-        x = _as_matrix(X, "X", n_features=q.shape[1], min_rows=2)
+        x = as_matrix(X, "X", n_features=q.shape[1], min_rows=2)
         n, d = x.shape
         c = q.shape[0]
         if c > d:
@@ -99,7 +99,7 @@ class SemanticBasis:
         limit = min(n - 1, d - c)
         k = int(np.sum(var[:limit] > self.tol * var[0])) if var.size and var[0] > 0 else 0
         if self.n_components is not None:
-            k = min(_as_int(self.n_components, "n_components", 0, limit), k)
+            k = min(as_int(self.n_components, "n_components", 0, limit), k)
         p = vt[:k]
         p = p - (p @ q.T) @ q                     # remove round-off leakage into the semantic span
         p /= np.linalg.norm(p, axis=1, keepdims=True) if k else 1.0
@@ -120,7 +120,7 @@ class SemanticBasis:
         """Coordinates (N, C + K') of bodies (N, D): semantic first, then residual PCA."""
         self._require_fit()
         single = np.ndim(X) == 1
-        x = _as_matrix(X, "X", n_features=self.n_features_in_, allow_vector=True)
+        x = as_matrix(X, "X", n_features=self.n_features_in_, allow_vector=True)
         out = (x - self.mean_) @ self.components_.T
         return out[0] if single else out
 
@@ -128,7 +128,7 @@ class SemanticBasis:
         """Bodies (N, D) from coordinates (N, m) or (m,), m <= C + K' (missing ones are 0)."""
         self._require_fit()
         single = np.ndim(coordinates) == 1
-        c = _as_matrix(coordinates, "coordinates", allow_vector=True)
+        c = as_matrix(coordinates, "coordinates", allow_vector=True)
         if c.shape[1] > self.n_components_:
             raise ParameterError(f"coordinates: {c.shape[1]} per body, expected at most {self.n_components_}")
         out = self.mean_ + c @ self.components_[: c.shape[1]]

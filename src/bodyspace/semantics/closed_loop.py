@@ -34,7 +34,7 @@ class LoopResult:
     coefficients: (K,). vertices: (V, 3) the body of ``coefficients``. values: (C,) its values.
     measurements: what ``values_of`` measured on it (name -> value). converged: every value
     within its tolerance. missed: (C,) bool, the values outside their tolerance. iterations:
-    bodies decoded for corrections (Equation 11 step included; finite-difference bodies not).
+    bodies decoded for corrections (Hasler Equation 11 step included; finite-difference bodies not).
     solve_s: seconds in the loop's own linear algebra.
     """
 
@@ -77,7 +77,7 @@ def closed_loop(c0, goal, tolerance, variances, gradients,
         values_of: ``values_of(x (V, 3), c (K,)) -> (values (C,), measurements dict)``: the
             constraints' values on body x (measured, or predicted from c).
         current: optional ``(values (C,), measurements)`` of ``body(c0)``, when already known.
-        max_iter: most correction bodies (the Equation 11 step included), checked before
+        max_iter: most correction bodies (the Hasler Equation 11 step included), checked before
             each step: a step's backtracking may add up to ``BACKTRACKS - 1`` more.
         fd_step, max_step: finite-difference step and largest step, in SD.
         extra_directions: leading PCA components added to the search span.
@@ -121,7 +121,7 @@ def closed_loop(c0, goal, tolerance, variances, gradients,
         return cn, xn, np.asarray(vn, dtype=float), mn
 
     it = 0
-    # 1. Equation 11
+    # 1. Hasler Equation 11
     if score(vals) > np.sqrt(len(g)) or np.any(np.abs(g - vals) > tol):
         t = time.perf_counter()
         z = morph_directions(grads, g - vals, metric=metric)

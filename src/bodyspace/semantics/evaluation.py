@@ -1,10 +1,10 @@
-"""Accuracy of the semantic regressors: Hasler et al. (2009) Table 1 and Table 2.
+"""Accuracy of the semantic regressors: Hasler Table 1 and Hasler Table 2.
 
-Table 1: RMSE from 10-fold cross-validation, for each label and each regressor, on a model
+Hasler Table 1: RMSE from 10-fold cross-validation, for each label and each regressor, on a model
 that contains every subject exactly once (``cross_validated_rmse``; pass one row per subject,
 or ``groups`` = subject ids so that no subject is split between training and test folds).
 
-Table 2: mean and SD of the angles between the morphing directions (gradients) of the
+Hasler Table 2: mean and SD of the angles between the morphing directions (gradients) of the
 non-linear model taken at every subject (``direction_angles``). Small angles mean the gradient
 hardly depends on where in shape space it is taken, i.e. a linear function is admissible.
 """
@@ -21,16 +21,16 @@ from bodyspace.semantics.regressors import (
     FilteredLinearRegressor,
     KernelRegressor,
     SimpleLinearRegressor,
-    _as_matrix,
     kfold_indices,
 )
+from bodyspace.validation import as_generator, as_matrix
 
 __all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
            "format_rmse_table", "format_angle_table"]
 
 
 def default_regressors(rng=None) -> dict[str, Callable]:
-    """The three rows of Table 1: name -> factory of an unfitted regressor."""
+    """The three rows of Hasler Table 1: name -> factory of an unfitted regressor."""
     return {
         "simple linear": SimpleLinearRegressor,
         "filtered linear": lambda: FilteredLinearRegressor(rng=rng),
@@ -40,7 +40,7 @@ def default_regressors(rng=None) -> dict[str, Callable]:
 
 @dataclass
 class RegressionTable:
-    """Table 1: ``rmse[r, l]`` of regressor ``regressors[r]`` on label ``labels[l]``;
+    """Hasler Table 1: ``rmse[r, l]`` of regressor ``regressors[r]`` on label ``labels[l]``;
     ``n_samples[l]`` rows with that label were used (rows with NaN labels are left out)."""
 
     regressors: list[str]
@@ -58,7 +58,7 @@ class RegressionTable:
 
 def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, folds: int = 10,
                          rng=None, groups=None) -> RegressionTable:
-    """Table 1: pooled held-out RMSE of k-fold cross-validation, per regressor and label.
+    """Hasler Table 1: pooled held-out RMSE of k-fold cross-validation, per regressor and label.
 
     Args:
         X: (N, D) bodies (encodings or PCA coefficients), one per subject.
@@ -74,11 +74,11 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
     Returns:
         RegressionTable; RMSE is ``sqrt(mean over all held-out rows of (prediction - label)^2)``.
     """
-    x = _as_matrix(X, "X", min_rows=2)
+    x = as_matrix(X, "X", min_rows=2)
     n = x.shape[0]
     if not isinstance(labels, Mapping) or not labels:
         raise ParameterError(f"labels: got {type(labels).__name__}, expected a non-empty dict name -> (N,) values")
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     if regressors is None:
         regressors = default_regressors(gen)
     if not isinstance(regressors, Mapping) or not regressors:
@@ -116,7 +116,7 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
 
 
 def direction_angles(regressor, X, reference="mean") -> tuple[float, float]:
-    """Table 2: mean and SD (degrees) of the angles between the morphing directions
+    """Hasler Table 2: mean and SD (degrees) of the angles between the morphing directions
     ``regressor.gradient(x_i)`` taken at every body ``x_i`` of ``X`` (N, D).
 
     The paper does not say which pairs of directions it compares; ``reference`` chooses:
@@ -124,7 +124,7 @@ def direction_angles(regressor, X, reference="mean") -> tuple[float, float]:
     directions; ``"pairwise"`` every pair ``i < j``; or a (D,) vector (e.g. the filtered linear
     gradient). SD is the population SD (``ddof=0``).
     """
-    x = _as_matrix(X, "X", min_rows=2)
+    x = as_matrix(X, "X", min_rows=2)
     g = np.asarray(regressor.gradient(x), dtype=float)
     if g.shape != x.shape:
         raise ParameterError(f"regressor.gradient: shape {g.shape}, expected {x.shape}")
@@ -164,14 +164,14 @@ def _render(header: list[str], rows: list[list[str]], markdown: bool) -> str:
 
 
 def format_rmse_table(table: RegressionTable, markdown: bool = False, digits: int = 3) -> str:
-    """Table 1 layout: one row per regressor, one column per label (``digits`` significant)."""
+    """Hasler Table 1 layout: one row per regressor, one column per label (``digits`` significant)."""
     header = ["Regressor"] + list(table.labels)
     rows = [[name] + [f"{v:.{digits}g}" for v in table.rmse[i]] for i, name in enumerate(table.regressors)]
     return _render(header, rows, markdown)
 
 
 def format_angle_table(angles: Mapping, markdown: bool = False, digits: int = 3) -> str:
-    """Table 2 layout: one column per label, rows μ (mean) and σ (SD) in degrees, from a dict
+    """Hasler Table 2 layout: one column per label, rows μ (mean) and σ (SD) in degrees, from a dict
     label -> ``(mean_deg, sd_deg)`` (``direction_angles`` per label)."""
     if not isinstance(angles, Mapping) or not angles:
         raise ParameterError(f"angles: got {type(angles).__name__}, expected a non-empty dict label -> (mean, sd)")

@@ -53,16 +53,9 @@ def first_scan_per_subject(subject_of_scan, fitted_scans) -> tuple[np.ndarray, n
 
 
 def read_scans(db, rows) -> np.ndarray:
-    """(n, V, 3) float64 scans ``rows`` (n,) of a (memory-mapped) ``ScanDatabase``, read in index
-    order (sequential on disk) and returned in the order asked.
-
-    The one place semantics reads a database's vertices: swap for the database's own row reader
-    once it has one."""
-    rows = np.asarray(rows, dtype=np.int64)
-    order = np.argsort(rows, kind="stable")
-    out = np.empty((len(rows),) + tuple(db.vertices.shape[1:]))
-    out[order] = db.vertices[rows[order]]
-    return out
+    """(n, V, 3) float64 scans ``rows`` (n,) of a ``ScanDatabase``, in the order asked: the
+    database's own reader, ``db.read``."""
+    return db.read(rows)
 
 
 def labels_from_subjects(columns, subjects, labels=None) -> dict[str, np.ndarray]:

@@ -1,7 +1,7 @@
-"""SemanticModel: bodies that *measure* what was asked (Hasler §4, §5.1, and beyond).
+"""SemanticModel: bodies that *measure* what was asked (Hasler §4, Hasler §5.1, and beyond).
 
 A scikit-learn-style estimator: hyper-parameters in ``__init__``, ``fit(db)`` returns self, the
-learned state ends in ``_``. It holds one ``FilteredLinearRegressor`` (the paper's Table 1
+learned state ends in ``_``. It holds one ``FilteredLinearRegressor`` (Hasler Table 1
 winner) per label on a shape-only ``BodyModel``'s PCA coefficients ``c`` (K,), whose gradient is
 the label's morphing direction, and calls the pure parts of the package:
 
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from bodyspace.data.template import load_template
-from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError
+from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError, TargetError
 from bodyspace.measure import load_measurement_set, measure
 from bodyspace.semantics.closed_loop import closed_loop
 from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
@@ -74,10 +74,6 @@ LENGTH_TOLERANCE = 0.009
 MAX_CACHED_MASKS = 8
 _REGRESSOR_KINDS = {"FilteredLinearRegressor": FilteredLinearRegressor,
                     "SimpleLinearRegressor": SimpleLinearRegressor, "KernelRegressor": KernelRegressor}
-
-
-class TargetError(ParameterError):
-    """A requested label value is outside what the model can reach, or was not met."""
 
 
 def semantics_path(model_path) -> Path:
@@ -132,7 +128,7 @@ class SemanticModel:
     Args:
         body_model: a fitted ``BodyModel`` (shape-only: rest scans).
         sigma_limit: reachable region, in standard deviations (Mahalanobis radius).
-        max_iter: most corrections (decode + measure) of the closed loop, the Eq. 11 step
+        max_iter: most corrections (decode + measure) of the closed loop, the Hasler Equation 11 step
             included; finite-difference Jacobians (C + 4 bodies) come on top.
         on_infeasible: "raise" (refuse with the reachable range / the residuals) or "clamp"
             (clamp to the range and warn; a miss after ``max_iter`` warns).
@@ -240,7 +236,7 @@ class SemanticModel:
     @staticmethod
     def _fit_one(x, y, rng):
         reg = FilteredLinearRegressor(rng=rng).fit(x, y)
-        if not np.any(reg.coef_):  # nothing kept: fall back to the plain least squares (Eq. 10)
+        if not np.any(reg.coef_):  # nothing kept: fall back to the plain least squares (Hasler Equation 10)
             reg = SimpleLinearRegressor().fit(x, y)
         return reg
 
@@ -461,9 +457,9 @@ class SemanticModel:
                 progress(f"body {i + 1}/{n}", (i + 1) / n)
         return out
 
-    # ------------------------------------------------------------------ Table 1 / Table 2
+    # ------------------------------------------------------------------ Hasler Table 1 / Hasler Table 2
     def evaluate(self, folds: int = 10, rng=0) -> tuple:
-        """(Table 1 ``RegressionTable``, Table 2 dict label -> (mean, sd) degrees) on the model's
+        """(Hasler Table 1 ``RegressionTable``, Hasler Table 2 dict label -> (mean, sd) degrees) on the model's
         subjects (one row per subject)."""
         labels = {n: self.Y_[:, j] for j, n in enumerate(self.labels_)}
         table1 = cross_validated_rmse(self.X_, labels, folds=folds, rng=rng)

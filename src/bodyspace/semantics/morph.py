@@ -1,22 +1,22 @@
-"""Semantic morphing (Hasler et al. 2009, §4 Equation 11, and §5.1 comparison directions).
+"""Semantic morphing (Hasler §4, Hasler Equation 11, and Hasler §5.1 comparison directions).
 
 One constraint: walk the regressor's gradient, ``d' = d + lambda s``; to change the label by
 ``delta``, ``lambda = delta / ||s||^2``.
 
-Several constraints at once (Equation 11): each constraint ``i`` alone would move the body by
+Several constraints at once (Hasler Equation 11): each constraint ``i`` alone would move the body by
 ``v_i = delta_i s_i / ||s_i||^2``. Find one step ``z`` with ``<z, v_i> / ||v_i|| = ||v_i||`` for
 every ``i``; multiplying row ``i`` by ``||s_i||^2 / delta_i`` shows it is the same row as
 ``<s_i, z> = delta_i``: the first-order change of label ``i`` is exactly ``delta_i``. The rows
 ``G z = delta`` (``G`` stacks the gradients) are usually under-determined; the minimum-norm
 solution ``z = G^+ delta`` changes the subject as little as possible. The ``<s_i, z> = delta_i``
-form also covers ``delta_i = 0`` ("keep this label"), where Equation (11) degenerates
+form also covers ``delta_i = 0`` ("keep this label"), where Hasler Equation 11 degenerates
 (``v_i = 0``): "taller but the same weight" is the pair (stature +5 cm, weight +0 kg).
 
 For non-linear regressors the gradients change along the way, so ``morph`` takes several such
 minimum-norm steps (a Gauss-Newton walk) towards label values interpolated from the start to
 the targets, then refines until the labels are met.
 
-§5.1: when a quality is easier to compare than to measure (muscularity), a judge says which of
+Hasler §5.1: when a quality is easier to compare than to measure (muscularity), a judge says which of
 two scans is more so; the mean of the normalized differences "b - a" is the direction
 (``comparison_direction``), and ``ComparisonRegressor`` makes it usable like any regressor.
 """
@@ -28,31 +28,32 @@ from collections.abc import Mapping
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.semantics.regressors import _as_int, _as_matrix, _as_vector, _LinearModel
+from bodyspace.semantics.regressors import LinearModel
+from bodyspace.validation import as_int, as_matrix, as_vector
 
 __all__ = ["morph_directions", "morph", "comparison_direction", "ComparisonRegressor"]
 
 
 def morph_directions(gradients, deltas, metric=None, rcond: float = 1e-10) -> np.ndarray:
-    """Equation (11): the smallest step ``z`` (D,) with ``<gradients[i], z> = deltas[i]`` for all i.
+    """Hasler Equation 11: the smallest step ``z`` (D,) with ``<gradients[i], z> = deltas[i]`` for all i.
 
     Args:
         gradients: (C, D) one label gradient (morphing direction) per constraint, or (D,).
         deltas: (C,) requested change of every label (0 holds a label fixed, to first order).
         metric: optional (D,) positive weights: minimise ``sum metric_j z_j^2`` instead of
             ``||z||^2`` (e.g. ``1 / explained_variance_`` on PCA coefficients for the most
-            probable change). None: the plain minimum norm of Equation (11).
+            probable change). None: the plain minimum norm of Hasler Equation 11.
         rcond: relative singular-value cut-off of the pseudo-inverse; contradictory or
             parallel constraints are met in the least-squares sense.
 
     Returns:
         z (D,). With one constraint, ``z = delta s / ||s||^2``: walking the gradient.
     """
-    g = _as_matrix(gradients, "gradients", allow_vector=True)
-    dl = _as_vector(np.atleast_1d(np.asarray(deltas, dtype=float)), "deltas", g.shape[0])
+    g = as_matrix(gradients, "gradients", allow_vector=True)
+    dl = as_vector(np.atleast_1d(np.asarray(deltas, dtype=float)), "deltas", g.shape[0])
     if metric is None:
         return np.linalg.pinv(g, rcond=rcond) @ dl
-    w = _as_vector(metric, "metric", g.shape[1])
+    w = as_vector(metric, "metric", g.shape[1])
     if (w <= 0).any():
         raise ParameterError("metric: contains values <= 0, expected positive weights")
     gw = g / w                                                   # G M^-1
@@ -71,7 +72,7 @@ def _check_regressors(regressors: Mapping) -> None:
 
 def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, refine: int = 10,
           tol: float = 1e-6, metric=None) -> np.ndarray:
-    """Walk body ``x`` to the requested label values while holding others (Eq. 11, iterated).
+    """Walk body ``x`` to the requested label values while holding others (Hasler Equation 11, iterated).
 
     At step ``t = 1..steps`` every targeted label aims at ``start + (target - start) t / steps``
     and every kept label at its start value; the minimum-norm step (``morph_directions``) at the
@@ -92,7 +93,7 @@ def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, re
     Returns:
         path (S, D): ``path[0] = x``, ``path[-1]`` the morphed body (S = steps + 1 + refinements).
     """
-    x0 = _as_vector(x, "x")
+    x0 = as_vector(x, "x")
     _check_regressors(regressors)
     if not isinstance(targets, Mapping):
         raise ParameterError(f"targets: got {type(targets).__name__}, expected a dict name -> value")
@@ -106,8 +107,8 @@ def morph(x, regressors: Mapping, targets: Mapping, keep=(), steps: int = 10, re
     both = set(targets) & set(keep_map)
     if both:
         raise ParameterError(f"keep: {sorted(both)} also in targets, expected each label in one of them")
-    steps = _as_int(steps, "steps", 1)
-    refine = _as_int(refine, "refine", 0)
+    steps = as_int(steps, "steps", 1)
+    refine = as_int(refine, "refine", 0)
     regs = [regressors[n] for n in names]
     start = np.array([r.predict(x0) for r in regs], dtype=float)
     goal = np.array([float(targets[n]) for n in targets]
@@ -136,9 +137,9 @@ def _step(x, regs, aim, metric):
     return x + morph_directions(grads, deltas, metric=metric)
 
 
-# ---------------------------------------------------------------------------- §5.1 comparisons
+# ---------------------------------------------------------------------------- Hasler §5.1 comparisons
 def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
-    """§5.1: the unit direction (D,) from judged pairs "b is more X than a".
+    """Hasler §5.1: the unit direction (D,) from judged pairs "b is more X than a".
 
     Every pair defines a direction ``b - a``; they are normalized, averaged, and the mean is
     normalized: ``u = mean_i (b_i - a_i)/||b_i - a_i||``, ``u / ||u||``.
@@ -147,8 +148,8 @@ def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
         pairs_a, pairs_b: (M, D) (or (D,) for one pair) bodies, row ``i`` of ``pairs_b`` judged
             more X than row ``i`` of ``pairs_a``.
     """
-    a = _as_matrix(pairs_a, "pairs_a", allow_vector=True)
-    b = _as_matrix(pairs_b, "pairs_b", n_features=a.shape[1], allow_vector=True)
+    a = as_matrix(pairs_a, "pairs_a", allow_vector=True)
+    b = as_matrix(pairs_b, "pairs_b", n_features=a.shape[1], allow_vector=True)
     if a.shape != b.shape:
         raise ParameterError(f"pairs_b: shape {b.shape}, expected {a.shape} (one partner per row of pairs_a)")
     diff = b - a
@@ -166,8 +167,8 @@ def comparison_direction(pairs_a, pairs_b) -> np.ndarray:
     return mean / length
 
 
-class ComparisonRegressor(_LinearModel):
-    """A semantic label learned from pairwise comparisons (§5.1), usable like any regressor.
+class ComparisonRegressor(LinearModel):
+    """A semantic label learned from pairwise comparisons (Hasler §5.1), usable like any regressor.
 
     ``fit(X, pairs)``: ``X`` (N, D) the database, ``pairs`` (M, 2) row indices ``(i, j)`` meaning
     "``X[j]`` is more X than ``X[i]``". The direction is ``comparison_direction(X[i], X[j])``; the
@@ -185,7 +186,7 @@ class ComparisonRegressor(_LinearModel):
         pass
 
     def fit(self, X, pairs) -> "ComparisonRegressor":
-        x = _as_matrix(X, "X", min_rows=2)
+        x = as_matrix(X, "X", min_rows=2)
         p = np.asarray(pairs)
         if p.ndim != 2 or p.shape[1] != 2 or p.shape[0] < 1 or not np.issubdtype(p.dtype, np.integer):
             raise ParameterError(f"pairs: shape {p.shape} dtype {p.dtype}, expected integer (M, 2) row indices "

@@ -1,11 +1,11 @@
-"""Semantic regressors: a label value as a function of a body (Hasler et al. 2009, §4, Table 1).
+"""Semantic regressors: a label value as a function of a body (Hasler §4, Hasler Table 1).
 
 From encoded scans ``A`` (rows ``a_i``) and one label per scan ``l_i`` (stature, mass, body fat,
-sex, ...), learn ``f(a) ~ l``. Three regressors, the three rows of Table 1:
+sex, ...), learn ``f(a) ~ l``. Three regressors, the three rows of Hasler Table 1:
 
-- ``SimpleLinearRegressor``: Equation (10), ``argmin_[o, s] || [1 | A] [o; s] - l ||``, solved in
+- ``SimpleLinearRegressor``: Hasler Equation 10, ``argmin_[o, s] || [1 | A] [o; s] - l ||``, solved in
   the least-squares (minimum-norm when ``N <= D``) sense.
-- ``FilteredLinearRegressor``: Equation (10) solved in the PCA space of ``A``, then PCA
+- ``FilteredLinearRegressor``: Hasler Equation 10 solved in the PCA space of ``A``, then PCA
   components *rejected in ascending order of their contribution* to the label (not in the
   classic smallest-eigenvalue order), the number kept chosen by k-fold cross-validation.
 - ``KernelRegressor``: the non-linear row; RBF kernel ridge regression (numpy) or support vector
@@ -31,62 +31,9 @@ import numbers
 import numpy as np
 
 from bodyspace.errors import ParameterError
+from bodyspace.validation import as_generator, as_int, as_matrix, as_positive_grid, as_vector
 
 __all__ = ["SimpleLinearRegressor", "FilteredLinearRegressor", "KernelRegressor", "kfold_indices"]
-
-
-# ---------------------------------------------------------------------------- validation helpers
-def _as_matrix(X, name: str = "X", n_features: int | None = None, min_rows: int = 1,
-               allow_vector: bool = False) -> np.ndarray:
-    """``X`` as a finite float (N, D) array; a (D,) vector becomes (1, D) if ``allow_vector``."""
-    try:
-        x = np.asarray(X, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"{name}: could not be read as numbers ({exc}); expected a float array (N, D)") from None
-    if x.ndim == 1 and allow_vector:
-        x = x[None]
-    if x.ndim != 2:
-        raise ParameterError(f"{name}: shape {x.shape}, expected a 2-D array (N, D)")
-    if x.shape[0] < min_rows:
-        raise ParameterError(f"{name}: {x.shape[0]} row(s), expected at least {min_rows}")
-    if x.shape[1] < 1:
-        raise ParameterError(f"{name}: shape {x.shape}, expected at least one column")
-    if n_features is not None and x.shape[1] != n_features:
-        raise ParameterError(f"{name}: rows have length {x.shape[1]}, expected {n_features} "
-                             "(the length the model was fitted on)")
-    if not np.isfinite(x).all():
-        raise ParameterError(f"{name}: contains NaN or infinity, expected finite values")
-    return x
-
-
-def _as_vector(y, name: str, n: int | None = None) -> np.ndarray:
-    """``y`` as a finite float (n,) array."""
-    try:
-        v = np.asarray(y, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(f"{name}: could not be read as numbers ({exc}); expected a float array") from None
-    if v.ndim != 1:
-        raise ParameterError(f"{name}: shape {v.shape}, expected a 1-D array" + (f" ({n},)" if n else ""))
-    if n is not None and v.shape[0] != n:
-        raise ParameterError(f"{name}: length {v.shape[0]}, expected {n} (one value per row of X)")
-    if not np.isfinite(v).all():
-        raise ParameterError(f"{name}: contains NaN or infinity, expected finite values")
-    return v
-
-
-def _as_int(value, name: str, lo: int, hi: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo \
-            or (hi is not None and value > hi):
-        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise ParameterError(f"{name}={value!r}, expected an integer {rng}")
-    return int(value)
-
-
-def _as_positive_grid(value, name: str) -> np.ndarray:
-    grid = np.atleast_1d(np.asarray(value, dtype=float))
-    if grid.ndim != 1 or grid.size == 0 or not np.isfinite(grid).all() or (grid <= 0).any():
-        raise ParameterError(f"{name}={value!r}, expected a positive number or a non-empty sequence of them")
-    return grid
 
 
 def kfold_indices(n: int, folds: int, rng=None, groups=None) -> list[np.ndarray]:
@@ -95,8 +42,8 @@ def kfold_indices(n: int, folds: int, rng=None, groups=None) -> list[np.ndarray]
     With ``groups`` (n,) (e.g. subject ids), whole groups go to one fold, so no subject is in
     both the training and the test part. Folds are capped at the number of rows (groups).
     """
-    folds = _as_int(folds, "folds", 2)
-    gen = np.random.default_rng(rng)
+    folds = as_int(folds, "folds", 2)
+    gen = as_generator(rng)
     if groups is None:
         if n < 2:
             raise ParameterError(f"X: {n} row(s), expected at least 2 for cross-validation")
@@ -148,7 +95,7 @@ class _SemanticRegressor:
     def _input(self, X, name: str = "X") -> tuple[np.ndarray, bool]:
         self._require_fit()
         single = np.ndim(X) == 1
-        return _as_matrix(X, name, n_features=self.n_features_in_, allow_vector=True), single
+        return as_matrix(X, name, n_features=self.n_features_in_, allow_vector=True), single
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Learned state as arrays (for ``np.savez``; scalars become 0-d arrays)."""
@@ -168,7 +115,7 @@ class _SemanticRegressor:
         return obj
 
 
-class _LinearModel(_SemanticRegressor):
+class LinearModel(_SemanticRegressor):
     """``f(x) = intercept_ + <coef_, x>``; the gradient is ``coef_`` everywhere."""
 
     def predict(self, X) -> np.ndarray:
@@ -183,14 +130,14 @@ class _LinearModel(_SemanticRegressor):
         return self.coef_.copy() if single else np.tile(self.coef_, (x.shape[0], 1))
 
 
-# ---------------------------------------------------------------------------- Equation (10)
-class SimpleLinearRegressor(_LinearModel):
-    """Equation (10): ``argmin_[o, s] || [1 | A] [o; s] - l ||`` with intercept ``o``.
+# ---------------------------------------------------------------------------- Hasler Equation 10
+class SimpleLinearRegressor(LinearModel):
+    """Hasler Equation 10: ``argmin_[o, s] || [1 | A] [o; s] - l ||`` with intercept ``o``.
 
     Solved on centred data, ``s = pinv(A - mean) (l - mean(l))``, ``o = mean(l) - <s, mean>``:
     the least-squares solution, and of all of them the one of minimum norm when the system is
     under-determined (``N <= D``: then it interpolates the training labels, which is why its
-    generalisation is limited, Table 1 row 1).
+    generalisation is limited, Hasler Table 1 row 1).
 
     Args:
         rcond: relative cut-off for small singular values (``numpy.linalg.lstsq``); None uses
@@ -207,8 +154,8 @@ class SimpleLinearRegressor(_LinearModel):
         self.rcond = rcond
 
     def fit(self, X, y) -> "SimpleLinearRegressor":
-        x = _as_matrix(X, "X", min_rows=2)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=2)
+        l = as_vector(y, "y", x.shape[0])
         mean, lmean = x.mean(axis=0), l.mean()
         coef, _, rank, _ = np.linalg.lstsq(x - mean, l - lmean, rcond=self.rcond)
         self.coef_ = coef
@@ -218,9 +165,9 @@ class SimpleLinearRegressor(_LinearModel):
         return self
 
 
-# ---------------------------------------------------------------------------- filtered Eq. (10)
+# ---------------------------------------------------------------------------- filtered Hasler Equation 10
 def _pca_solve(x: np.ndarray, l: np.ndarray, tol: float):
-    """PCA of ``x`` and Equation (10) in its coordinates.
+    """PCA of ``x`` and Hasler Equation 10 in its coordinates.
 
     Returns ``mean (D,), components V (K, D), variances (K,), w (K,), lmean``. The PCA scores
     ``T = (x - mean) V^T`` have orthogonal columns, so least squares decouples:
@@ -248,12 +195,12 @@ def _rejection_order(w: np.ndarray, var: np.ndarray, order: str) -> np.ndarray:
     return np.argsort(-var, kind="stable")
 
 
-class FilteredLinearRegressor(_LinearModel):
-    """Equation (10) in PCA space with noise components rejected by cross-validation (Hasler §4).
+class FilteredLinearRegressor(LinearModel):
+    """Hasler Equation 10 in PCA space with noise components rejected by cross-validation (Hasler §4).
 
     Fit: (1) PCA of the training rows ``X`` (full encodings or PCA coefficients; for the
     latter the PCA is a rotation, the identity up to signs on the rows the shape space was
-    fitted on); (2) solve Equation (10) in the PCA scores ``T``, ``l ~ o + T w`` (the scores are
+    fitted on); (2) solve Hasler Equation 10 in the PCA scores ``T``, ``l ~ o + T w`` (the scores are
     orthogonal, so every ``w_k`` is independent of the others and rejecting a component never
     changes the remaining weights); (3) rank the components by their **contribution**
     ``c_k = |w_k| sqrt(var_k)``, the standard deviation of component k's term ``w_k t_k`` over
@@ -296,16 +243,16 @@ class FilteredLinearRegressor(_LinearModel):
     def _check_params(self):
         if self.order not in ("contribution", "variance"):
             raise ParameterError(f"order={self.order!r}, expected 'contribution' or 'variance'")
-        _as_int(self.cv, "cv", 2)
+        as_int(self.cv, "cv", 2)
         if self.n_components is not None:
-            _as_int(self.n_components, "n_components", 0)
+            as_int(self.n_components, "n_components", 0)
         if not (isinstance(self.tol, numbers.Real) and 0 <= self.tol < 1):
             raise ParameterError(f"tol={self.tol!r}, expected a number in [0, 1)")
 
     def fit(self, X, y) -> "FilteredLinearRegressor":
         self._check_params()
-        x = _as_matrix(X, "X", min_rows=3)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=3)
+        l = as_vector(y, "y", x.shape[0])
         n = x.shape[0]
         cap = np.inf if self.n_components is None else self.n_components
 
@@ -347,7 +294,7 @@ def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class KernelRegressor(_SemanticRegressor):
-    """Non-linear regressor (Table 1, row 3): RBF kernel expansion on scaled inputs.
+    """Non-linear regressor (Hasler Table 1, row 3): RBF kernel expansion on scaled inputs.
 
     ``f(x) = intercept_ + sum_i dual_coef_i exp(-gamma_ ||u - u_i||^2)``, ``u = (x - mean_) / scale_``,
     over the support points ``u_i`` (``X_fit_``). Its analytic gradient, the local morphing
@@ -400,8 +347,8 @@ class KernelRegressor(_SemanticRegressor):
             raise ParameterError(f"method={self.method!r}, expected 'kernel_ridge' or 'svr'")
         if self.standardize not in ("global", "features", "none"):
             raise ParameterError(f"standardize={self.standardize!r}, expected 'global', 'features' or 'none'")
-        x = _as_matrix(X, "X", min_rows=3)
-        l = _as_vector(y, "y", x.shape[0])
+        x = as_matrix(X, "X", min_rows=3)
+        l = as_vector(y, "y", x.shape[0])
         n, d = x.shape
         if self.standardize == "none":
             self.mean_, sd = np.zeros(d), np.ones(d)
@@ -415,14 +362,14 @@ class KernelRegressor(_SemanticRegressor):
         lmean, lsd = l.mean(), l.std()
         lsd = lsd if lsd > 0 else 1.0
         ls = (l - lmean) / lsd
-        gammas = _as_positive_grid(np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0]) / d if self.gamma is None
+        gammas = as_positive_grid(np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0]) / d if self.gamma is None
                                    else self.gamma, "gamma")
         if self.method == "kernel_ridge":
-            alphas = _as_positive_grid(np.logspace(-4, 1, 11) if self.alpha is None else self.alpha, "alpha")
+            alphas = as_positive_grid(np.logspace(-4, 1, 11) if self.alpha is None else self.alpha, "alpha")
             dual = self._fit_kernel_ridge(u, ls, gammas, alphas)
             self.X_fit_, self.dual_coef_, self.intercept_ = u, dual * lsd, float(lmean)
         else:
-            cs = _as_positive_grid((1.0, 10.0, 100.0) if self.C is None else self.C, "C")
+            cs = as_positive_grid((1.0, 10.0, 100.0) if self.C is None else self.C, "C")
             if not (isinstance(self.epsilon, numbers.Real) and self.epsilon >= 0):
                 raise ParameterError(f"epsilon={self.epsilon!r}, expected a number >= 0")
             sv, dual, b = self._fit_svr(u, ls, gammas, cs)
@@ -465,7 +412,7 @@ class KernelRegressor(_SemanticRegressor):
         self.cv_rmse_ = np.zeros((gammas.size, cs.size))
         if gammas.size * cs.size > 1:
             n = len(ls)
-            for test in kfold_indices(n, min(_as_int(self.cv, "cv", 2), n), self.rng):
+            for test in kfold_indices(n, min(as_int(self.cv, "cv", 2), n), self.rng):
                 train = np.setdiff1d(np.arange(n), test)
                 for gi, g in enumerate(gammas):
                     for ci, c in enumerate(cs):

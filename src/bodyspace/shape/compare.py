@@ -1,6 +1,6 @@
 """How intact a body is: edge-length and volume changes, and interpolation between bodies.
 
-Hasler et al. (2009), Fig. 5: halfway between two poses of one subject, the relative rotation
+Hasler Figure 5: halfway between two poses of one subject, the relative rotation
 encoding gives an intact body while vertex interpolation collapses the limbs. A pose change
 of one subject keeps edge lengths and volume nearly constant, so the halfway mesh's change
 in both, against the endpoints' average, measures the damage.

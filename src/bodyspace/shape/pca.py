@@ -1,4 +1,4 @@
-"""PCA shape space over encoded bodies (Hasler et al. 2009, Sec. 4; Rupprecht et al., Eq. 1).
+"""PCA shape space over encoded bodies (Hasler §4; Rupprecht Equation 1).
 
 A body's code is ``mean_ + coefficients @ components_``. With the relative rotation encoding
 the space holds pose and shape together when fitted on the whole database, or shape alone
@@ -25,6 +25,7 @@ from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
 from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full
+from bodyspace.validation import as_generator
 
 SOLVERS = ("auto", "full", "krylov")
 # solver="auto": up to this many bytes of float64 codes the PCA is exact (Gram matrix, float64);
@@ -33,10 +34,6 @@ SOLVERS = ("auto", "full", "krylov")
 FULL_PCA_MAX_BYTES = 2_000_000_000
 # n_components=None keeps every component with variance, at most this many.
 MAX_DEFAULT_COMPONENTS = 100
-
-
-def _rng(rng) -> np.random.Generator:
-    return np.random.default_rng(rng)
 
 
 def resolve_solver(solver: str, n_samples: int, n_features: int, n_components=None) -> str:
@@ -298,7 +295,7 @@ class ShapeSpace:
             lo, hi = (float(v) for v in sigma_range)
         if not lo < hi:
             raise ParameterError(f"sigma_range={sigma_range!r}, expected lo < hi")
-        t = truncnorm.rvs(lo, hi, size=(int(n), k), random_state=_rng(rng))
+        t = truncnorm.rvs(lo, hi, size=(int(n), k), random_state=as_generator(rng))
         z = np.zeros((int(n), self.n_components_))
         z[:, :k] = t * np.sqrt(self.explained_variance_[:k])
         return z

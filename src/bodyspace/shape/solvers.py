@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from bodyspace.mesh.solver import single_threaded_blas
+from bodyspace.validation import as_generator
 
 __all__ = ["pca_full", "pca_randomized", "pca_block_krylov", "mean_and_scatter"]
 
@@ -80,7 +81,7 @@ def pca_randomized(x: np.ndarray, mean: np.ndarray, k: int, rng=0,
     """
     n, d = x.shape
     l = min(n, k + oversamples)
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     dt = x.dtype
     mu = mean.astype(dt)
 
@@ -123,7 +124,7 @@ def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int 
     """
     n, d = x.shape
     l = min(n, -(-(2 * k + oversamples) // depth))
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     dt = x.dtype
     mu = np.asarray(mean, dtype=dt)
     jobs = n_jobs or os.cpu_count() or 1

@@ -32,7 +32,7 @@ from scipy.cluster.vq import kmeans2
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.shape.solvers import pca_full
-from bodyspace.studies.scans import read_scans, rows_by_subject
+from bodyspace.studies.scans import rows_by_subject
 
 __all__ = ["DEFAULT_COMPONENTS", "LOCAL_REGIONS", "generalization_study"]
 
@@ -74,7 +74,7 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
                              "expected at least 3")
     held_subjects = list(groups)[:max(1, min(n_folds, len(groups)))]
     subj = np.asarray(db.scans["subject"])[rows]
-    scans = read_scans(db, rows)
+    scans = db.read(rows)
     max_k = min(len(rows) - len(groups[s]) - 1 for s in held_subjects)
     ks = sorted({int(k) for k in components if 1 <= k <= max_k} | {max_k})
     errors, per_fold, local = {}, {}, {}

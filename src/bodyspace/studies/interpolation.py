@@ -20,7 +20,7 @@ import numpy as np
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
 from bodyspace.shape.compare import edge_lengths
-from bodyspace.studies.scans import read_scans, rows_by_subject
+from bodyspace.studies.scans import rows_by_subject
 
 __all__ = ["interpolation_study"]
 
@@ -49,7 +49,7 @@ def interpolation_study(db, encoders: dict, n_subjects: int = 2, subjects: Seque
     pairs = [(a, b) for s in chosen for a, b in combinations(by_subject[s].tolist(), 2)]
     rows = np.unique(np.array(pairs).ravel())
     where = {int(r): k for k, r in enumerate(rows)}
-    scans = read_scans(db, rows)
+    scans = db.read(rows)
     ia = np.array([where[a] for a, _ in pairs])
     ib = np.array([where[b] for _, b in pairs])
     faces = np.asarray(db.faces)

@@ -1,11 +1,11 @@
-"""Evaluation of the semantic mapping (Rupprecht et al. Sec. 4.2, Tables 1-2, Figures 4 and 6).
+"""Evaluation of the semantic mapping (Rupprecht §4.2, Rupprecht Tables 1-2, Rupprecht Figures 4 and 6).
 
 Three methods side by side on held-out *feasible* requests (the measurements of bodies sampled
 like the training set, so some body meets each exactly): the linear mapping of the related work
-(Table 2), the linear-leaf forest (Table 1), and the forest followed by ``refine.refine``. For
+(Rupprecht Table 2), the linear-leaf forest (Rupprecht Table 1), and the forest followed by ``refine.refine``. For
 each, the body of the predicted coefficients is measured again and ``measured - requested`` (cm)
 is summarized per parameter by its mean and variance, as in the paper's tables; plus the share
-of requests with all six within 1 mm. Figure 6: shoulder size swept from 100 to 140 cm, the
+of requests with all six within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
 other five held at the training set's median.
 
 RRE models: every body is decoded (training set, held-out requests, both predictions, each
@@ -29,6 +29,7 @@ from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import refine
 from bodyspace.mapping.training import default_sizes, make_training_set, sample_uniform
+from bodyspace.validation import as_seed
 
 METHODS = ("linear", "forest", "forest + refinement")
 SWEEP_CM = (100.0, 110.0, 120.0, 130.0, 140.0)
@@ -84,12 +85,13 @@ def _pad(z: np.ndarray, K: int) -> np.ndarray:
     return out
 
 
-def decode_seconds(model, n: int = 4, k: int = 25, seed: int = 0) -> float:
+def decode_seconds(model, n: int = 4, k: int = 25, rng=0) -> float:
     """Seconds per decoded body of ``model`` (wall clock, batched as in training), timed on ``n``
-    uniform ±3 sigma samples; 0 for a linear encoding such as the vertex one (nothing is decoded)."""
+    uniform ±3 sigma samples drawn with ``rng`` (Generator, seed or None); 0 for a linear
+    encoding such as the vertex one (nothing is decoded)."""
     if model.encoder.is_linear:
         return 0.0
-    z = sample_uniform(model, n, k, 3.0, seed + 12345)
+    z = sample_uniform(model, n, k, 3.0, as_seed(rng) + 12345)
     t = time.perf_counter()
     model.reconstruct(z)
     return (time.perf_counter() - t) / n
@@ -107,12 +109,13 @@ def estimate_seconds(model, samples: int, held_out: int, per_body: float | None 
     return per_body * (samples + held_out * (3 + refine_iterations) + n_sweep)
 
 
-def evaluate_mapping(model, samples: int | None = None, held_out: int | None = None, seed: int = 0, k: int = 25,
+def evaluate_mapping(model, samples: int | None = None, held_out: int | None = None, rng=0, k: int = 25,
                      n_trees: int = 50, n_jobs: int | None = None, sweep: bool = True,
                      progress=None) -> tuple[MappingEvaluation, dict]:
     """Train the three methods on ``samples`` bodies and evaluate them on ``held_out`` requests.
 
-    Training uses ``rng=seed``, the held-out set ``rng=seed + 1`` (both deterministic).
+    ``rng``: Generator, seed or None. With an integer seed ``s`` (recorded as ``seed``) the
+    training set is drawn with ``s``, the held-out set with ``s + 1``, the forest seeded with ``s``.
     ``samples`` / ``held_out`` default to ``default_sizes(model)``. With the RRE encoding every
     body is decoded (training, held-out, the predictions, each refinement iteration): see
     ``estimate_seconds``; the refinement's Jacobians use the training set's least-squares
@@ -121,6 +124,7 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     (linearization None for vertex models).
     """
     report = progress or (lambda msg, frac: None)
+    seed = as_seed(rng)
     d_samples, d_held = default_sizes(model)
     samples = d_samples if samples is None else int(samples)
     held_out = d_held if held_out is None else int(held_out)
@@ -196,7 +200,7 @@ def _measure_decoded(model, measurer, z, k, progress, chunk: int = 32) -> np.nda
 
 
 def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "shoulder_size") -> dict:
-    """Figure 6: ``name`` set to each of ``sizes`` (cm), the other parameters at the training median.
+    """Rupprecht Figure 6: ``name`` set to each of ``sizes`` (cm), the other parameters at the training median.
 
     Returns requests (S, M), coefficients (S, K) (forest + refinement), measured (S, M) cm,
     forest_measured (S, M) cm (forest alone), misses (per size: what refinement could not meet).

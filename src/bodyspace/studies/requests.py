@@ -26,6 +26,7 @@ from scipy.stats import chi2
 from bodyspace.errors import BodyspaceError
 from bodyspace.semantics.model import tolerance
 from bodyspace.units import kind_of
+from bodyspace.validation import as_generator
 
 __all__ = ["JOINT_QUANTILE", "REQUEST_LABELS", "population_quantile", "request_study", "si_unit"]
 
@@ -68,7 +69,7 @@ def request_study(semantic_model, n: int = 200, rng=0, labels=REQUEST_LABELS, pe
     n = int(n)
     if n < 1:
         raise BodyspaceError(f"request_study: n={n}, expected at least 1 request")
-    gen = np.random.default_rng(rng)
+    gen = as_generator(rng)
     box = {}
     for name in labels:
         y = sm.Y_[:, sm.labels_.index(name)]

@@ -1,19 +1,9 @@
-"""Scan selection shared by the shape studies: rows of a database read in bulk, grouped by subject."""
+"""Scan selection shared by the shape studies: rows of a database grouped by subject (the rows
+themselves are read by ``ScanDatabase.read``)."""
 
 from __future__ import annotations
 
 import numpy as np
-
-
-def read_scans(db, rows) -> np.ndarray:
-    """(n, V, 3) float64 scans ``rows`` (n,) of a (memory-mapped) database, in the order given.
-
-    The rows are read in index order (sequential reads of the memory map) and put back."""
-    rows = np.asarray(rows)
-    order = np.argsort(rows, kind="stable")
-    out = np.empty((len(rows),) + tuple(db.vertices.shape[1:]))
-    out[order] = db.vertices[rows[order]]
-    return out
 
 
 def rows_by_subject(db, rows: np.ndarray) -> dict[str, np.ndarray]:

@@ -43,6 +43,7 @@ from bodyspace.mesh.geometry import face_normals
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, years_to_age
 from bodyspace.synth.poses import load_pose_library
+from bodyspace.validation import as_generator
 
 CANDIDATE_FACES = 24          # source faces searched per point (by centroid) in closest_points
 SPLIT_RANGE = (0.3, 0.7)      # where split_edges cuts each edge (fraction from its first vertex)
@@ -199,7 +200,7 @@ def split_edges(vertices: np.ndarray, faces: np.ndarray, rng=None) -> tuple[np.n
     vertices (V, 3), faces (F, 3) → vertices (V + E, 3), faces (4F, 3). The new vertices lie on
     the source edges (so on the surface) at ``SPLIT_RANGE`` fractions drawn from ``rng``.
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     keys, inverse = np.unique(_edge_keys(faces), return_inverse=True)
     n = int(faces.max()) + 1
     lo, hi = keys // n, keys % n
@@ -305,7 +306,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, target_vertices: int, rng=No
     A closed manifold source gives a closed manifold result with the same Euler characteristic
     and orientation, with no folded face; else ``MeshError``.
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     target_vertices = int(target_vertices)
@@ -337,7 +338,7 @@ def shuffle_vertices(vertices: np.ndarray, faces: np.ndarray, rng=None
     ``vertices2[..., i, :] == vertices[..., permutation[i], :]``. Orientation is kept (corners are
     rotated cyclically, never swapped).
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     faces = np.asarray(faces)
     n = np.shape(vertices)[-2]
     perm = rng.permutation(n)
@@ -392,7 +393,7 @@ def add_noise(vertices: np.ndarray, sigma: float, rng=None, faces: np.ndarray | 
     range scanner: the surface gets rough, its vertices stay evenly spread); without, each
     coordinate gets independent noise (isotropic, per-axis SD ``sigma``). Returns (V, 3).
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     v = np.asarray(vertices, dtype=float)
     if faces is None:
         return v + rng.normal(0.0, sigma, v.shape)
@@ -445,7 +446,7 @@ def foreign_phenotype(rng=None) -> np.ndarray:
     in [0, 0.1] or [0.8, 1]; height and weight in [0.05, 0.2] or [0.8, 0.95]; age 55-85 years or
     18-20), the sex is 0 or 1 and the race mix one-sided. Returns (11,) in ``PARAMETERS`` order.
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
 
     def edge(lo_band, hi_band):
         band = lo_band if rng.random() < 0.5 else hi_band
@@ -523,7 +524,7 @@ def foreign_topology(template: Template, target_vertices: int = 6000, rng=None,
     Any template body goes onto the topology with ``transfer(topology.correspondence,
     template.faces, body)``.
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     mset = mset if mset is not None else load_measurement_set()
     surface_landmarks = [int(ids[0]) for ids, _ in mset.landmarks.values() if len(ids) == 1]
     v2, f2, corr = remesh(template.vertices, template.faces, target_vertices, rng, keep=surface_landmarks)
@@ -576,7 +577,7 @@ def foreign_body(template, phenotype_model, topology: ForeignTopology | None = N
     MakeHuman's A-pose, "t_pose" the T-pose; default: drawn from the library).
     frame: ``to_frame`` arguments (default: millimetres, Z up, turned 25°, floor at -170 mm).
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     mset = mset if mset is not None else load_measurement_set()
     topology = topology if topology is not None else foreign_topology(template, target_vertices, rng, mset)
     phenotype = foreign_phenotype(rng) if phenotype is None else np.asarray(phenotype, dtype=float)

@@ -1,4 +1,4 @@
-"""Synthetic scan database: realistic adults in many poses (the analogue of Hasler et al. §2.1).
+"""Synthetic scan database: realistic adults in many poses (the analogue of Hasler §2.1).
 
 Subjects are drawn per sex from an adult anthropometric survey (``surveys/ansur1988.json``):
 target stature ~ Normal(mean, SD) and target BMI ~ log-normal with the survey's mean and SD.
@@ -29,6 +29,7 @@ from bodyspace.mesh.geometry import boundary_loops, capped_volume
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 from bodyspace.synth.poses import load_pose_library
+from bodyspace.validation import as_generator
 
 REST_POSE = "rest"
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
@@ -196,7 +197,7 @@ def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansu
     reaches the widest BMI range at low muscle, so a subject whose BMI cannot be reached is
     retried with less muscle; a target still out of reach (a few in ten thousand) is redrawn.
     """
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     sv = load_survey(survey)
     measure = _Measurer(model)
     male = rng.permutation(np.arange(n) < (n + 1) // 2)  # half of each sex
@@ -267,7 +268,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     if n_poses > len(others):
         raise ParameterError(f"poses = {n_poses}, but the pose library has {len(others)} poses besides the rest "
                              f"pose; expected at most {len(others)} (CLI: --poses)")
-    rng = np.random.default_rng(rng)
+    rng = as_generator(rng)
     report = progress or (lambda msg, frac: None)
     model = PhenotypeModel(template)
     skeleton = template.rigs[rig]
