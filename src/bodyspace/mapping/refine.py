@@ -21,8 +21,17 @@ at the decoded body chained with a linearization of the decoder
 steps taken, a damping floor, and, once for a stalled request, finite differences at its body.
 See ``_refine_decoded`` and docs/mapping.md.
 
+Measurements that are not differentiated analytically (slices, mass, volume, ...: any method of
+the measurement set outside ``gradients.DIFFERENTIABLE``) and linear functions of the
+coefficients (``linear``: e.g. a semantic label's linear regressor, held while the rest moves)
+take the general path, ``_refine_general``: every evaluation reconstructs the bodies (exact for
+either encoding) and measures them, the analytic Jacobians where there are some, forward
+differences (``k`` more bodies per request) for the rest. Each measurement has its own
+tolerance (``tolerances``, in its display units: cm for lengths, kg for mass); residuals are
+weighted by ``tol_cm / tolerance`` so that every measurement is met to the same fraction of it.
+
 A request no body in the box can meet gets the closest plausible body and a report of the
-measurements it misses by more than ``tol_cm``, and by how much.
+measurements it misses by more than its tolerance, and by how much.
 """
 
 from __future__ import annotations
@@ -32,7 +41,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
+from bodyspace.mapping.gradients import DIFFERENTIABLE, RUPPRECHT_SIX, LinearBodyMeasures, subset
+from bodyspace.measure import load_measurement_set, measure
 
 # RRE: after a rejected step the damping (relative to diag(H)) is at least this, so the next
 # step is shorter at once instead of after ~6 rejections (each costs a decode).
@@ -44,6 +54,32 @@ REFRESH_STEP = 0.01
 # RRE: a request whose accepted step lowers the cost by less than this (relative) has stalled
 # (each further step costs a decode; the vertex path uses ``ftol``).
 RRE_FTOL = 1e-3
+# General path: forward-difference step (sigma) of the measurements not differentiated analytically.
+FD_STEP = 1e-3
+
+
+_DEFAULT_MSET = []
+
+
+def default_measurement_set():
+    """The hm08 measurement set, read once per process (refinement asks for it per request)."""
+    if not _DEFAULT_MSET:
+        _DEFAULT_MSET.append(load_measurement_set())
+    return _DEFAULT_MSET[0]
+
+
+def analytic_names(mset, names) -> tuple:
+    """The ``names`` whose Jacobians ``LinearBodyMeasures`` writes out (loops about the up axis,
+    distances, paths); the rest are differenced (``refine``'s general path)."""
+    by_name = {m["name"]: m for m in subset(mset, names).measurements}
+    return tuple(n for n in names if by_name[n]["method"] in DIFFERENTIABLE
+                 and (by_name[n]["method"] != "loop" or by_name[n].get("axis", "up") == "up"))
+
+
+def display_scale(mset, names) -> np.ndarray:
+    """(M,) factor from SI to the units refinement works in: cm for lengths (unit "m"), else 1."""
+    by_name = {m["name"]: m for m in subset(mset, names).measurements}
+    return np.array([100.0 if by_name[n]["unit"] == "m" else 1.0 for n in names])
 
 
 @dataclass
@@ -71,7 +107,8 @@ class RefineResult:
 def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, measurer=None, k: int = 25,
            prior_weight: float = 1e-4, max_sigma: float = 3.0, tol_cm: float = 0.1, max_iter: int = 40,
            xtol: float = 1e-9, ftol: float = 1e-6, linearization=None, stop_cm: float | None = None,
-           update: str = "broyden", damping: float = 0.1, progress=None) -> RefineResult:
+           update: str = "broyden", damping: float = 0.1, tolerances=None, linear=None,
+           progress=None) -> RefineResult:
     """Refine coefficients so the bodies measure ``targets`` exactly (see the module docstring).
 
     Args:
@@ -99,7 +136,14 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
             only the prior acts) changes the true measurements a lot: with this floor the body
             moves only slowly toward the mean there, and each iteration mostly fixes the
             measurements (3-6 iterations instead of 5-11, measured).
+        tolerances: (M,) per-measurement tolerance in the targets' units (default ``tol_cm`` for each);
+            residuals are weighted by ``tol_cm / tolerances``.
+        linear: dict name -> (g (K,), b): values ``b + g . z`` that are linear in the coefficients
+            (a semantic label's linear regressor), targets in the columns of ``names`` as well.
         progress: ``progress(message, fraction)`` after each iteration (fraction of requests done).
+
+    ``names`` may hold any measurement of ``mset`` (cm for lengths, the set's unit otherwise, e.g.
+    kg); those outside ``analytic_names`` and ``linear`` send the request down the general path.
     """
     z0 = np.asarray(coefficients0, dtype=float)
     t = np.asarray(targets, dtype=float)
@@ -113,15 +157,36 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
         raise ParameterError("targets / coefficients0: contain NaN or infinity, expected finite numbers")
     if update not in ("broyden", "chain"):
         raise ParameterError(f"update={update!r}, expected 'broyden' or 'chain'")
-    if measurer is None:
-        measurer = LinearBodyMeasures.from_model(model, mset, names, k, linearization=linearization)
-    k = measurer.n_coefficients
+    linear = dict(linear or {})
+    tol = np.full(len(names), float(tol_cm)) if tolerances is None else np.asarray(tolerances, dtype=float)
+    if tol.shape != (len(names),) or not np.all(tol > 0):
+        raise ParameterError(f"tolerances: {tolerances!r}, expected {len(names)} positive values (one per name)")
+    given_mset = mset                          # None: LinearBodyMeasures' cache key for the default set
+    mset = default_measurement_set() if mset is None else mset
+    measured_names = tuple(n for n in names if n not in linear)
+    fast = analytic_names(mset, measured_names) if measured_names else ()
+    general = bool(linear) or len(fast) < len(measured_names) or tolerances is not None
+    if measurer is None and (fast or not general):
+        measurer = LinearBodyMeasures.from_model(model, given_mset, fast if general else names, k,
+                                                 linearization=linearization)
+    k = min(measurer.n_coefficients if measurer is not None else int(k), model.n_components)
     sd = np.sqrt(model.space.explained_variance_[:k])
     s = np.clip(z0[:, :k] / sd, -max_sigma, max_sigma)
-    if model.encoder.is_linear:
+    if general:
         decodes = 0
-        s, m, iters = _refine_linear(measurer, s, t, sd, float(prior_weight), max_sigma, max_iter, xtol, ftol,
-                                      progress)
+        weight = float(tol_cm) / tol
+        full = np.zeros((len(t), model.n_components))
+        full[:, :min(z0.shape[1], model.n_components)] = z0[:, :model.n_components]
+        evaluate = _general_evaluator(model, mset, names, fast, linear, measurer if fast else None, sd, full,
+                                      weight, max_sigma)
+        s, m, iters = _refine_linear(evaluate, s, t * weight, float(prior_weight), max_sigma, max_iter, xtol, ftol,
+                                     progress)
+        m = m / weight
+        decodes = 0 if model.encoder.is_linear else int(evaluate.bodies)
+    elif model.encoder.is_linear:
+        decodes = 0
+        s, m, iters = _refine_linear(_linear_evaluator(measurer, sd), s, t, float(prior_weight), max_sigma,
+                                     max_iter, xtol, ftol, progress)
     else:
         stop = tol_cm / 10.0 if stop_cm is None else float(stop_cm)
         full = np.zeros((len(t), model.n_components))          # coefficients beyond k stay as given
@@ -135,8 +200,9 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     misses = []
     for i in range(n):
         d = m[i] - t[i]
-        misses.append({names[j]: {"requested": float(t[i, j]), "measured": float(m[i, j]), "difference": float(d[j])}
-                       for j in np.flatnonzero(np.abs(d) > tol_cm)})
+        misses.append({names[j]: {"requested": float(t[i, j]), "measured": float(m[i, j]), "difference": float(d[j]),
+                                  "tolerance": float(tol[j])}
+                       for j in np.flatnonzero(np.abs(d) > tol)})
     res = RefineResult(z, m, t, names, iters, np.linalg.norm(s, axis=1), misses, decodes)
     if single:
         res = RefineResult(z[0], m[0], t[0], names, iters[:1], res.sigma_distance[:1], misses, decodes)
@@ -176,16 +242,88 @@ def _lm_step(J, r, sa, w, mu, max_sigma, floor: float = 0.0, bound_passes: int =
     return np.clip(s_new, -max_sigma, max_sigma)
 
 
-def _refine_linear(measurer, s, t, sd, w, max_sigma, max_iter, xtol, ftol, progress=None):
-    """Vertex encoding: exact Jacobians of ``v = base + z C``; one pass over the touched vertices per iteration."""
+def _linear_evaluator(measurer, sd):
+    """Vertex encoding: ``evaluate(s (n, k) sigma, jacobian)`` -> cm (n, M) [, cm per sigma (n, M, k)]
+    from the exact Jacobians of ``v = base + z C``; one pass over the touched vertices."""
     scale = 100.0                                                    # metres -> cm
 
-    def evaluate(si, jac):
+    def evaluate(si, jac, rows=None):
         out = measurer(si * sd, jacobian=jac)
         if jac:
             return out[0] * scale, out[1] * scale * sd
         return out * scale
+    return evaluate
 
+
+class _general_evaluator:
+    """``evaluate(s, jacobian, rows)`` of the general path: bodies reconstructed (coefficients
+    beyond ``k`` from ``full`` (n, K)), the ``fast`` names measured with their analytic Jacobians
+    (``measurer.measure_bodies``), the other measured names with ``measure.measure`` and forward
+    differences, ``linear`` ones as ``b + g . z``; everything in display units times ``weight`` (M,).
+    ``bodies`` counts the bodies reconstructed."""
+
+    def __init__(self, model, mset, names, fast, linear, measurer, sd, full, weight, max_sigma):
+        self.model, self.names, self.fast, self.linear, self.measurer = model, names, fast, linear, measurer
+        self.sd, self.full, self.max_sigma, self.bodies = sd, full, max_sigma, 0
+        slow = [n for n in names if n not in fast and n not in linear]
+        self.slow = tuple(slow)
+        self.sub = subset(mset, slow) if slow else None
+        self.scale = display_scale(mset, [n for n in names if n not in linear]) if len(linear) < len(names) else None
+        self.col = {n: j for j, n in enumerate(names)}
+        self.weight = weight
+        self.faces = model.faces
+
+    def _slow_values(self, v):
+        vals = measure(self.sub, v, self.faces)
+        return np.column_stack([np.asarray(vals[n], dtype=float) for n in self.slow])
+
+    def __call__(self, si, jac, rows=None):
+        rows = np.arange(len(si)) if rows is None else rows
+        n, k = si.shape
+        M = len(self.names)
+        z = self.full[rows].copy()
+        z[:, :k] = si * self.sd
+        out = np.empty((n, M))
+        J = np.zeros((n, M, k)) if jac else None
+        measured = [nm for nm in self.names if nm not in self.linear]
+        unit = dict(zip(measured, self.scale)) if self.scale is not None else {}
+        if measured:
+            v = self.model.reconstruct(z)
+            self.bodies += n
+        if self.fast:
+            res = self.measurer.measure_bodies(v, jacobian=jac)
+            vals, Jf = (res if jac else (res, None))
+            for i, nm in enumerate(self.fast):
+                out[:, self.col[nm]] = vals[:, i] * unit[nm]
+                if jac:
+                    J[:, self.col[nm]] = Jf[:, i, :k] * unit[nm] * self.sd
+        if self.slow:
+            base = self._slow_values(v)
+            cols = [self.col[nm] for nm in self.slow]
+            sc = np.array([unit[nm] for nm in self.slow])
+            out[:, cols] = base * sc
+            if jac:
+                # forward differences, stepping inward at the box
+                h = np.where(si + FD_STEP > self.max_sigma, -FD_STEP, FD_STEP)             # (n, k)
+                zz = np.repeat(z, k, axis=0)
+                zz[:, :k] += (h[:, :, None] * np.eye(k)).reshape(-1, k) * self.sd
+                moved = self._slow_values(self.model.reconstruct(zz)).reshape(n, k, -1)
+                self.bodies += n * k
+                J[:, cols] = np.swapaxes((moved - base[:, None]) / h[:, :, None], 1, 2) * sc[None, :, None]
+        for nm, (g, b) in self.linear.items():
+            g = np.asarray(g, dtype=float)
+            out[:, self.col[nm]] = b + z @ g[:z.shape[1]]
+            if jac:
+                J[:, self.col[nm]] = g[:k] * self.sd
+        out *= self.weight
+        if jac:
+            return out, J * self.weight[None, :, None]
+        return out
+
+
+def _refine_linear(evaluate, s, t, w, max_sigma, max_iter, xtol, ftol, progress=None):
+    """Projected Levenberg-Marquardt with the Jacobians of ``evaluate(s, jacobian)`` (exact for the
+    vertex encoding; the general path's analytic-plus-differenced ones), batched over requests."""
     n = len(t)
     m = evaluate(s, False)
     cost = np.sum((m - t) ** 2, axis=1) + w * np.sum(s ** 2, axis=1)
@@ -196,9 +334,9 @@ def _refine_linear(measurer, s, t, sd, w, max_sigma, max_iter, xtol, ftol, progr
         if not len(active):
             break
         sa, ta = s[active], t[active]
-        ma, J = evaluate(sa, True)
+        ma, J = evaluate(sa, True, active)
         s_new = _lm_step(J, ma - ta, sa, w, mu[active], max_sigma)
-        m_new = evaluate(s_new, False)
+        m_new = evaluate(s_new, False, active)
         c_new = np.sum((m_new - ta) ** 2, axis=1) + w * np.sum(s_new ** 2, axis=1)
         better = c_new <= cost[active]
         gain = np.where(better, cost[active] - c_new, 0.0)
