@@ -24,7 +24,7 @@ See ``_refine_decoded`` and docs/mapping.md.
 Measurements that are not differentiated analytically (slices, mass, volume, ...: any method of
 the measurement set outside ``gradients.DIFFERENTIABLE``) and linear functions of the
 coefficients (``linear``: e.g. a semantic label's linear regressor, held while the rest moves)
-take the general path, ``_refine_general``: every evaluation reconstructs the bodies (exact for
+take the general path (``_general_evaluator`` in ``_refine_linear``): every evaluation reconstructs the bodies (exact for
 either encoding) and measures them, the analytic Jacobians where there are some, forward
 differences (``k`` more bodies per request) for the rest. Each measurement has its own
 tolerance (``tolerances``, in its display units: cm for lengths, kg for mass); residuals are
@@ -107,8 +107,8 @@ class RefineResult:
 def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, measurer=None, k: int = 25,
            prior_weight: float = 1e-4, max_sigma: float = 3.0, tol_cm: float = 0.1, max_iter: int = 40,
            xtol: float = 1e-9, ftol: float = 1e-6, linearization=None, stop_cm: float | None = None,
-           update: str = "broyden", damping: float = 0.1, tolerances=None, linear=None,
-           progress=None) -> RefineResult:
+           update: str = "broyden", damping: float = 0.1, tolerances=None, linear=None, offset=None,
+           bodies=None, progress=None) -> RefineResult:
     """Refine coefficients so the bodies measure ``targets`` exactly (see the module docstring).
 
     Args:
@@ -140,6 +140,10 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
             residuals are weighted by ``tol_cm / tolerances``.
         linear: dict name -> (g (K,), b): values ``b + g . z`` that are linear in the coefficients
             (a semantic label's linear regressor), targets in the columns of ``names`` as well.
+        offset: (V, 3) added to every reconstructed body (a morphed mesh: its difference from its
+            projection); takes the general path, Jacobians unchanged.
+        bodies: ``bodies(z (n, K)) -> (n, V, 3)`` instead of ``model.reconstruct`` (a masked
+            morph); takes the general path with every Jacobian by forward differences.
         progress: ``progress(message, fraction)`` after each iteration (fraction of requests done).
 
     ``names`` may hold any measurement of ``mset`` (cm for lengths, the set's unit otherwise, e.g.
@@ -165,7 +169,10 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     mset = default_measurement_set() if mset is None else mset
     measured_names = tuple(n for n in names if n not in linear)
     fast = analytic_names(mset, measured_names) if measured_names else ()
-    general = bool(linear) or len(fast) < len(measured_names) or tolerances is not None
+    if bodies is not None:                     # dv/dz is not the model's basis: difference everything
+        fast = ()
+    general = (bool(linear) or len(fast) < len(measured_names) or tolerances is not None or offset is not None
+               or bodies is not None)
     if measurer is None and (fast or not general):
         measurer = LinearBodyMeasures.from_model(model, given_mset, fast if general else names, k,
                                                  linearization=linearization)
@@ -178,9 +185,11 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
         full = np.zeros((len(t), model.n_components))
         full[:, :min(z0.shape[1], model.n_components)] = z0[:, :model.n_components]
         evaluate = _general_evaluator(model, mset, names, fast, linear, measurer if fast else None, sd, full,
-                                      weight, max_sigma)
+                                      weight, max_sigma, offset, bodies)
+        # every evaluation reconstructs bodies: stop a request once it is within a tenth of each tolerance
+        stop = tol_cm / 10.0 if stop_cm is None else float(stop_cm)
         s, m, iters = _refine_linear(evaluate, s, t * weight, float(prior_weight), max_sigma, max_iter, xtol, ftol,
-                                     progress)
+                                     progress, stop)
         m = m / weight
         decodes = 0 if model.encoder.is_linear else int(evaluate.bodies)
     elif model.encoder.is_linear:
@@ -262,8 +271,11 @@ class _general_evaluator:
     differences, ``linear`` ones as ``b + g . z``; everything in display units times ``weight`` (M,).
     ``bodies`` counts the bodies reconstructed."""
 
-    def __init__(self, model, mset, names, fast, linear, measurer, sd, full, weight, max_sigma):
+    def __init__(self, model, mset, names, fast, linear, measurer, sd, full, weight, max_sigma, offset=None,
+                 bodies=None):
         self.model, self.names, self.fast, self.linear, self.measurer = model, names, fast, linear, measurer
+        self.offset = None if offset is None else np.asarray(offset, dtype=float)
+        self.reconstruct = model.reconstruct if bodies is None else bodies
         self.sd, self.full, self.max_sigma, self.bodies = sd, full, max_sigma, 0
         slow = [n for n in names if n not in fast and n not in linear]
         self.slow = tuple(slow)
@@ -272,6 +284,10 @@ class _general_evaluator:
         self.col = {n: j for j, n in enumerate(names)}
         self.weight = weight
         self.faces = model.faces
+
+    def _bodies(self, z):
+        v = np.asarray(self.reconstruct(z), dtype=float)
+        return v if self.offset is None else v + self.offset
 
     def _slow_values(self, v):
         vals = measure(self.sub, v, self.faces)
@@ -288,7 +304,7 @@ class _general_evaluator:
         measured = [nm for nm in self.names if nm not in self.linear]
         unit = dict(zip(measured, self.scale)) if self.scale is not None else {}
         if measured:
-            v = self.model.reconstruct(z)
+            v = self._bodies(z)
             self.bodies += n
         if self.fast:
             res = self.measurer.measure_bodies(v, jacobian=jac)
@@ -307,7 +323,7 @@ class _general_evaluator:
                 h = np.where(si + FD_STEP > self.max_sigma, -FD_STEP, FD_STEP)             # (n, k)
                 zz = np.repeat(z, k, axis=0)
                 zz[:, :k] += (h[:, :, None] * np.eye(k)).reshape(-1, k) * self.sd
-                moved = self._slow_values(self.model.reconstruct(zz)).reshape(n, k, -1)
+                moved = self._slow_values(self._bodies(zz)).reshape(n, k, -1)
                 self.bodies += n * k
                 J[:, cols] = np.swapaxes((moved - base[:, None]) / h[:, :, None], 1, 2) * sc[None, :, None]
         for nm, (g, b) in self.linear.items():
@@ -321,15 +337,16 @@ class _general_evaluator:
         return out
 
 
-def _refine_linear(evaluate, s, t, w, max_sigma, max_iter, xtol, ftol, progress=None):
+def _refine_linear(evaluate, s, t, w, max_sigma, max_iter, xtol, ftol, progress=None, stop_cm=None):
     """Projected Levenberg-Marquardt with the Jacobians of ``evaluate(s, jacobian)`` (exact for the
-    vertex encoding; the general path's analytic-plus-differenced ones), batched over requests."""
+    vertex encoding; the general path's analytic-plus-differenced ones), batched over requests.
+    ``stop_cm``: a request also stops once every residual is within it (general path)."""
     n = len(t)
     m = evaluate(s, False)
     cost = np.sum((m - t) ** 2, axis=1) + w * np.sum(s ** 2, axis=1)
     mu = np.full(n, 1e-7)          # relative to diag(H); w ~ 1e-4 << J^2, so start small
     iters = np.zeros(n, dtype=np.int64)
-    active = np.arange(n)
+    active = np.arange(n) if stop_cm is None else np.flatnonzero(np.abs(m - t).max(axis=1) > stop_cm)
     for _ in range(max_iter):
         if not len(active):
             break
@@ -347,6 +364,8 @@ def _refine_linear(evaluate, s, t, w, max_sigma, max_iter, xtol, ftol, progress=
         iters[active] += 1
         moved = np.max(np.abs(s_new - sa), axis=1)
         done = (better & ((moved < xtol) | (gain <= ftol * old))) | (mu[active] > 1e8)
+        if stop_cm is not None:
+            done |= np.abs(m[active] - ta).max(axis=1) <= stop_cm
         active = active[~done]
         if progress is not None:
             progress(f"iteration {iters.max()}: {n - len(active)}/{n} requests done", 1.0 - len(active) / n)
