@@ -66,8 +66,13 @@ from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.mapping.refine import refine
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
-from bodyspace.semantics.model import TOLERANCES, GenerationResult, SemanticModel, TargetError, tolerance
-from bodyspace.units import format_value
+from bodyspace.semantics.model import (
+    TOLERANCES,
+    GenerationResult,
+    SemanticModel,
+    TargetError,
+    tolerance,
+)
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.pca import (
     FULL_PCA_MAX_BYTES,
@@ -76,6 +81,7 @@ from bodyspace.shape.pca import (
     resolve_solver,
 )
 from bodyspace.shape.solvers import KRYLOV_DEPTH
+from bodyspace.units import format_value
 
 FORMAT = "bodyspace.BodyModel"
 FORMAT_VERSION = 2

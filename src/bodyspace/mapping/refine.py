@@ -41,7 +41,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.gradients import DIFFERENTIABLE, RUPPRECHT_SIX, LinearBodyMeasures, subset
+from bodyspace.mapping.gradients import (
+    DIFFERENTIABLE,
+    RUPPRECHT_SIX,
+    LinearBodyMeasures,
+    subset,
+)
 from bodyspace.measure import load_measurement_set, measure
 
 # RRE: after a rejected step the damping (relative to diag(H)) is at least this, so the next
