@@ -50,6 +50,7 @@ from __future__ import annotations
 import json
 import numbers
 import time
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -63,8 +64,15 @@ from bodyspace.encoding import ENCODERS
 from bodyspace.errors import BodyspaceError, ModelError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
+from bodyspace.mapping.refine import refine
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
-from bodyspace.semantics.model import SemanticModel
+from bodyspace.semantics.model import (
+    TOLERANCES,
+    GenerationResult,
+    SemanticModel,
+    TargetError,
+    tolerance,
+)
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.pca import (
     FULL_PCA_MAX_BYTES,
@@ -73,6 +81,7 @@ from bodyspace.shape.pca import (
     resolve_solver,
 )
 from bodyspace.shape.solvers import KRYLOV_DEPTH
+from bodyspace.units import format_value
 from bodyspace.validation import as_seed
 
 FORMAT = "bodyspace.BodyModel"
@@ -94,7 +103,23 @@ ENCODER_FIT_MAX_SCANS = 64
 ENCODE_BATCH = 64
 _ZIP_MAGIC = b"PK\x03\x04"
 
-__all__ = ["BodyModel", "ModelError", "FORMAT_VERSION", "FULL_PCA_MAX_BYTES", "MAX_DEFAULT_COMPONENTS"]
+# Requested lengths of the measurement set (waist_size, thigh_girth_l, ...) are met to this by the
+# exact refinement after the semantic closed loop; labels keep their closed-loop tolerances
+# (semantics.model.TOLERANCES: stature 4 mm, mass 0.5 kg).
+EXACT_LENGTH_TOLERANCE = 0.001
+
+__all__ = ["BodyModel", "ModelError", "FORMAT_VERSION", "FULL_PCA_MAX_BYTES", "MAX_DEFAULT_COMPONENTS",
+           "EXACT_LENGTH_TOLERANCE", "request_tolerance"]
+
+
+def request_tolerance(semantics, name: str) -> float:
+    """Tolerance (SI) a generated or morphed body meets ``name`` to: 1 mm for a length of the
+    measurement set that is not a label with its own tolerance (stature 4 mm), else the
+    closed loop's (``semantics.model.tolerance``)."""
+    by_name = {m["name"]: m for m in semantics.mset.measurements}
+    if name in by_name and by_name[name]["unit"] == "m" and name not in TOLERANCES:
+        return EXACT_LENGTH_TOLERANCE
+    return tolerance(name)
 
 
 def _float32_exact(a: np.ndarray) -> np.ndarray:
@@ -290,6 +315,111 @@ class BodyModel:
         returns self. ``rng``: Generator, seed or None. See ``mapping.bundle.fit_mapping``."""
         self.mapping = fit_mapping(self, samples, k, seed=as_seed(rng), n_trees=n_trees, progress=progress)
         return self
+
+    # ------------------------------------------------------------------ requests (semantics + exact refinement)
+    def _semantics(self) -> SemanticModel:
+        if self.semantics is None:
+            raise ParameterError("this BodyModel has no semantic regressors; fit them with "
+                                 "model.semantics = SemanticModel(model).fit(db) (CLI: --database DB)")
+        return self.semantics
+
+    def generate(self, targets: dict, rng=None, sigma_range: float = 2.0,
+                 accept_misses: bool = False) -> GenerationResult:
+        """A random body that measures ``targets`` (``SemanticModel.generate``: name -> SI value,
+        (lo, hi) or ``Target``): the semantic closed loop meets the labels, then, when a length of
+        the measurement set is asked (waist_size, ...), the exact refinement meets it to 1 mm
+        jointly with the other requests (``_meet_exactly``)."""
+        sm = self._semantics()
+        result = sm.generate(targets, rng=rng, sigma_range=sigma_range, defer_misses=self._asks_lengths(targets))
+        return self._meet_exactly(result, accept_misses=accept_misses)
+
+    def morph(self, vertices, changes: dict, keep=(), mask=None, accept_misses: bool = False) -> GenerationResult:
+        """``SemanticModel.morph``, then the exact refinement of asked lengths as in ``generate``
+        (on the morphed mesh: the model's body plus the mesh's own detail, or, within a mask,
+        the masked blend of the change)."""
+        sm = self._semantics()
+        asked = {**dict(changes), **{name: name for name in keep}}
+        result = sm.morph(vertices, changes, keep=keep, mask=mask, defer_misses=self._asks_lengths(asked))
+        x0 = np.asarray(vertices, dtype=float)
+        d0 = np.asarray(self.reconstruct(sm._project(x0).reshape(-1)))[0]
+        weights = sm.mask_weights(mask)
+        if weights is None:
+            return self._meet_exactly(result, offset=x0 - d0, accept_misses=accept_misses)
+        blend = sm._masked_blend(weights)
+
+        def bodies(z):
+            return np.array([x0 + blend(v - d0) for v in np.asarray(self.reconstruct(z))])
+        return self._meet_exactly(result, bodies=bodies, accept_misses=accept_misses)
+
+    def crowd(self, n: int, targets: dict, rng=None, progress=None, accept_misses: bool = False) -> list:
+        """``n`` bodies meeting ``targets`` (values or ranges) as ``generate`` does, the rest random."""
+        gen = np.random.default_rng(rng)
+        out = []
+        for i in range(int(n)):
+            out.append(self.generate(targets, rng=gen, accept_misses=accept_misses))
+            if progress:
+                progress(f"body {i + 1}/{n}", (i + 1) / n)
+        return out
+
+    def _asks_lengths(self, targets) -> bool:
+        """Does the request name a length the exact refinement meets (``request_tolerance``)?"""
+        return isinstance(targets, dict) and any(
+            request_tolerance(self.semantics, getattr(t, "name", n)) == EXACT_LENGTH_TOLERANCE
+            for n, t in targets.items())
+
+    def _meet_exactly(self, result: GenerationResult, offset=None, bodies=None,
+                      accept_misses: bool = False) -> GenerationResult:
+        """The closed loop's ``result`` refined (``mapping.refine.refine``, general path) until the
+        asked lengths of the measurement set are within ``EXACT_LENGTH_TOLERANCE``, jointly with
+        every other request at its own tolerance: measured labels (stature, mass) measured on the
+        body, the others (sex, age, ...) as their regressors linearized at the body (exact for the
+        linear regressors). Unchanged when no such length is asked. A miss raises ``TargetError``
+        naming it, unless ``accept_misses`` or the semantic model clamps (then a warning)."""
+        sm = self._semantics()
+        exact = [n for n in result.targets if request_tolerance(sm, n) == EXACT_LENGTH_TOLERANCE]
+        if not exact:
+            return result
+        by_name = {m["name"]: m for m in sm.mset.measurements}
+        c = np.asarray(result.coefficients, dtype=float)
+        names, goal, tols, scale, linear = [], [], [], [], {}
+        for name, value in result.targets.items():
+            f = 100.0 if name in by_name and by_name[name]["unit"] == "m" else 1.0
+            if name not in by_name:
+                reg = sm._regressor(name)
+                g = np.asarray(reg.gradient(c), dtype=float)
+                linear[name] = (g, float(reg.predict(c)) - float(g @ c))
+            names.append(name)
+            goal.append(value * f)
+            tols.append(request_tolerance(sm, name) * f)
+            scale.append(f)
+        t0 = time.perf_counter()
+        r = refine(self, c, np.array(goal), names, mset=sm.mset, k=self.n_components, max_sigma=sm.sigma_limit,
+                   tolerances=np.array(tols), linear=linear, offset=offset, bodies=bodies)
+        z = np.asarray(r.coefficients, dtype=float)
+        if bodies is not None:
+            v = np.asarray(bodies(z[None]))[0]
+        else:
+            v = np.asarray(self.reconstruct(z))[0] + (0.0 if offset is None else offset)
+        values = {n: float(m / f) for n, m, f in zip(names, r.measured, scale)}
+        messages = list(result.messages)
+        timings = dict(result.timings)
+        timings["refine"] = time.perf_counter() - t0
+        converged = not r.misses[0]
+        if not converged:
+            miss = ", ".join(f"{n} {format_value(n, values[n])} (asked {format_value(n, result.targets[n])}, "
+                             f"tolerance {format_value(n, request_tolerance(sm, n))})" for n in r.misses[0])
+            msg = (f"not met by the exact refinement: {miss}; no body within {sm.sigma_limit:g} SD measures all of "
+                   "the request (ask for less, or fewer constraints)")
+            if not (accept_misses or sm.on_infeasible == "clamp"):
+                raise TargetError(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
+            messages.append(msg)
+        measured = sm._measure(v, list(result.measurements)) if result.measurements else {}
+        start = c if result.start is None else np.asarray(result.start, dtype=float)
+        maha = float(np.sqrt(np.sum((z[:len(start)] - start) ** 2 / np.maximum(sm.variances, 1e-300))))
+        return GenerationResult(z, v, values, dict(result.targets), converged,
+                                result.iterations + int(r.iterations[0]), maha, timings, messages,
+                                {k: float(val) for k, val in measured.items()}, start)
 
     def __repr__(self) -> str:
         return (f"BodyModel({self.encoding}, {self.n_components} components, fitted on {len(self.fitted_scans)} "

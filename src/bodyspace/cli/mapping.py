@@ -1,5 +1,6 @@
 """``bodyspace mapping fit | shape | evaluate``: Rupprecht et al.'s measurements-to-shape mapping
-stored in a model file, bodies from six measurements, and Rupprecht Tables 1-2 / Rupprecht Figures 4 and 6."""
+stored in a model file, bodies from any of the measurement set's lengths (met to 1 mm by the
+exact refinement, or refused), and Rupprecht Tables 1-2 / Rupprecht Figures 4 and 6."""
 
 from __future__ import annotations
 
@@ -61,18 +62,23 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
 
 
 def mapping_shape(model: Path = typer.Argument(..., help="A BodyModel file with a mapping (bodyspace mapping fit)."),
-                  assignments: List[str] = typer.Option(..., "--set", help="A measurement, e.g. height=175cm; "
-                                                                           "every one of the mapping's six."),
+                  assignments: List[str] = typer.Option(..., "--set", help="A length of the measurement set, e.g. "
+                                                                           "height=175cm, waist_size=80cm, "
+                                                                           "shoulder_width=38cm (any subset; the "
+                                                                           "mapping's inputs not given are drawn "
+                                                                           "from the population)."),
                   out: Path = typer.Option(..., "--out", "-o", help="Mesh file (.obj, .ply, .glb)."),
                   refine_body: bool = typer.Option(True, "--refine/--no-refine",
                                                    help="Refine the forest's body until it measures the request."),
                   accept_misses: bool = typer.Option(False, "--accept-misses",
                                                      help="Write the body even if it misses a request by more than "
                                                           "the refinement's tolerance (exit 0)."),
+                  seed: int = SeedOption("Seed of the mapping's inputs drawn from the population (an integer >= 0)."),
                   force: bool = ForceOption):
-    """A body from Rupprecht's six measurements: the forest's prediction, then exact refinement.
+    """A body that measures the given lengths to 1 mm: the forest's prediction (inputs not given
+    drawn from the population given the others), then exact refinement.
 
-    A body that misses a request is not written (exit 2) unless --accept-misses."""
+    A body that misses a request by more than 1 mm is not written (exit 2) unless --accept-misses."""
     check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
         body_model = BodyModel.load(model)
@@ -87,15 +93,21 @@ def mapping_shape(model: Path = typer.Argument(..., help="A BodyModel file with 
             if t.name in targets:
                 raise UnitError(f"--set {t.name}: asked twice ({text!r} after an earlier value); give each name once")
             targets[t.name] = 100.0 * t.value
-        result = mapping.shape(body_model, targets, refine_result=refine_body)
+        result = mapping.shape(body_model, targets, refine_result=refine_body, rng=seed)
+        drawn = {n: v for n, v in zip(mapping.names, mapping.inputs(body_model, targets, seed)[0])
+                 if n not in targets}
     except BodyspaceError as exc:
         _fail(console, exc)
-    for name, asked, got in zip(mapping.names, result.targets[0], result.measured[0]):
+    for name, asked, got in zip(result.names, result.targets[0], result.measured[0]):
         out_console.print(f"{name:15s} asked {asked:7.2f} cm  measures {got:7.2f} cm", highlight=False)
+    if drawn:
+        console.print("the forest's other inputs, drawn from the population given these: "
+                      + ", ".join(f"{n} {v:.1f} cm" for n, v in drawn.items()), soft_wrap=True, highlight=False)
     missed = result.misses[0] if result.misses else {}
     if missed:
         console.print("[yellow]missed:[/yellow] " + ", ".join(f"{k} by {v['difference']:+.2f} cm"
-                                                               for k, v in missed.items()), highlight=False)
+                                                               for k, v in missed.items())
+                      + " (tolerance 0.10 cm)", highlight=False)
         if not accept_misses:
             _fail(console, BodyspaceError(f"the body misses {len(missed)} of the requested measurements (above); "
                                           f"{out} not written; pass --accept-misses to write it anyway"))

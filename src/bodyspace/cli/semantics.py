@@ -39,14 +39,14 @@ from bodyspace.errors import BodyspaceError
 from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
 from bodyspace.mesh.io import load_mesh, save_mesh
-from bodyspace.model import BodyModel
+from bodyspace.model import BodyModel, request_tolerance
 from bodyspace.report.render import contact_sheet
 from bodyspace.semantics.evaluation import (
     RegressionTable,
     format_angle_table,
     format_rmse_table,
 )
-from bodyspace.semantics.model import SemanticModel, semantics_path, tolerance
+from bodyspace.semantics.model import SemanticModel, semantics_path
 from bodyspace.units import (
     ALIASES,
     UnitError,
@@ -68,6 +68,9 @@ SetOption = typer.Option(None, "--set", help="NAME=VALUE with units, e.g. statur
                                              "waist_size=80cm, thigh_girth_l=55cm (any length of the measurement "
                                              "set), stature=+5cm (morph), stature=155:185cm (a range).")
 RangeOption = typer.Option(None, "--range", help="NAME=LOW:HIGH with units, e.g. stature=155:185cm.")
+AcceptMissesOption = typer.Option(False, "--accept-misses", help="Write the body even if the exact refinement "
+                                                                 "misses an asked length by more than 1 mm (a "
+                                                                 "warning says by how much).")
 
 
 # The shared error exit, progress bar and warning report (cli.common), under this module's names.
@@ -133,7 +136,7 @@ def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
     return out
 
 
-def _result_table(title: str, result) -> Table:
+def _result_table(title: str, result, sm) -> Table:
     table = Table(title=title)
     for col in ("variable", "asked", "reached", "off by", "tolerance"):
         table.add_column(col, justify="left" if col == "variable" else "right")
@@ -141,7 +144,7 @@ def _result_table(title: str, result) -> Table:
         got = result.values[name]
         table.add_row(name, format_value(name, goal), format_value(name, got),
                       format_value(name, got - goal) if name != "sex" else f"{got - goal:+.3f}",
-                      format_value(name, tolerance(name)) if name != "sex" else "0.001")
+                      format_value(name, request_tolerance(sm, name)) if name != "sex" else "0.001")
     return table
 
 
@@ -198,9 +201,9 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
              seed: int = SeedOption("Random seed for what is not asked (an integer >= 0)."),
              clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
-             force: bool = ForceOption):
-    """A body that measures what is asked (labels such as stature, mass, sex, and any length of the measurement set,
-    e.g. waist_size, shoulder_width: within 4 mm stature / 0.5 kg / 9 mm lengths); the rest at random."""
+             accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
+    """A body that measures what is asked (labels such as stature, mass, sex within 4 mm / 0.5 kg, and any length of
+    the measurement set, e.g. waist_size, shoulder_width, within 1 mm by exact refinement); the rest at random."""
     check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
         if not sets and not ranges:
@@ -209,12 +212,12 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
         targets = _targets(sets, ranges, allow_delta=False, sm=sm)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
-            result = sm.generate(targets, rng=seed)
+            result = sm.body_model.generate(targets, rng=seed, accept_misses=accept_misses)
         _save_mesh(out, result.vertices, sm.body_model.faces)
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
-    out_console.print(_result_table(f"generated {out.name}", result))
+    out_console.print(_result_table(f"generated {out.name}", result, sm))
     out_console.print(f"wrote {out}: {result.iterations} correction(s), {result.mahalanobis:.2f} SD from the random "
                       "start", highlight=False)
 
@@ -227,7 +230,7 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
                                                    "lower_body, arms, legs, torso, head, left, right (repeatable)."),
           out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
           clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
-          force: bool = ForceOption):
+          accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
     check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
@@ -241,12 +244,14 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
                                  f"({len(sm.body_model.template_vertices)} vertices, {len(sm.body_model.faces)} faces)")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
-            result = sm.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None)
+            result = sm.body_model.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None,
+                                         accept_misses=accept_misses)
         _save_mesh(out, result.vertices, f)
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
-    out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result))
+    out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result,
+                                    sm))
     moved = np.linalg.norm(result.vertices - v, axis=1)
     out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm",
                       highlight=False)
@@ -261,7 +266,7 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
           seed: int = SeedOption(),
           png: bool = typer.Option(True, "--png/--no-png", help="Write the line-up lineup.png."),
           clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
-          force: bool = ForceOption):
+          accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
     """A crowd meeting the request (values or ranges), the rest random: meshes, a CSV of measurements, a PNG line-up."""
     check_folder_output(out, "--out", force, CROWD_KIND)
     try:
@@ -273,7 +278,8 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
                 output_folder(out, "--out", force, CROWD_KIND) as folder:
             warnings.simplefilter("always", RuntimeWarning)
             # nothing asked: random bodies from the shape-only model
-            results = sm.crowd(n, targets, rng=seed, progress=lambda m, f: cb(m, 0.8 * f)) if targets else []
+            results = (sm.body_model.crowd(n, targets, rng=seed, progress=lambda m, f: cb(m, 0.8 * f),
+                                           accept_misses=accept_misses) if targets else [])
             bodies = (np.array([r.vertices for r in results]) if results
                       else sm.body_model.sample(n, sigma_range=2.0, rng=seed))
             names = [f"body_{i:03d}.{fmt.lower()}" for i in range(n)]

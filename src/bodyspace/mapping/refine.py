@@ -21,8 +21,17 @@ at the decoded body chained with a linearization of the decoder
 steps taken, a damping floor, and, once for a stalled request, finite differences at its body.
 See ``_refine_decoded`` and docs/mapping.md.
 
+Measurements that are not differentiated analytically (slices, mass, volume, ...: any method of
+the measurement set outside ``gradients.DIFFERENTIABLE``) and linear functions of the
+coefficients (``linear``: e.g. a semantic label's linear regressor, held while the rest moves)
+take the general path (``_general_evaluator`` in ``_refine_linear``): every evaluation reconstructs the bodies (exact for
+either encoding) and measures them, the analytic Jacobians where there are some, forward
+differences (``k`` more bodies per request) for the rest. Each measurement has its own
+tolerance (``tolerances``, in its display units: cm for lengths, kg for mass); residuals are
+weighted by ``tol_cm / tolerance`` so that every measurement is met to the same fraction of it.
+
 A request no body in the box can meet gets the closest plausible body and a report of the
-measurements it misses by more than ``tol_cm``, and by how much.
+measurements it misses by more than its tolerance, and by how much.
 """
 
 from __future__ import annotations
@@ -32,7 +41,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
+from bodyspace.mapping.gradients import (
+    DIFFERENTIABLE,
+    RUPPRECHT_SIX,
+    LinearBodyMeasures,
+    subset,
+)
+from bodyspace.measure import load_measurement_set, measure
 
 # RRE: after a rejected step the damping (relative to diag(H)) is at least this, so the next
 # step is shorter at once instead of after ~6 rejections (each costs a decode).
@@ -44,6 +59,36 @@ REFRESH_STEP = 0.01
 # RRE: a request whose accepted step lowers the cost by less than this (relative) has stalled
 # (each further step costs a decode; the vertex path uses ``ftol``).
 RRE_FTOL = 1e-3
+# General path: forward-difference step (sigma) of the measurements not differentiated analytically.
+FD_STEP = 1e-3
+# General path: a request's differenced Jacobian is reused for this many iterations (chord
+# steps; residuals are always measured on the true bodies), then differenced again. Slices and
+# mass are smooth in the coefficients; differencing every iteration tripled generate's time.
+FD_REUSE = 8
+
+
+_DEFAULT_MSET = []
+
+
+def default_measurement_set():
+    """The hm08 measurement set, read once per process (refinement asks for it per request)."""
+    if not _DEFAULT_MSET:
+        _DEFAULT_MSET.append(load_measurement_set())
+    return _DEFAULT_MSET[0]
+
+
+def analytic_names(mset, names) -> tuple:
+    """The ``names`` whose Jacobians ``LinearBodyMeasures`` writes out (loops about the up axis,
+    distances, paths); the rest are differenced (``refine``'s general path)."""
+    by_name = {m["name"]: m for m in subset(mset, names).measurements}
+    return tuple(n for n in names if by_name[n]["method"] in DIFFERENTIABLE
+                 and (by_name[n]["method"] != "loop" or by_name[n].get("axis", "up") == "up"))
+
+
+def display_scale(mset, names) -> np.ndarray:
+    """(M,) factor from SI to the units refinement works in: cm for lengths (unit "m"), else 1."""
+    by_name = {m["name"]: m for m in subset(mset, names).measurements}
+    return np.array([100.0 if by_name[n]["unit"] == "m" else 1.0 for n in names])
 
 
 @dataclass
@@ -71,7 +116,8 @@ class RefineResult:
 def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, measurer=None, k: int = 25,
            prior_weight: float = 1e-4, max_sigma: float = 3.0, tol_cm: float = 0.1, max_iter: int = 40,
            xtol: float = 1e-9, ftol: float = 1e-6, linearization=None, stop_cm: float | None = None,
-           update: str = "broyden", damping: float = 0.1, progress=None) -> RefineResult:
+           update: str = "broyden", damping: float = 0.1, tolerances=None, linear=None, offset=None,
+           bodies=None, progress=None) -> RefineResult:
     """Refine coefficients so the bodies measure ``targets`` exactly (see the module docstring).
 
     Args:
@@ -99,7 +145,18 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
             only the prior acts) changes the true measurements a lot: with this floor the body
             moves only slowly toward the mean there, and each iteration mostly fixes the
             measurements (3-6 iterations instead of 5-11, measured).
+        tolerances: (M,) per-measurement tolerance in the targets' units (default ``tol_cm`` for each);
+            residuals are weighted by ``tol_cm / tolerances``.
+        linear: dict name -> (g (K,), b): values ``b + g . z`` that are linear in the coefficients
+            (a semantic label's linear regressor), targets in the columns of ``names`` as well.
+        offset: (V, 3) added to every reconstructed body (a morphed mesh: its difference from its
+            projection); takes the general path, Jacobians unchanged.
+        bodies: ``bodies(z (n, K)) -> (n, V, 3)`` instead of ``model.reconstruct`` (a masked
+            morph); takes the general path with every Jacobian by forward differences.
         progress: ``progress(message, fraction)`` after each iteration (fraction of requests done).
+
+    ``names`` may hold any measurement of ``mset`` (cm for lengths, the set's unit otherwise, e.g.
+    kg); those outside ``analytic_names`` and ``linear`` send the request down the general path.
     """
     z0 = np.asarray(coefficients0, dtype=float)
     t = np.asarray(targets, dtype=float)
@@ -113,15 +170,41 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
         raise ParameterError("targets / coefficients0: contain NaN or infinity, expected finite numbers")
     if update not in ("broyden", "chain"):
         raise ParameterError(f"update={update!r}, expected 'broyden' or 'chain'")
-    if measurer is None:
-        measurer = LinearBodyMeasures.from_model(model, mset, names, k, linearization=linearization)
-    k = measurer.n_coefficients
+    linear = dict(linear or {})
+    tol = np.full(len(names), float(tol_cm)) if tolerances is None else np.asarray(tolerances, dtype=float)
+    if tol.shape != (len(names),) or not np.all(tol > 0):
+        raise ParameterError(f"tolerances: {tolerances!r}, expected {len(names)} positive values (one per name)")
+    given_mset = mset                          # None: LinearBodyMeasures' cache key for the default set
+    mset = default_measurement_set() if mset is None else mset
+    measured_names = tuple(n for n in names if n not in linear)
+    fast = analytic_names(mset, measured_names) if measured_names else ()
+    if bodies is not None:                     # dv/dz is not the model's basis: difference everything
+        fast = ()
+    general = (bool(linear) or len(fast) < len(measured_names) or tolerances is not None or offset is not None
+               or bodies is not None)
+    if measurer is None and (fast or not general):
+        measurer = LinearBodyMeasures.from_model(model, given_mset, fast if general else names, k,
+                                                 linearization=linearization)
+    k = min(measurer.n_coefficients if measurer is not None else int(k), model.n_components)
     sd = np.sqrt(model.space.explained_variance_[:k])
     s = np.clip(z0[:, :k] / sd, -max_sigma, max_sigma)
-    if model.encoder.is_linear:
+    if general:
         decodes = 0
-        s, m, iters = _refine_linear(measurer, s, t, sd, float(prior_weight), max_sigma, max_iter, xtol, ftol,
-                                      progress)
+        weight = float(tol_cm) / tol
+        full = np.zeros((len(t), model.n_components))
+        full[:, :min(z0.shape[1], model.n_components)] = z0[:, :model.n_components]
+        evaluate = _general_evaluator(model, mset, names, fast, linear, measurer if fast else None, sd, full,
+                                      weight, max_sigma, offset, bodies)
+        # every evaluation reconstructs bodies: stop a request once it is within a tenth of each tolerance
+        stop = tol_cm / 10.0 if stop_cm is None else float(stop_cm)
+        s, m, iters = _refine_linear(evaluate, s, t * weight, float(prior_weight), max_sigma, max_iter, xtol, ftol,
+                                     progress, stop)
+        m = m / weight
+        decodes = 0 if model.encoder.is_linear else int(evaluate.bodies)
+    elif model.encoder.is_linear:
+        decodes = 0
+        s, m, iters = _refine_linear(_linear_evaluator(measurer, sd), s, t, float(prior_weight), max_sigma,
+                                     max_iter, xtol, ftol, progress)
     else:
         stop = tol_cm / 10.0 if stop_cm is None else float(stop_cm)
         full = np.zeros((len(t), model.n_components))          # coefficients beyond k stay as given
@@ -135,8 +218,9 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     misses = []
     for i in range(n):
         d = m[i] - t[i]
-        misses.append({names[j]: {"requested": float(t[i, j]), "measured": float(m[i, j]), "difference": float(d[j])}
-                       for j in np.flatnonzero(np.abs(d) > tol_cm)})
+        misses.append({names[j]: {"requested": float(t[i, j]), "measured": float(m[i, j]), "difference": float(d[j]),
+                                  "tolerance": float(tol[j])}
+                       for j in np.flatnonzero(np.abs(d) > tol)})
     res = RefineResult(z, m, t, names, iters, np.linalg.norm(s, axis=1), misses, decodes)
     if single:
         res = RefineResult(z[0], m[0], t[0], names, iters[:1], res.sigma_distance[:1], misses, decodes)
@@ -176,29 +260,122 @@ def _lm_step(J, r, sa, w, mu, max_sigma, floor: float = 0.0, bound_passes: int =
     return np.clip(s_new, -max_sigma, max_sigma)
 
 
-def _refine_linear(measurer, s, t, sd, w, max_sigma, max_iter, xtol, ftol, progress=None):
-    """Vertex encoding: exact Jacobians of ``v = base + z C``; one pass over the touched vertices per iteration."""
+def _linear_evaluator(measurer, sd):
+    """Vertex encoding: ``evaluate(s (n, k) sigma, jacobian)`` -> cm (n, M) [, cm per sigma (n, M, k)]
+    from the exact Jacobians of ``v = base + z C``; one pass over the touched vertices."""
     scale = 100.0                                                    # metres -> cm
 
-    def evaluate(si, jac):
+    def evaluate(si, jac, rows=None):
         out = measurer(si * sd, jacobian=jac)
         if jac:
             return out[0] * scale, out[1] * scale * sd
         return out * scale
+    return evaluate
 
+
+class _general_evaluator:
+    """``evaluate(s, jacobian, rows)`` of the general path: bodies reconstructed (coefficients
+    beyond ``k`` from ``full`` (n, K)), the ``fast`` names measured with their analytic Jacobians
+    (``measurer.measure_bodies``), the other measured names with ``measure.measure`` and forward
+    differences, ``linear`` ones as ``b + g . z``; everything in display units times ``weight`` (M,).
+    ``bodies`` counts the bodies reconstructed."""
+
+    def __init__(self, model, mset, names, fast, linear, measurer, sd, full, weight, max_sigma, offset=None,
+                 bodies=None):
+        self.model, self.names, self.fast, self.linear, self.measurer = model, names, fast, linear, measurer
+        self.offset = None if offset is None else np.asarray(offset, dtype=float)
+        self.reconstruct = model.reconstruct if bodies is None else bodies
+        self.sd, self.full, self.max_sigma, self.bodies = sd, full, max_sigma, 0
+        slow = [n for n in names if n not in fast and n not in linear]
+        self.slow = tuple(slow)
+        self.sub = subset(mset, slow) if slow else None
+        self.scale = display_scale(mset, [n for n in names if n not in linear]) if len(linear) < len(names) else None
+        self.col = {n: j for j, n in enumerate(names)}
+        self.weight = weight
+        self.faces = model.faces
+        self.slow_jac = {}                     # row -> (uses left, (Ms, k) differenced Jacobian, display units)
+
+    def _bodies(self, z):
+        v = np.asarray(self.reconstruct(z), dtype=float)
+        return v if self.offset is None else v + self.offset
+
+    def _slow_values(self, v):
+        vals = measure(self.sub, v, self.faces)
+        return np.column_stack([np.asarray(vals[n], dtype=float) for n in self.slow])
+
+    def __call__(self, si, jac, rows=None):
+        rows = np.arange(len(si)) if rows is None else rows
+        n, k = si.shape
+        M = len(self.names)
+        z = self.full[rows].copy()
+        z[:, :k] = si * self.sd
+        out = np.empty((n, M))
+        J = np.zeros((n, M, k)) if jac else None
+        measured = [nm for nm in self.names if nm not in self.linear]
+        unit = dict(zip(measured, self.scale)) if self.scale is not None else {}
+        # a linear encoding, nothing differenced and no offset: the touched vertices suffice
+        direct = self.model.encoder.is_linear and not self.slow and self.offset is None and self.reconstruct is \
+            self.model.reconstruct and self.measurer is not None and k == self.measurer.n_coefficients
+        if measured and not direct:
+            v = self._bodies(z)
+            self.bodies += n
+        if self.fast:
+            res = self.measurer(z[:, :k], jacobian=jac) if direct else self.measurer.measure_bodies(v, jacobian=jac)
+            vals, Jf = (res if jac else (res, None))
+            for i, nm in enumerate(self.fast):
+                out[:, self.col[nm]] = vals[:, i] * unit[nm]
+                if jac:
+                    J[:, self.col[nm]] = Jf[:, i, :k] * unit[nm] * self.sd
+        if self.slow:
+            base = self._slow_values(v)
+            cols = [self.col[nm] for nm in self.slow]
+            sc = np.array([unit[nm] for nm in self.slow])
+            out[:, cols] = base * sc
+            if jac:
+                stale = np.array([self.slow_jac.get(int(r), (0, None))[0] <= 0 for r in rows])
+                if stale.any():
+                    # forward differences, stepping inward at the box
+                    ns = int(stale.sum())
+                    h = np.where(si[stale] + FD_STEP > self.max_sigma, -FD_STEP, FD_STEP)     # (ns, k)
+                    zz = np.repeat(z[stale], k, axis=0)
+                    zz[:, :k] += (h[:, :, None] * np.eye(k)).reshape(-1, k) * self.sd
+                    moved = self._slow_values(self._bodies(zz)).reshape(ns, k, -1)
+                    self.bodies += ns * k
+                    fresh = np.swapaxes((moved - base[stale][:, None]) / h[:, :, None], 1, 2) * sc[None, :, None]
+                    for r, Jr in zip(rows[stale], fresh):
+                        self.slow_jac[int(r)] = (FD_REUSE, Jr)
+                for i, r in enumerate(rows):
+                    left, Jr = self.slow_jac[int(r)]
+                    J[i, cols] = Jr
+                    self.slow_jac[int(r)] = (left - 1, Jr)
+        for nm, (g, b) in self.linear.items():
+            g = np.asarray(g, dtype=float)
+            out[:, self.col[nm]] = b + z @ g[:z.shape[1]]
+            if jac:
+                J[:, self.col[nm]] = g[:k] * self.sd
+        out *= self.weight
+        if jac:
+            return out, J * self.weight[None, :, None]
+        return out
+
+
+def _refine_linear(evaluate, s, t, w, max_sigma, max_iter, xtol, ftol, progress=None, stop_cm=None):
+    """Projected Levenberg-Marquardt with the Jacobians of ``evaluate(s, jacobian)`` (exact for the
+    vertex encoding; the general path's analytic-plus-differenced ones), batched over requests.
+    ``stop_cm``: a request also stops once every residual is within it (general path)."""
     n = len(t)
     m = evaluate(s, False)
     cost = np.sum((m - t) ** 2, axis=1) + w * np.sum(s ** 2, axis=1)
     mu = np.full(n, 1e-7)          # relative to diag(H); w ~ 1e-4 << J^2, so start small
     iters = np.zeros(n, dtype=np.int64)
-    active = np.arange(n)
+    active = np.arange(n) if stop_cm is None else np.flatnonzero(np.abs(m - t).max(axis=1) > stop_cm)
     for _ in range(max_iter):
         if not len(active):
             break
         sa, ta = s[active], t[active]
-        ma, J = evaluate(sa, True)
+        ma, J = evaluate(sa, True, active)
         s_new = _lm_step(J, ma - ta, sa, w, mu[active], max_sigma)
-        m_new = evaluate(s_new, False)
+        m_new = evaluate(s_new, False, active)
         c_new = np.sum((m_new - ta) ** 2, axis=1) + w * np.sum(s_new ** 2, axis=1)
         better = c_new <= cost[active]
         gain = np.where(better, cost[active] - c_new, 0.0)
@@ -209,6 +386,8 @@ def _refine_linear(measurer, s, t, sd, w, max_sigma, max_iter, xtol, ftol, progr
         iters[active] += 1
         moved = np.max(np.abs(s_new - sa), axis=1)
         done = (better & ((moved < xtol) | (gain <= ftol * old))) | (mu[active] > 1e8)
+        if stop_cm is not None:
+            done |= np.abs(m[active] - ta).max(axis=1) <= stop_cm
         active = active[~done]
         if progress is not None:
             progress(f"iteration {iters.max()}: {n - len(active)}/{n} requests done", 1.0 - len(active) / n)

@@ -31,6 +31,7 @@ from bodyspace.mapping.gradients import (
     LinearBodyMeasures,
     subset,
 )
+from bodyspace.measure import load_measurement_set, measure
 
 CHUNK = 256
 # RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.
@@ -87,7 +88,6 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
     RRE models decode every body; pass ``linearization`` (a ``DecoderLinearization``) to have
     it accumulate the decoded bodies on the way (``partial_fit``).
     """
-    from bodyspace.measure import load_measurement_set, measure
     mset = load_measurement_set() if mset is None else mset
     names = tuple(names)
     by_name = {m["name"]: m for m in subset(mset, names).measurements}

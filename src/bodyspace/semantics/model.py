@@ -103,7 +103,8 @@ class GenerationResult:
     was measured, every core measured label). targets: label ->
     value asked (after ranges were resolved and clamping). converged: every label within its
     tolerance. iterations: closed-loop corrections taken. mahalanobis: ``sqrt(sum c_k^2/var_k)``
-    of the step from the start. timings: seconds in decode, measure, solve. messages: warnings.
+    of the step from the start. timings: seconds in decode, measure, solve (and refine, when the
+    exact refinement ran). messages: warnings. start: (K,) the coefficients the loop started from.
     """
 
     coefficients: np.ndarray
@@ -116,6 +117,7 @@ class GenerationResult:
     timings: dict = field(default_factory=dict)
     messages: list = field(default_factory=list)
     measurements: dict = field(default_factory=dict)
+    start: np.ndarray | None = None
 
     def residuals(self) -> dict:
         return {k: self.values[k] - v for k, v in self.targets.items()}
@@ -294,9 +296,10 @@ class SemanticModel:
         return x
 
     # ------------------------------------------------------------------ the closed loop
-    def _solve(self, c0, goal: dict, body, timings, messages, current=None) -> GenerationResult:
+    def _solve(self, c0, goal: dict, body, timings, messages, current=None, defer_misses=False) -> GenerationResult:
         """``closed_loop`` from ``c0`` to ``goal`` (name -> SI value), with this model's
-        regressors, tolerances and ``on_infeasible`` policy for a miss."""
+        regressors, tolerances and ``on_infeasible`` policy for a miss (``defer_misses``: neither
+        raised nor warned, ``converged`` False: the caller refines further and judges)."""
         names = list(goal)
         g = np.array([goal[n] for n in names], dtype=float)
         grads = np.array([self._regressor(n).gradient(c0) for n in names], dtype=float)
@@ -310,10 +313,13 @@ class SemanticModel:
                              for n, v, gv, m in zip(names, vals, g, loop.missed) if m)
             msg = (f"not met after {loop.iterations} corrections: {miss}; the request is probably not jointly "
                    "reachable (ask for less, or fewer constraints)")
-            if self.on_infeasible == "raise":
+            if defer_misses:
+                pass
+            elif self.on_infeasible == "raise":
                 raise TargetError(msg)
-            warnings.warn(msg, RuntimeWarning, stacklevel=3)
-            messages.append(msg)
+            else:
+                warnings.warn(msg, RuntimeWarning, stacklevel=3)
+                messages.append(msg)
         missing = [n for n in self.measured_ if n not in meas]
         if meas and missing:  # the result reports every measured label: the rest once, on the final body
             t = time.perf_counter()
@@ -323,15 +329,18 @@ class SemanticModel:
         maha = float(np.sqrt(np.sum((loop.coefficients - np.asarray(c0, dtype=float)) ** 2 * metric)))
         return GenerationResult(loop.coefficients, loop.vertices, dict(zip(names, vals.tolist())),
                                 dict(zip(names, g.tolist())), loop.converged, loop.iterations, maha,
-                                dict(timings), messages, {k: float(v) for k, v in meas.items()})
+                                dict(timings), messages, {k: float(v) for k, v in meas.items()},
+                                np.asarray(c0, dtype=float))
 
     # ------------------------------------------------------------------ generate
-    def generate(self, targets: dict, rng=None, sigma_range: float = 2.0) -> GenerationResult:
+    def generate(self, targets: dict, rng=None, sigma_range: float = 2.0, defer_misses: bool = False) -> GenerationResult:
         """A random body that measures ``targets``: name -> value (SI), ``(lo, hi)`` or ``Target``.
 
         The other degrees of freedom are drawn at random (Gaussian coefficients truncated to
         ``sigma_range`` SD); a range is met by moving the random body's value to the nearest
-        point of the range (kept where it already is when inside).
+        point of the range (kept where it already is when inside). Lengths of the measurement
+        set are met to the closed loop's 9 mm here; ``BodyModel.generate`` meets them to 1 mm
+        (exact refinement, with ``defer_misses``: a miss of the loop is judged after it).
         """
         timings = {"decode": 0.0, "measure": 0.0, "solve": 0.0}
         messages: list = []
@@ -345,7 +354,7 @@ class SemanticModel:
         for name, v0 in zip(names, vals0):
             goal[name] = self._resolve(reqs[name], v0, messages)
         return self._solve(c0, goal, lambda c: self._decode(c, timings), timings, messages,
-                           current=(vals0, meas0))
+                           current=(vals0, meas0), defer_misses=defer_misses)
 
     def _requests(self, targets) -> dict:
         if not isinstance(targets, dict):
@@ -407,11 +416,12 @@ class SemanticModel:
             self._blends[key] = MaskedPoissonBlend(mean, self.body_model.faces, weights)
         return self._blends[key]
 
-    def morph(self, vertices, changes: dict, keep=(), mask=None) -> GenerationResult:
+    def morph(self, vertices, changes: dict, keep=(), mask=None, defer_misses: bool = False) -> GenerationResult:
         """Morph a registered mesh (V, 3): ``changes`` name -> ``Target`` (value/delta/range) or a
         float *change* (SI), ``keep`` names held at their measured value, ``mask`` a region
         name(s) or (V,) weights: the change is confined to it (``MaskedPoissonBlend``), and the loop
-        corrects for what the mask took away."""
+        corrects for what the mask took away. ``defer_misses`` as in ``generate``
+        (``BodyModel.morph`` refines asked lengths to 1 mm)."""
         timings = {"decode": 0.0, "measure": 0.0, "solve": 0.0}
         messages: list = []
         x0 = np.asarray(vertices, dtype=float)
@@ -444,7 +454,7 @@ class SemanticModel:
         names = list(reqs)
         vals0, meas0 = self._values(names, x0, c0, timings)
         goal = {n: (v0 if n in keep else self._resolve(reqs[n], v0, messages)) for n, v0 in zip(names, vals0)}
-        return self._solve(c0, goal, body, timings, messages, current=(vals0, meas0))
+        return self._solve(c0, goal, body, timings, messages, current=(vals0, meas0), defer_misses=defer_misses)
 
     # ------------------------------------------------------------------ crowd
     def crowd(self, n: int, targets: dict, rng=None, progress=None) -> list[GenerationResult]:
