@@ -313,7 +313,7 @@ class BodyModel:
         """Fit the measurements-to-shape mapping (forest, linear baseline; Rupprecht et al.) on a
         training set drawn from this model, keep it as ``self.mapping`` (saved with the model);
         returns self. ``rng``: Generator, seed or None. See ``mapping.bundle.fit_mapping``."""
-        self.mapping = fit_mapping(self, samples, k, seed=as_seed(rng), n_trees=n_trees, progress=progress)
+        self.mapping = fit_mapping(self, samples, k, rng=as_seed(rng), n_trees=n_trees, progress=progress)
         return self
 
     # ------------------------------------------------------------------ requests (semantics + exact refinement)
@@ -385,7 +385,7 @@ class BodyModel:
         for name, value in result.targets.items():
             f = 100.0 if name in by_name and by_name[name]["unit"] == "m" else 1.0
             if name not in by_name:
-                reg = sm._regressor(name)
+                reg = sm.regressor(name)
                 g = np.asarray(reg.gradient(c), dtype=float)
                 linear[name] = (g, float(reg.predict(c)) - float(g @ c))
             names.append(name)

@@ -122,7 +122,7 @@ def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
     for text in list(sets or []) + list(ranges or []):
         name = str(text).partition("=")[0].strip()
         if sm is not None and "=" in str(text) and name:
-            sm._regressor(ALIASES.get(name, name))
+            sm.regressor(ALIASES.get(name, name))
         t = parse_assignment(text)
         if text in (ranges or []) and t.kind != "range":
             raise UnitError(f"--range {text!r}: expected NAME=LOW:HIGH, e.g. stature=155:185cm")

@@ -212,27 +212,27 @@ class MeasurementMapping:
         return cls(names, k, forest, linear, linearization, int(np.asarray(arrays[prefix + "samples"])), mean, cov)
 
 
-def forest_for(n_samples: int, seed: int = 0, n_trees: int = 50, n_jobs: int | None = None) -> LinearLeafForest:
+def forest_for(n_samples: int, rng=0, n_trees: int = 50, n_jobs: int | None = None) -> LinearLeafForest:
     """The unfitted forest for a training set of ``n_samples``: the paper's defaults, leaves of at
     least 30 samples, or of one for tiny (test) training sets."""
-    return LinearLeafForest(n_trees=n_trees, rng=seed, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
+    return LinearLeafForest(n_trees=n_trees, rng=rng, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
 
 
-def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, seed: int = 0,
+def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, rng=0,
                 n_trees: int = 50, n_jobs: int | None = None, progress=None) -> MeasurementMapping:
     """Fit the mapping of ``model`` (a ``BodyModel``) from a training set drawn from it.
 
     ``samples`` defaults to 10,000 for vertex models and 1,000 for RRE models (every RRE body is
-    decoded; see docs/mapping.md). Deterministic given ``seed``. ``progress(message, fraction)``.
+    decoded; see docs/mapping.md). Deterministic given ``rng`` (a seed). ``progress(message, fraction)``.
     """
     samples = default_sizes(model)[0] if samples is None else int(samples)
     report = progress or (lambda msg, frac: None)
-    train = make_training_set(model, samples, k, rng=seed, names=names,
+    train = make_training_set(model, samples, k, rng=rng, names=names,
                               progress=lambda msg, f: report(f"training set: {msg}", 0.8 * f))
     X, Y = train.measurements, train.coefficients[:, :train.k]
     report("linear mapping and forest", 0.8)
     linear = LinearMapping().fit(X, Y)
-    forest = forest_for(len(X), seed, n_trees, n_jobs).fit(X, Y)
+    forest = forest_for(len(X), rng, n_trees, n_jobs).fit(X, Y)
     report("done", 1.0)
     return MeasurementMapping(tuple(train.names), train.k, forest, linear, train.linearization, samples,
                               X.mean(axis=0), np.cov(X, rowvar=False) if len(X) > 1 else np.zeros((X.shape[1],) * 2))

@@ -249,12 +249,13 @@ class SemanticModel:
 
     def reachable_range(self, name: str) -> tuple[float, float]:
         """(lo, hi) of label ``name`` over coefficients within ``sigma_limit`` SD (linear regressor)."""
-        reg = self._regressor(name)
+        reg = self.regressor(name)
         center = float(reg.predict(np.zeros(self.X_.shape[1])))
         half = self.sigma_limit * float(np.sqrt(np.sum(reg.coef_ ** 2 * self.variances)))
         return center - half, center + half
 
-    def _regressor(self, name):
+    def regressor(self, name):
+        """The fitted regressor of label or measurement ``name`` (ParameterError naming the accepted names)."""
         if name not in getattr(self, "regressors_", {}):
             labels = list(getattr(self, "labels_", []))
             lengths = list(getattr(self, "lengths_", []))
@@ -302,7 +303,7 @@ class SemanticModel:
         raised nor warned, ``converged`` False: the caller refines further and judges)."""
         names = list(goal)
         g = np.array([goal[n] for n in names], dtype=float)
-        grads = np.array([self._regressor(n).gradient(c0) for n in names], dtype=float)
+        grads = np.array([self.regressor(n).gradient(c0) for n in names], dtype=float)
         loop = closed_loop(c0, g, [tolerance(n) for n in names], self.variances, grads, body,
                            lambda x, c: self._values(names, x, c, timings), current=current,
                            max_iter=self.max_iter)
@@ -367,7 +368,7 @@ class SemanticModel:
                 req = Target(name, "range", lo=float(t[0]), hi=float(t[1]))
             else:
                 req = Target(name, "value", value=float(t))
-            self._regressor(req.name)
+            self.regressor(req.name)
             out[req.name] = req
         return out
 
@@ -432,7 +433,7 @@ class SemanticModel:
         for name in keep:
             if name in reqs:
                 raise ParameterError(f"keep: {name!r} is also asked to change, expected each label in one of them")
-            self._regressor(name)
+            self.regressor(name)
             reqs[name] = Target(name, "delta", value=0.0)
         if not reqs:
             raise ParameterError("morph: nothing to change, expected at least one --set")
