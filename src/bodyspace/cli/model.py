@@ -15,6 +15,7 @@ from bodyspace.cli.common import (
     SeedOption,
     check_choice,
     check_file_output,
+    check_folder_output,
     console,
     out_console,
     output_folder,
@@ -91,6 +92,7 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
     if components is not None and components > model.n_components:
         raise ParameterError(f"--components {components}: {model_file} has {model.n_components} components; "
                              f"expected at most {model.n_components}")
+    check_folder_output(out, "--out", force, SAMPLES_KIND)  # a bad --out is said first
     _check_sample_size(n, fmt, model, out)
     names = [f"body_{i:0{max(3, len(str(n - 1)))}d}.{fmt}" for i in range(n)]
     with output_folder(out, "--out", force, SAMPLES_KIND) as tmp, progress("sample") as cb:

@@ -208,12 +208,12 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
     v = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     check_mesh(v, faces, mesh_name)
-    if check_scale:
-        check_body_scale(v, mesh_name)
     single = v.ndim == 2
     if single:
         v = v[None]
     check_compatible(mset, v, faces, mesh_name)
+    if check_scale:
+        check_body_scale(v, mesh_name)
     topology = _topology(faces)
     L = mset.landmark_matrix(v.shape[1])
     jobs = []
