@@ -871,6 +871,10 @@ LANDMARK_VARIANTS: dict[str, str] = {
     "id_string": json.dumps({"landmarks": {"head_top": "a"}}),
     "id_float": json.dumps({"landmarks": {"head_top": 1.5}}),
     "id_huge": json.dumps({"landmarks": {"head_top": 10**12}}),
+    "id_2_to_31": json.dumps({"landmarks": {"head_top": 2**31}}),
+    "id_beyond_n_vertices": json.dumps({"landmarks": {"head_top": 50}, "n_vertices": 10}),
+    "weighted_id_beyond_n_vertices": json.dumps({"landmarks": {"head_top": {"vertices": [1, 10], "weights": [0.5, 0.5]}},
+                                                 "n_vertices": 10}),
     "id_bool": json.dumps({"landmarks": {"head_top": True}}),
     "id_null": json.dumps({"landmarks": {"head_top": None}}),
     "weights_length_mismatch": json.dumps({"landmarks": {"head_top": {"vertices": [1, 2], "weights": [1.0]}}}),
@@ -1283,11 +1287,13 @@ def _set_cases() -> list[Case]:
         "empty-value": ["stature="], "empty-name": ["=180cm"], "no-equals": ["stature 180cm"],
         "double-equals": ["stature==180cm"], "nan": ["stature=nancm"], "inf": ["stature=infcm"],
         "huge": ["stature=1e308m"], "zero": ["stature=0cm"], "sex-banana": ["sex=banana"], "sex-number": ["sex=2"],
+        "sex-negative": ["sex=-1"], "sex-nan": ["sex=nan"], "sex-between": ["sex=0.5"],
         "reversed-range": ["stature=185:155cm"], "open-range": ["stature=155:cm"], "unicode": ["stätüre=☃"],
         "girth-negative": ["waist_girth=-80cm"], "impossible": ["stature=500cm"], "comma-list": ["mass=80kg,mass=81kg"],
     }
     # Asking twice for the same value drops nothing: it may be done, and then it must be right.
-    generate_accepts = {"repeated-same": accept_body({"mass": 70.0}, 0.5)}
+    generate_accepts = {"repeated-same": accept_body({"mass": 70.0}, 0.5),
+                        "sex-between": accept_body(None)}  # a degree between the two: the regressors' label
     crowd_accepts = {"repeated-same": accept_meshes(2)}
     crowd_subset = ("mass-negative", "unknown-name", "repeated", "repeated-same", "sex-number", "impossible")
     cases = []
