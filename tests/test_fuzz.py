@@ -27,6 +27,7 @@ from fuzz_inputs import Env
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
+from bodyspace.cli.common import EXIT_INTERNAL_ERROR
 from bodyspace.errors import BodyspaceError
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import BodyModel
@@ -40,57 +41,13 @@ CASES = fuzz_inputs.all_cases()
 
 # case id -> "<owner area>: <what happens>" (see the module docstring).
 KNOWN_FAILURES: dict[str, str] = {
-    # ---- CLI
-    "evaluate-folds-100000":
-        "CLI: exit 0 / accepted: chest_girth hip_girth sex age body_fat muscle μ 0.751 1.79 2.22"
-        " 0.975 0.487 0.285",
-    "measure-same-mesh-twice":
-        "CLI: exit 0 / accepted: , 'unit': 'cm' }, 'volume': { 'value': 0.079169, 'unit': 'm^3' },"
-        " 'surface_area':",
-    "sample-n-100000":
-        "CLI: traceback: MemoryError: Unable to allocate 29.9 GiB for an array with shape (100000,"
-        " 40140) and data",
-    "sample-n-1000000000000":
-        "CLI: traceback: MemoryError: Unable to allocate 80.0 TiB for an array with shape"
-        " (1000000000000, 11) and",
-    "sample-sigma-inf": "CLI: exit 0 / accepted: sample 100% 0:00:00 done wrote 2 bodies to PATH",
-    # ---- model.py load (PCA helper)
-    "BodyModel.load-components_integer_dtype":
-        "model.py load (PCA helper): exit 0 / accepted: BodyModel(vertex, 11 components, fitted on"
-        " 12 rest scans, template='makehuman-hm0",
-    "BodyModel.load-fitted_scans_float":
-        "model.py load (PCA helper): exit 0 / accepted: BodyModel(vertex, 11 components, fitted on"
-        " 12 rest scans, template='makehuman-hm0",
-    "BodyModel.load-header_dtype_mismatch":
-        "model.py load (PCA helper): exit 0 / accepted: BodyModel(vertex, 11 components, fitted on"
-        " 12 rest scans, template='makehuman-hm0",
-    "BodyModel.load-type-int":
-        "model.py load (PCA helper): traceback: TypeError: expected str, bytes or os.PathLike"
-        " object, not int",
-    "BodyModel.load-type-none":
-        "model.py load (PCA helper): traceback: TypeError: expected str, bytes or os.PathLike"
-        " object, not NoneType",
-    "BodyModel.load-variance_negative":
-        "model.py load (PCA helper): exit 0 / accepted: BodyModel(vertex, 11 components, fitted on"
-        " 12 rest scans, template='makehuman-hm0",
-    # ---- measure/
-    "load_landmarks-id_huge":
-        "measure/: exit 0 / accepted: ({'head_top': (array([1000000000000]), array([1.]))},"
-        " None)",
-    "measure-obj-huge_coordinates":
-        "measure/: raw Python warning reaches the user: RuntimeWarning: overflow encountered in cast"
-        " (evaluate.py)",
-    "measure-obj-tiny_scale_millimetres_as_km":
-        "measure/: exit 0 / accepted: it': 'cm' }, 'shoulder_size': { 'value': 0.0, 'unit': 'cm' },"
-        " 'volume': { 'value'",
-    # ---- mapping CLI
-    # ---- semantics/units
-    "crowd-set-sex-number":
-        "semantics/units: exit 0 / accepted: crowd 100% 0:00:00 done wrote 2 bodies, crowd.csv to"
-        " PATH",
-    "generate-set-sex-number":
-        "semantics/units: exit 0 / accepted: e sex 2.00 (1 = male) 2.00 (1 = male) +0.000 0.001 ┘"
-        " wrote PATH 1 correction(s),",
+    # ---- mapping CLI (cli/mapping.py): refused, but in the library's words, after the work
+    "mapping-fit--samples-1":
+        "mapping CLI: refused at 80% of the fit with 'X: 1 sample(s), expected at least 2 to fit A x + b'; "
+        "expected a refusal naming --samples before any work",
+    "mapping-evaluate--held-out-0":
+        "mapping CLI: refused with 'n=0, k=11: expected at least one sample and one coefficient'; expected a "
+        "refusal naming --held-out before any work",
 }
 
 runner = CliRunner()
@@ -99,7 +56,8 @@ runner = CliRunner()
 @pytest.fixture(scope="session")
 def env(template, tmp_path_factory) -> Env:
     """Good inputs, built once per worker: a 12-subject database, a vertex model with its semantic
-    regressors beside it, the same model with a (small) mapping, and one body in four formats."""
+    regressors stored in it, the same model without them and their legacy sidecar file, the model
+    with a (small) mapping, and one body in four formats."""
     root = tmp_path_factory.mktemp("fuzz-good")
     db = build_population(template, root / "db", 12, 0, rng=0)
     model = root / "model.npz"
@@ -111,12 +69,17 @@ def env(template, tmp_path_factory) -> Env:
     mapped = root / "mapped.npz"
     fitted = runner.invoke(app, ["mapping", "fit", str(model), "--samples", "150", "--trees", "3", "-o", str(mapped)])
     assert fitted.exit_code == 0, fitted.output
+    bare, legacy = root / "bare.npz", root / "legacy.semantics.npz"
+    loaded = BodyModel.load(model)
+    fuzz_inputs.write_legacy_sidecar(loaded.semantics, legacy)
+    loaded.semantics = None
+    loaded.save(bare)
     vertices = np.loadtxt([line[2:] for line in body[".obj"].read_text().splitlines() if line.startswith("v ")])
     for suffix in (".ply", ".stl", ".glb"):
         body[suffix] = root / f"body{suffix}"
         save_mesh(body[suffix], vertices, template.faces)
     return Env(root=root, model=model, mapped=mapped, db=root / "db", body=body,
-               n_vertices=len(template.vertices), faces=template.faces)
+               n_vertices=len(template.vertices), faces=template.faces, bare=bare, legacy_sidecar=legacy)
 
 
 class CaseTimeout(BaseException):
@@ -149,9 +112,6 @@ def _paths(case, env: Env, tmp: Path) -> dict:
         if "{" + name + "}" in text:
             good = getattr(env, name)
             paths[name] = str(shutil.copy(good, inputs / good.name))
-            semantics = good.with_name(good.stem + ".semantics.npz")
-            if semantics.is_file():
-                shutil.copy(semantics, inputs / semantics.name)
     if "{db}" in text:
         paths["db"] = str(shutil.copytree(env.db, inputs / "db"))
     if case.setup is not None:
@@ -197,7 +157,7 @@ def _run_case(case, env: Env, tmp: Path, seconds: int) -> str | None:
             except BodyspaceError as exc:
                 if not str(exc).strip():
                     return f"refused with an empty {type(exc).__name__} message"
-                outcome, refused = None, True
+                outcome, refused, message = None, True, str(exc)
             except Exception as exc:  # noqa: BLE001 - any other exception is the traceback we look for
                 return f"traceback: {type(exc).__name__}: {exc}"
             else:
@@ -206,6 +166,7 @@ def _run_case(case, env: Env, tmp: Path, seconds: int) -> str | None:
             args = [a.format(**paths) for a in case.args]
             paths["outfile"] = _outfile(args)
             outcome = runner.invoke(app, args)
+            message = outcome.output
             if outcome.exception is not None and not isinstance(outcome.exception, SystemExit):
                 return f"traceback: {type(outcome.exception).__name__}: {outcome.exception}"
             if "Traceback" in outcome.output:
@@ -213,6 +174,8 @@ def _run_case(case, env: Env, tmp: Path, seconds: int) -> str | None:
             refused = outcome.exit_code != 0
             if refused and not outcome.output.strip():
                 return f"exit {outcome.exit_code} without a message"
+            if outcome.exit_code == EXIT_INTERNAL_ERROR:  # the error exit's "this is a bug" line
+                return "internal error (exit 3): " + outcome.output[-400:]
     # ResourceWarning is hidden by Python's default filters (and fires at garbage collection, so in
     # whichever case runs then): not something the user sees.
     raw = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning,
@@ -221,6 +184,11 @@ def _run_case(case, env: Env, tmp: Path, seconds: int) -> str | None:
         w = raw[0]
         return f"raw Python warning reaches the user: {w.category.__name__}: {w.message} ({Path(w.filename).name})"
     if refused:
+        if case.refusal is not None:
+            try:
+                case.refusal(env, paths, message)
+            except AssertionError as exc:
+                return f"refused, but not as it must be: {exc}"
         return None
     if case.accept is None:
         shown = outcome.output[-300:] if case.call is None else repr(outcome)[:300]

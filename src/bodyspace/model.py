@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import json
 import numbers
+import os
 import time
 import warnings
 import zipfile
@@ -102,6 +103,15 @@ ENCODER_FIT_MAX_SCANS = 64
 # (N, D) matrix.
 ENCODE_BATCH = 64
 _ZIP_MAGIC = b"PK\x03\x04"
+# The kind (numpy dtype.kind) of the arrays load reads itself: the integer ones; every other
+# template_/encoder_/pca_ array is float ("f"). An integer or string array there is refused
+# (it would be cast silently and give a different model).
+_INTEGER_FIELDS = ("faces", "fitted_scans", PCA_PREFIX + "n_samples")
+_FLOAT_PREFIXES = ("template_", ENCODER_PREFIX, PCA_PREFIX)
+# Spectra of the shape space: variances and singular values are >= 0, the ratios in [0, 1].
+_NON_NEGATIVE_FIELDS = (PCA_PREFIX + "explained_variance", PCA_PREFIX + "explained_variance_ratio",
+                        PCA_PREFIX + "singular_values", "fitted_scans")
+_SEMANTICS_REFIT = "refit them (CLI: --database DB --refit)"
 
 # Requested lengths of the measurement set (waist_size, thigh_girth_l, ...) are met to this by the
 # exact refinement after the semantic closed loop; labels keep their closed-loop tolerances
@@ -469,6 +479,9 @@ class BodyModel:
         """Read a model file written by ``save`` (``allow_pickle=False``; every field checked).
         Files of format version 1 load too (``V1_RENAMES``). ``semantics=False`` leaves stored
         semantic regressors unread (to refit damaged ones)."""
+        if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+            raise ModelError(f"model path {path!r}: expected the path (str or Path) of a BodyModel .npz written by "
+                             "BodyModel.save (CLI: bodyspace build)")
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
@@ -499,10 +512,19 @@ class BodyModel:
             version, encoding = header["format_version"], header["encoding"]
             a = {}
             for name, spec in header["arrays"].items():
-                value = field(name)
-                if list(value.shape) != list(spec.get("shape", [])) or value.dtype.str != spec.get("dtype"):
-                    raise ModelError(f"{path}: field '{name}' has shape {value.shape} and dtype {value.dtype.str}, "
-                                     f"the header says {tuple(spec.get('shape', []))} and {spec.get('dtype')}")
+                if not semantics and name.startswith(SEMANTICS_PREFIX):
+                    continue  # left unread: damaged regressors must not stop their refit
+                try:
+                    value = field(name)
+                    if list(value.shape) != list(spec.get("shape", [])) or value.dtype.str != spec.get("dtype"):
+                        raise ModelError(f"{path}: field '{name}' has shape {value.shape} and dtype "
+                                         f"{value.dtype.str}, the header says {tuple(spec.get('shape', []))} and "
+                                         f"{spec.get('dtype')}")
+                except ModelError as exc:
+                    if not name.startswith(SEMANTICS_PREFIX):
+                        raise
+                    raise ModelError(f"{exc}; the stored semantic regressors are damaged: "
+                                     f"{_SEMANTICS_REFIT}") from None
                 a[name] = value
             required = ["template_vertices", "faces", "fitted_scans", "encoder_mean_vertices"] + [
                 PCA_PREFIX + s for s in ("mean", "components", "explained_variance", "explained_variance_ratio",
@@ -513,12 +535,8 @@ class BodyModel:
         if version == 1:
             a = {V1_RENAMES.get(name, name): value for name, value in a.items()}
             a[PCA_PREFIX + "n_samples"] = np.asarray(header.get("n_samples", 0), dtype=np.int64)
+        _check_fields(path, a)
         v, f = a["template_vertices"], a["faces"]
-        _check_field(path, "template_vertices", v.ndim == 2 and v.shape[1] == 3, v.shape, "(V, 3)")
-        _check_field(path, "faces", f.ndim == 2 and f.shape[1] == 3 and f.dtype.kind in "iu", f.shape, "(F, 3) int")
-        for name, value in a.items():
-            if value.dtype.kind == "f" and not np.isfinite(value).all():
-                raise ModelError(f"{path}: field '{name}' contains NaN or infinity")
         mapping = None
         if any(name.startswith(MAPPING_PREFIX) for name in a):
             try:
@@ -543,8 +561,8 @@ class BodyModel:
             try:
                 model.semantics = SemanticModel.from_arrays(a, model, SEMANTICS_PREFIX)
             except BodyspaceError as exc:
-                raise ModelError(f"{path}: the stored semantic regressors do not load ({exc}); refit them "
-                                 "(CLI: --database DB --refit)") from None
+                raise ModelError(f"{path}: the stored semantic regressors do not load ({exc}); "
+                                 f"{_SEMANTICS_REFIT}") from None
         return model
 
 
@@ -595,6 +613,34 @@ def _read_header(path, raw: np.ndarray) -> dict:
 def _check_field(path, name, ok, found, expected) -> None:
     if not ok:
         raise ModelError(f"{path}: field '{name}' has shape {tuple(found)}, expected {expected}")
+
+
+def _check_fields(path, a: dict[str, np.ndarray]) -> None:
+    """Kinds, shapes and values of the arrays load reads itself (``a``: name -> array); the
+    parts (encoder, shape space, mapping, semantics) check theirs when they are built."""
+    for name, value in a.items():
+        if name in _INTEGER_FIELDS:
+            if value.dtype.kind not in "iu":
+                raise ModelError(f"{path}: field '{name}' has dtype {value.dtype}, expected integers (int64)")
+        elif name.startswith(_FLOAT_PREFIXES) and value.dtype.kind != "f":
+            raise ModelError(f"{path}: field '{name}' has dtype {value.dtype}, expected floating point numbers "
+                             "(float32/float64)")
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            hint = (f"; the stored semantic regressors are damaged: {_SEMANTICS_REFIT}"
+                    if name.startswith(SEMANTICS_PREFIX) else "")
+            raise ModelError(f"{path}: field '{name}' contains NaN or infinity{hint}")
+    for name in _NON_NEGATIVE_FIELDS:
+        if name in a and a[name].size and a[name].min() < 0:
+            raise ModelError(f"{path}: field '{name}' has negative values (min {a[name].min():.6g}), expected "
+                             "values >= 0")
+    ratio = a.get(PCA_PREFIX + "explained_variance_ratio")
+    if ratio is not None and ratio.size and ratio.max() > 1 + 1e-6:
+        raise ModelError(f"{path}: field '{PCA_PREFIX}explained_variance_ratio' has values above 1 (max "
+                         f"{ratio.max():.6g}), expected fractions of the variance in [0, 1]")
+    v, f, scans = a["template_vertices"], a["faces"], a["fitted_scans"]
+    _check_field(path, "template_vertices", v.ndim == 2 and v.shape[1] == 3, v.shape, "(V, 3)")
+    _check_field(path, "faces", f.ndim == 2 and f.shape[1] == 3, f.shape, "(F, 3) int")
+    _check_field(path, "fitted_scans", scans.ndim == 1, scans.shape, "(N,) int")
 
 
 def _selected_rows(db, selection) -> tuple[np.ndarray, str]:

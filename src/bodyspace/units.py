@@ -73,8 +73,11 @@ def parse_quantity(name: str, text: str, default_unit: str | None = None) -> flo
         try:
             v = float(low)
         except ValueError:
-            raise UnitError(f"{name}: {text!r} is not a sex; expected male or female (or a number, 1 = male, "
-                            "0 = female)") from None
+            v = None
+        # a number is a degree between the two (the regressors' label): 0 female .. 1 male
+        if v is None or not 0.0 <= v <= 1.0:
+            raise UnitError(f"{name}: {text!r} is not a sex; expected male or female (or a number from 0 = female "
+                            "to 1 = male)")
         return v
     m = _QTY.match(raw)
     units = UNITS[kind]

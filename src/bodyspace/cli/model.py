@@ -15,11 +15,13 @@ from bodyspace.cli.common import (
     SeedOption,
     check_choice,
     check_file_output,
+    check_folder_output,
     console,
     out_console,
     output_folder,
     progress,
 )
+from bodyspace.cli.resources import check_disk, check_memory, mesh_bytes
 from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.io import save_mesh
@@ -31,6 +33,12 @@ SAMPLES_KIND = "samples"
 # bodies drawn on its contact sheet (a sheet of thousands is unreadable and would hold them all).
 SAMPLE_CHUNK = 64
 SHEET_MAX = 100
+# The widest truncation --sigma takes: beyond 10 SD a Gaussian shape space gives no body
+# (and inf would be an untruncated draw, not a truncation).
+SIGMA_MAX = 10.0
+# Bytes of memory a body's coefficients take while drawn (truncnorm's temporaries) and named.
+COEFFICIENT_TEMPORARIES = 4
+NAME_BYTES = 80
 
 
 def build(database: Path = typer.Argument(..., help="Scan database folder (bodyspace population, ScanDatabase.save)."),
@@ -68,8 +76,9 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
            out: Path = typer.Option(..., "--out", help="Output folder (must not exist, see --force)."),
            components: Optional[int] = typer.Option(None, "--components", min=1,
                                                     help="Leading components that vary (default all)."),
-           sigma: float = typer.Option(2.0, "--sigma", min=0.01,
-                                       help="Truncation of each coefficient, in standard deviations."),
+           sigma: float = typer.Option(2.0, "--sigma", min=0.01, max=SIGMA_MAX,
+                                       help="Truncation of each coefficient, in standard deviations "
+                                            f"(0.01 to {SIGMA_MAX:g})."),
            fmt: str = typer.Option("obj", "--format", help="Mesh format: obj, ply or glb (metres)."),
            seed: int = SeedOption(),
            png: bool = typer.Option(True, "--png/--no-png", help="Also write a contact sheet samples.png "
@@ -83,6 +92,8 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
     if components is not None and components > model.n_components:
         raise ParameterError(f"--components {components}: {model_file} has {model.n_components} components; "
                              f"expected at most {model.n_components}")
+    check_folder_output(out, "--out", force, SAMPLES_KIND)  # a bad --out is said first
+    _check_sample_size(n, fmt, model, out)
     names = [f"body_{i:0{max(3, len(str(n - 1)))}d}.{fmt}" for i in range(n)]
     with output_folder(out, "--out", force, SAMPLES_KIND) as tmp, progress("sample") as cb:
         coefficients = model.sample_coefficients(n, n_components=components, sigma_range=sigma, rng=seed)
@@ -103,3 +114,13 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
         cb("done", 1.0)
     out_console.print(f"wrote {n} bodies to {out}" + (" and samples.png" if png else "")
                       + (f" (the sheet shows the first {SHEET_MAX})" if png and n > SHEET_MAX else ""))
+
+
+def _check_sample_size(n: int, fmt: str, model: BodyModel, out: Path) -> None:
+    """Refuse an -n whose coefficients do not fit in memory or whose meshes do not fit on the
+    disk, before anything is written."""
+    fix = "ask for fewer bodies (a smaller -n)"
+    check_memory(n * (model.n_components * 8 * COEFFICIENT_TEMPORARIES + NAME_BYTES), f"-n {n}", fix)
+    per_body = mesh_bytes(fmt, len(model.template_vertices), len(model.faces))
+    smaller = "" if fmt != "obj" else " or a smaller format (--format ply)"
+    check_disk(n * per_body, out, f"-n {n} --format {fmt}", f"{fix}{smaller}")

@@ -15,6 +15,7 @@ from bodyspace.cli.common import (
     console,
     progress,
 )
+from bodyspace.cli.resources import check_disk, check_memory
 from bodyspace.data.database import DATABASE_KIND
 from bodyspace.data.template import load_template
 from bodyspace.errors import ParameterError
@@ -30,6 +31,20 @@ def check_poses(poses: int, flag: str = "--poses") -> None:
                              f"expected at most {flag} {available}")
 
 
+# Bytes of memory a subject's draw takes before its scans are written (phenotype parameters,
+# survey labels, ids and table rows), at least.
+SUBJECT_BYTES = 512
+
+
+def check_population_size(subjects: int, poses: int, n_vertices: int, out: Path) -> None:
+    """Refuse a --subjects/--poses request whose subjects do not fit in memory or whose scans
+    (float32 vertices) do not fit on the disk, before any work."""
+    request = f"--subjects {subjects} --poses {poses}"
+    fix = "ask for fewer subjects (--subjects) or poses (--poses)"
+    check_memory(subjects * SUBJECT_BYTES, request, fix)
+    check_disk(subjects * (1 + poses) * n_vertices * 3 * 4, out, request, fix)
+
+
 def population(out: Path = typer.Option(..., "--out", help="Database folder to write (must not exist, see --force)."),
                subjects: int = typer.Option(20, "--subjects", min=1, help="Number of subjects."),
                poses: int = typer.Option(5, "--poses", min=0, help="Poses per subject besides the rest pose "
@@ -41,6 +56,7 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
     check_folder_output(out, "--out", force, DATABASE_KIND)
     check_poses(poses)
     template = load_template(assets)
+    check_population_size(subjects, poses, len(template.vertices), out)
     with progress("population") as cb:
         db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb)
     console.print(f"wrote {db!r} to {out}")

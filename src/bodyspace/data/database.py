@@ -543,6 +543,7 @@ def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int
     """
     vertices = None
     first_path = None
+    scales = np.empty(len(mesh_names))
     for i, (name, line) in enumerate(zip(mesh_names, lines)):
         path = folder / name
         if path.suffix.lower() not in _MESH_SUFFIXES:
@@ -564,7 +565,43 @@ def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int
             raise DatabaseError(f"{path}: faces differ from {first_path} ({detail}); expected every mesh "
                                 f"registered to one topology (mixed topology)")
         vertices[i] = mesh_vertices
+        scales[i] = _mean_edge_length(mesh_vertices, faces)
+    _check_common_scale(scales, [folder / name for name in mesh_names], lines, source)
     return vertices, faces
+
+
+# Meshes of one folder whose mean edge lengths differ by more than this factor from the median
+# are in other units (poses change edge lengths by a few percent; mm vs m is 1000x).
+SCALE_TOLERANCE = 10.0
+_UNIT_RATIOS = {"mm among meshes in m (or m among mm)": 1000.0, "cm among meshes in m (or m among cm)": 100.0,
+                "mm among meshes in cm (or cm among mm)": 10.0, "inches among meshes in m": 1 / 0.0254}
+
+
+def _mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Mean length of the face edges (each interior edge counted twice): the mesh's scale,
+    independent of its pose."""
+    corners = vertices[faces]
+    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).mean())
+
+
+def _check_common_scale(scales: np.ndarray, paths: list[Path], lines: list[int], source: str) -> None:
+    """Refuse a folder whose meshes are not in one length unit: one mesh's mean edge length
+    (``scales`` (N,)) ``SCALE_TOLERANCE`` times off the median of them all."""
+    median = float(np.median(scales))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = scales / median if median > 0 else np.where(scales > 0, np.inf, 1.0)
+    off = np.flatnonzero(~((ratio <= SCALE_TOLERANCE) & (ratio >= 1 / SCALE_TOLERANCE)))
+    if not off.size:
+        return
+    i = int(off[np.argmax(np.abs(np.log(np.maximum(ratio[off], 1e-300))))])
+    r = float(ratio[i])
+    size = max(r, 1 / r) if r > 0 else np.inf
+    guess = next((f"; one mesh in {what}?" for what, f in _UNIT_RATIOS.items() if abs(np.log(size / f)) < np.log(1.5)),
+                 "")
+    raise DatabaseError(f"{source}, line {lines[i]}: mesh {paths[i]} is {size:.4g}x "
+                        f"{'larger' if r > 1 else 'smaller'} than the other meshes (mean edge length {scales[i]:.4g} "
+                        f"vs the median {median:.4g}){guess} expected every mesh of the folder in one length unit "
+                        "(length_unit converts them all); convert this one")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -64,6 +64,9 @@ from bodyspace.measure.points import check_axis, fail, point_names
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
 MAX_USER_LANDMARKS = 25
+# Vertex ids index meshes that fit in memory, and the formats bodyspace reads (PLY, glTF) index
+# with 32 bits: an id at or above 2^31 is a typo or garbage, not a vertex.
+MAX_VERTEX_ID = 2 ** 31 - 1
 
 @dataclass(frozen=True)
 class MeasurementSet:
@@ -213,8 +216,9 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
 
 def _vertex_id(where: str, val: Any) -> int:
     """A JSON vertex id as an int that fits the (L, V) matrix's int64 indices."""
-    if val >= 2 ** 62:     # negative ids are refused with the landmark's other checks
-        raise fail(where, f"vertex id {val} is out of range, expected an id below the mesh's vertex count")
+    if val > MAX_VERTEX_ID:     # negative ids are refused with the landmark's other checks
+        raise fail(where, f"vertex id {val} is out of range, expected an id below the mesh's vertex count "
+                          f"(at most {MAX_VERTEX_ID})")
     return int(val)
 
 
@@ -265,8 +269,12 @@ def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray,
     if len(raw) > MAX_USER_LANDMARKS:
         raise MeasurementError(f"{path}: {len(raw)} landmarks, expected at most {MAX_USER_LANDMARKS}")
     lms = {str(k): _parse_landmark(str(path), k, v) for k, v in raw.items() if k != "n_vertices"}
-    n = d.get("n_vertices") if isinstance(d, dict) else None
-    return lms, _n_vertices(str(path), n)
+    n = _n_vertices(str(path), d.get("n_vertices") if isinstance(d, dict) else None)
+    for name, (ids, _) in lms.items():
+        if n is not None and ids.max() >= n:
+            raise fail(f"{path}: landmark {name!r}", f"vertex id {int(ids.max())} is off the mesh: the file's "
+                                                     f"n_vertices is {n} (ids 0..{n - 1})")
+    return lms, n
 
 
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,

@@ -66,7 +66,8 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
             that label).
         regressors: name -> factory (a class or a zero-argument callable) of an unfitted
             regressor; None: ``default_regressors(rng)``.
-        folds: k (capped at the number of rows/groups).
+        folds: k, 2 up to the number of rows (groups); k = rows is leave-one-out. More folds
+            than rows are refused (which k was meant?).
         rng: numpy Generator, seed or None: the shuffle (the same folds for every regressor and
             label, so the rows of the table are paired comparisons).
         groups: optional (N,) subject ids; a subject's rows stay in one fold.
@@ -96,6 +97,11 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
         if np.isfinite(v).sum() < 3:
             raise ParameterError(f"labels[{name!r}]: {int(np.isfinite(v).sum())} known value(s), expected at least 3")
         values[name] = v
+    units = n if groups is None else len(np.unique(np.asarray(groups)))
+    if isinstance(folds, (bool, np.bool_)) or not isinstance(folds, (int, np.integer)) or not 2 <= folds <= units:
+        what = "rows (subjects)" if groups is None else "subjects (groups)"
+        raise ParameterError(f"folds {folds!r}: there are {units} {what} to split, expected 2..{units} folds "
+                             f"({units} is leave-one-out)")
     tests = kfold_indices(n, folds, gen, groups)
     rmse = np.empty((len(regressors), len(values)))
     counts = np.empty(len(values), dtype=int)

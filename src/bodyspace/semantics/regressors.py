@@ -112,6 +112,10 @@ class _SemanticRegressor:
         for k in cls._state:
             a = np.asarray(arrays[k])
             setattr(obj, k, a.item() if a.ndim == 0 else a.copy())
+        coef, d = getattr(obj, "coef_", None), getattr(obj, "n_features_in_", None)
+        if coef is not None and d is not None and np.shape(coef) != (d,):
+            raise ParameterError(f"{cls.__name__}.from_arrays: 'coef_' has shape {np.shape(coef)}, expected ({d},) "
+                                 "(n_features_in_)")
         return obj
 
 
