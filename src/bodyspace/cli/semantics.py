@@ -158,7 +158,8 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
              out: Optional[Path] = typer.Option(None, "--out", help="Markdown file for the tables "
                                                 "(default MODEL.evaluation.md; a .json beside it)."),
-             folds: int = typer.Option(10, "--folds", min=2, help="Cross-validation folds."),
+             folds: Optional[int] = typer.Option(None, "--folds", min=2, help="Cross-validation folds (default 10, "
+                                                  "or the number of subjects when fewer)."),
              seed: int = SeedOption("Fold shuffle seed (an integer >= 0)."),
              force: bool = ForceOption):
     """Hasler Table 1 (10-fold cross-validated RMSE per label and regressor) and Hasler Table 2 (angles between
@@ -169,6 +170,7 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
     try:
         sm = _load(model_file, database, refit, False)
         with _progress("evaluate") as cb:
+            folds = min(10, len(sm.X_)) if folds is None else folds
             cb(f"{folds}-fold cross-validation of {len(sm.labels_)} labels x 3 regressors", 0.05)
             table1, table2 = sm.evaluate(folds=folds, rng=seed)
             cb("done", 1.0)
