@@ -41,8 +41,8 @@ def _fail(console, exc) -> None:
 def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz), vertex or RRE encoding."),
                 out: Optional[Path] = typer.Option(None, "--out", "-o",
                                                    help="Write the model with its mapping here (default: MODEL itself)."),
-                samples: Optional[int] = typer.Option(None, min=1, help="Training bodies (default 10,000 vertex, "
-                                                                        "1,000 RRE)."),
+                samples: Optional[int] = typer.Option(None, min=10, help="Training bodies, at least 10 (the linear map has "
+                                                                         "7 unknowns per coefficient; default 10,000 vertex, 1,000 RRE)."),
                 seed: int = SeedOption("Seed of the training set and the forest (an integer >= 0)."),
                 trees: int = typer.Option(50, min=1, help="Trees of the forest."),
                 force: bool = ForceOption):
@@ -119,10 +119,10 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
                      out: Path = typer.Option(Path("mapping_report"), "--out", "-o",
                                               help="Output folder (must not exist, see --force)."),
                      samples: Optional[int] = typer.Option(
-                         None, help="Training bodies (Rupprecht §4.1: 10,000; default 10,000 for vertex models, "
+                         None, min=10, help="Training bodies, at least 10 (Rupprecht §4.1: 10,000; default 10,000 for vertex models, "
                                     "1,000 for RRE models, whose every body is decoded)."),
                      held_out: Optional[int] = typer.Option(
-                         None, help="Held-out feasible requests (default 1,000 vertex, 100 RRE)."),
+                         None, min=1, help="Held-out feasible requests (default 1,000 vertex, 100 RRE)."),
                      seed: int = SeedOption("Seed of the training set (held-out: seed + 1) and forest "
                                             "(an integer >= 0)."),
                      trees: int = typer.Option(50, min=1, help="Trees of the forest."),
