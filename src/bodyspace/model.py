@@ -351,11 +351,11 @@ class BodyModel:
         asked = {**dict(changes), **{name: name for name in keep}}
         result = sm.morph(vertices, changes, keep=keep, mask=mask, defer_misses=self._asks_lengths(asked))
         x0 = np.asarray(vertices, dtype=float)
-        d0 = np.asarray(self.reconstruct(sm._project(x0).reshape(-1)))[0]
+        d0 = np.asarray(self.reconstruct(sm.project_mesh(x0).reshape(-1)))[0]
         weights = sm.mask_weights(mask)
         if weights is None:
             return self._meet_exactly(result, offset=x0 - d0, accept_misses=accept_misses)
-        blend = sm._masked_blend(weights)
+        blend = sm.masked_blend(weights)
 
         def bodies(z):
             return np.array([x0 + blend(v - d0) for v in np.asarray(self.reconstruct(z))])
@@ -424,7 +424,7 @@ class BodyModel:
                 raise TargetError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
             messages.append(msg)
-        measured = sm._measure(v, list(result.measurements)) if result.measurements else {}
+        measured = sm.measure_body(v, list(result.measurements)) if result.measurements else {}
         start = c if result.start is None else np.asarray(result.start, dtype=float)
         maha = float(np.sqrt(np.sum((z[:len(start)] - start) ** 2 / np.maximum(sm.variances, 1e-300))))
         return GenerationResult(z, v, values, dict(result.targets), converged,

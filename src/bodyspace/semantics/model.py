@@ -177,7 +177,7 @@ class SemanticModel:
     def _is_measured(self, name: str) -> bool:
         return name in self.measured_ or name in self.lengths_
 
-    def _measure(self, vertices, names=None) -> dict:
+    def measure_body(self, vertices, names=None) -> dict:
         """Measurements of bodies: the whole set, or just ``names`` and what they depend on
         (``labels.measurement_subset``, cached per set of names)."""
         mset = self.mset
@@ -188,7 +188,7 @@ class SemanticModel:
             mset = self._sub_msets[key]
         return measure(mset, vertices, self.body_model.faces)
 
-    def _project(self, vertices) -> np.ndarray:
+    def project_mesh(self, vertices) -> np.ndarray:
         """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3), with the encoder's
         check for flipped triangles off. The model's own bodies fold where its training scans
         fold (the LBS-posed population folds a few triangles, a model fitted on it decodes
@@ -209,8 +209,8 @@ class SemanticModel:
         bm = self.body_model
         rows, self.subjects_ = first_scan_per_subject(db.scans["subject"], bm.fitted_scans)
         verts = read_scans(db, rows)
-        self.X_ = self._project(verts).reshape(len(rows), -1)
-        values = self._measure(verts)
+        self.X_ = self.project_mesh(verts).reshape(len(rows), -1)
+        values = self.measure_body(verts)
         labels = measured_labels(values, measured)
         labels.update(labels_from_subjects(db.subjects, self.subjects_, subject_labels))
         self.labels_ = list(labels)
@@ -285,7 +285,7 @@ class SemanticModel:
         measured = [n for n in names if self._is_measured(n)]
         if measured:
             t = time.perf_counter()
-            meas = self._measure(x, measured)
+            meas = self.measure_body(x, measured)
             timings["measure"] += time.perf_counter() - t
         return np.array([float(meas[n]) if self._is_measured(n) else float(self.regressors_[n].predict(c))
                          for n in names]), meas
@@ -324,7 +324,7 @@ class SemanticModel:
         missing = [n for n in self.measured_ if n not in meas]
         if meas and missing:  # the result reports every measured label: the rest once, on the final body
             t = time.perf_counter()
-            meas = {**meas, **self._measure(loop.vertices, missing)}
+            meas = {**meas, **self.measure_body(loop.vertices, missing)}
             timings["measure"] += time.perf_counter() - t
         metric = 1.0 / np.maximum(self.variances, 1e-300)
         maha = float(np.sqrt(np.sum((loop.coefficients - np.asarray(c0, dtype=float)) ** 2 * metric)))
@@ -403,7 +403,7 @@ class SemanticModel:
             return np.max([self.regions_[m] for m in mask], axis=0)
         return np.asarray(mask, dtype=float)
 
-    def _masked_blend(self, weights) -> MaskedPoissonBlend:
+    def masked_blend(self, weights) -> MaskedPoissonBlend:
         """The ``MaskedPoissonBlend`` of a mask, built on the model's mean body and cached: its
         matrix depends on the mask and the rest geometry only, so a morph pays triangular
         solves, not a factorization. Using the mean body's gradients instead of the morphed
@@ -438,11 +438,11 @@ class SemanticModel:
         if not reqs:
             raise ParameterError("morph: nothing to change, expected at least one --set")
         t = time.perf_counter()
-        c0 = self._project(x0).reshape(-1)
+        c0 = self.project_mesh(x0).reshape(-1)
         d0 = np.asarray(self.body_model.reconstruct(c0))[0]
         timings["decode"] += time.perf_counter() - t
         w = self.mask_weights(mask)
-        blend = self._masked_blend(w) if w is not None else None
+        blend = self.masked_blend(w) if w is not None else None
 
         def body(c):
             d = self._decode(c, timings) - d0
