@@ -13,7 +13,6 @@ import time
 import warnings
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 import typer
@@ -74,7 +73,8 @@ def test_version():
     assert r.exit_code == 0 and r.output.strip() == f"bodyspace {__version__}"
 
 
-def _commands(group: click.Command, path=()):
+def _commands(group, path=()):
+    """(path, command) of a Typer app's click command tree (typer vendors click: no import)."""
     yield path, group
     for name, sub in getattr(group, "commands", {}).items():
         yield from _commands(sub, path + (name,))
