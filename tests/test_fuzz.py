@@ -202,7 +202,7 @@ def _params():
         yield pytest.param(case, id=case.id, marks=marks)
 
 
-@pytest.mark.parametrize("case", _params())
+@pytest.mark.parametrize("case", list(_params()))
 def test_bad_input(case, env, tmp_path):
     problem = run_case(case, env, tmp_path, KNOWN_FAILURE_SECONDS if case.id in KNOWN_FAILURES else CASE_SECONDS)
     assert problem is None, f"{case.id} ({case.door}): {problem}"
