@@ -59,7 +59,7 @@ from typing import Callable
 import numpy as np
 
 from bodyspace.atomic import atomic_path
-from bodyspace.data.database import REST_POSE
+from bodyspace.data.database import rest_pose_name, rest_pose_rows
 from bodyspace.data.template import load_template
 from bodyspace.encoding import ENCODERS
 from bodyspace.errors import BodyspaceError, ModelError, ParameterError
@@ -648,9 +648,10 @@ def _selected_rows(db, selection) -> tuple[np.ndarray, str]:
         if selection == "all":
             return np.arange(db.n_scans), "all"
         if selection == "rest":
-            rows = np.flatnonzero(np.asarray(db.scans["pose"]) == REST_POSE)
+            # The database's own rest-pose rule (meta 'rest_pose', set by `bodyspace import`).
+            rows = rest_pose_rows(db.scans, db.meta)
             if len(rows) == 0:
-                raise ParameterError(f"selection 'rest': no scan has pose '{REST_POSE}'")
+                raise ParameterError(f"selection 'rest': no scan has pose '{rest_pose_name(db.meta)}'")
             return rows, "rest"
         raise ParameterError(f"selection={selection!r}, expected 'rest', 'all', a boolean mask or scan indices")
     sel = np.asarray(selection)
@@ -671,5 +672,6 @@ def _template_for(db, faces: np.ndarray) -> np.ndarray:
             return np.asarray(template.vertices, dtype=float)
     except BodyspaceError:
         pass
-    rows, _ = _selected_rows(db, "rest") if (np.asarray(db.scans["pose"]) == REST_POSE).any() else (np.arange(db.n_scans), "")
+    rows = rest_pose_rows(db.scans, db.meta)
+    rows = rows if len(rows) else np.arange(db.n_scans)
     return db.read(rows[:64]).mean(axis=0)

@@ -22,8 +22,8 @@ from bodyspace.cli.common import (
     progress,
 )
 from bodyspace.cli.resources import check_disk, check_memory, mesh_bytes
-from bodyspace.data.database import ScanDatabase
-from bodyspace.errors import ParameterError
+from bodyspace.data.database import META_FILE, ScanDatabase
+from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import ON_FLIPPED, BodyModel
 from bodyspace.report.render import contact_sheet
@@ -56,6 +56,7 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
     on_flipped = check_choice(on_flipped, "--on-flipped", ON_FLIPPED)
+    _check_not_mesh_folder(database)
     db = ScanDatabase.load(database)
     with progress("build") as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
@@ -69,6 +70,17 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     t = model.provenance["timings_s"]
     out_console.print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "
                       f"encode {t['encode_s']:.1f} s, PCA {t['pca_s']:.1f} s, total {t['total_s']:.1f} s")
+
+
+def _check_not_mesh_folder(folder: Path) -> None:
+    """Refuse a folder of meshes given where a scan database is expected, with the command
+    that turns it into one (instead of ScanDatabase.load's "missing meta.json")."""
+    if folder.is_dir() and not (folder / META_FILE).is_file():
+        meshes = [p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES + (".stl",)]
+        if meshes:
+            raise DatabaseError(f"{folder} is a folder of meshes, not a scan database; run `bodyspace import "
+                                f"{folder} --labels CSV --out DB` first, then `bodyspace build DB` "
+                                f"({len(meshes)} mesh file(s), e.g. {meshes[0].name}, and no {META_FILE})")
 
 
 def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),

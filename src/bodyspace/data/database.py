@@ -36,6 +36,10 @@ from bodyspace.mesh.io import load_mesh
 
 FORMAT_VERSION = 1
 REST_POSE = "rest"
+# meta.json field naming the rest pose of an imported database: {"pose": NAME} (the scans of that
+# pose) or {"first": true} (each subject's first scan, in file order). Absent: pose REST_POSE.
+REST_POSE_FIELD = "rest_pose"
+REST_POSE_FIRST = "first"
 
 # Label column suffix -> unit. "_kg_m2" (BMI) also ends in "_m2"; unit_of_label tries the
 # longest suffix first so BMI is not read as an area.
@@ -49,6 +53,29 @@ LABEL_UNITS = {
     "_percent": "%",
     "_1": "1",
 }
+# Labels implausible for a human are refused when meshes are imported (read_mesh_folder): one
+# table, name -> (lowest, highest) in the unit of the name's suffix. A name not listed here is
+# checked by its unit (UNIT_RANGES). Wide on purpose: infants to the tallest and heaviest adults;
+# the point is to catch a wrong unit (1.70 for stature in cm, grams for kg) or a sign.
+PLAUSIBLE_LABELS = {
+    "stature_cm": (40.0, 280.0),
+    "height_cm": (40.0, 280.0),
+    "target_stature_cm": (40.0, 280.0),
+    "mass_kg": (2.0, 650.0),
+    "weight_kg": (2.0, 650.0),
+    "bmi_kg_m2": (8.0, 120.0),
+    "target_bmi_kg_m2": (8.0, 120.0),
+    "age_years": (0.0, 125.0),
+    "body_fat_percent": (1.0, 80.0),
+    "volume_m3": (0.002, 0.7),
+}
+# Any other label of these units: the widest a human measurement can be (a girth, a length).
+UNIT_RANGES = {"cm": (0.0, 300.0), "kg": (0.0, 650.0), "kg/m^2": (8.0, 120.0), "years": (0.0, 125.0),
+               "%": (0.0, 100.0), "m^3": (0.0, 0.7), "m^2": (0.0, 5.0)}
+# Unit-less column names a user is likely to write -> the label name they mean.
+LABEL_SUGGESTIONS = {"stature": "stature_cm", "height": "stature_cm", "mass": "mass_kg", "weight": "mass_kg",
+                     "bmi": "bmi_kg_m2", "age": "age_years", "body_fat": "body_fat_percent", "volume": "volume_m3",
+                     "gender": "gender_1"}
 SEXES = ("female", "male")
 SUBJECT_ID_COLUMN = "subject"
 SEX_COLUMN = "sex"
@@ -90,9 +117,40 @@ def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None
     for column in columns:
         if column not in reserved and unit_of_label(column) is None:
             raise DatabaseError(
-                f"{source}: unknown column '{column}'. Expected one of {', '.join(reserved)} or a numeric "
-                f"label whose name ends in its unit: {', '.join(LABEL_UNITS)} (e.g. 'height_cm', "
+                f"{source}: unknown column '{column}'{_suggestion(column)}. Expected one of {', '.join(reserved)} "
+                f"or a numeric label whose name ends in its unit: {', '.join(LABEL_UNITS)} (e.g. 'stature_cm', "
                 f"'mass_kg', 'bmi_kg_m2', 'gender_1')")
+
+
+def _suggestion(column: str) -> str:
+    """' (did you mean stature_cm?)' for a unit-less name we can guess, else ''."""
+    key = column.strip().lower().replace(" ", "_").replace("-", "_")
+    if key in LABEL_SUGGESTIONS:
+        return f" (did you mean {LABEL_SUGGESTIONS[key]}?)"
+    if any(word in key for word in ("girth", "circumference", "length", "width", "depth", "size")):
+        return f" (did you mean {key}_cm?)"
+    return ""
+
+
+def check_label_ranges(table: Mapping[str, np.ndarray], source: str, lines: list[int] | None = None) -> None:
+    """Refuse a label value implausible for a human (PLAUSIBLE_LABELS, else UNIT_RANGES by unit).
+
+    table: {column: (n,) values}; non-numeric and NaN (missing) values are skipped.
+    """
+    for column, values in table.items():
+        values = np.asarray(values)
+        unit = unit_of_label(column)
+        if values.dtype.kind != "f" or unit is None:
+            continue
+        bounds = PLAUSIBLE_LABELS.get(column, UNIT_RANGES.get(unit))
+        if bounds is None:
+            continue
+        low, high = bounds
+        outside = ~np.isnan(values) & ((values < low) | (values > high))
+        if outside.any():
+            i = int(np.argmax(outside))
+            raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': {values[i]:g} {unit} is not "
+                                f"plausible for a human; expected {low:g} to {high:g} {unit} (is it in another unit?)")
 
 
 def _position(source: str, lines: list[int] | None, i: int) -> str:
@@ -514,6 +572,7 @@ def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> 
         if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
             continue
         per_scan = label_values(column, cells[column], source, lines)
+        check_label_ranges({column: per_scan}, source, lines)
         repeated = per_scan[scan_first_rows]
         agree = per_scan == repeated
         if per_scan.dtype.kind == "f":
@@ -647,14 +706,19 @@ class ScanDatabase:
 
     @classmethod
     def from_meshes(cls, folder: str | os.PathLike, labels_csv: str | os.PathLike,
-                    length_unit: str = "m") -> "ScanDatabase":
+                    length_unit: str = "m", rest_pose: str | None = None) -> "ScanDatabase":
         """Build an in-memory database from a folder of registered OBJ/PLY/GLB meshes and a labels CSV.
 
         See ``read_mesh_folder`` for the CSV columns; ``length_unit`` ('m', 'cm', 'mm') is the
-        unit of the mesh coordinates, converted to metres.
+        unit of the mesh coordinates, converted to metres. ``rest_pose``: a pose name or 'first'
+        (each subject's first scan), stored in meta.json and checked against every subject
+        (``choose_rest_pose``); None stores no rule (the rest pose is the pose 'rest').
         """
-        return cls(**read_mesh_folder(as_path(folder, "mesh folder"), as_path(labels_csv, "labels CSV"), length_unit),
-                   _checked=True)
+        labels_csv = as_path(labels_csv, "labels CSV")
+        parts = read_mesh_folder(as_path(folder, "mesh folder"), labels_csv, length_unit)
+        if rest_pose is not None:
+            parts["meta"][REST_POSE_FIELD] = choose_rest_pose(parts["scans"], rest_pose, str(labels_csv))
+        return cls(**parts, _checked=True)
 
     def save(self, folder: str | os.PathLike, overwrite: bool = False) -> Path:
         """Write this database as a folder (atomically); returns the folder path."""
@@ -763,10 +827,52 @@ class ScanDatabase:
         meta = build_meta(self.meta, vertices.shape, len(self.faces), self.meta.get("joints"))
         return ScanDatabase(vertices, self.faces.copy(), subjects, scans, meta, rotations, _checked=True)
 
+    def rest_rows(self) -> np.ndarray:
+        """(n,) int64 rows of the rest-pose scans (rest_pose_rows with this database's meta)."""
+        return rest_pose_rows(self.scans, self.meta)
+
     def rest_pose(self) -> "ScanDatabase":
-        """The scans in the rest pose (pose == 'rest')."""
-        mask = self.scans["pose"] == REST_POSE
-        if not mask.any():
-            raise DatabaseError(f"no scan has pose '{REST_POSE}'; poses present: "
+        """The scans in the rest pose (``meta['rest_pose']``, default pose 'rest')."""
+        rows = self.rest_rows()
+        if not len(rows):
+            raise DatabaseError(f"no scan has pose '{rest_pose_name(self.meta)}'; poses present: "
                                 f"{', '.join(sorted(set(self.scans['pose'].tolist()))[:10])}")
-        return self.select(mask)
+        return self.select(rows)
+
+
+def rest_pose_name(meta: Mapping) -> str:
+    """The rest pose a database's meta names: a pose name, or REST_POSE_FIRST."""
+    rule = meta.get(REST_POSE_FIELD) or {}
+    if rule.get(REST_POSE_FIRST):
+        return REST_POSE_FIRST
+    return str(rule.get("pose", REST_POSE))
+
+
+def rest_pose_rows(scans: Mapping[str, np.ndarray], meta: Mapping) -> np.ndarray:
+    """(n,) int64 rows of the rest-pose scans: those of the pose ``meta['rest_pose']`` names
+    (default REST_POSE), or each subject's first scan when it says ``{"first": true}``."""
+    rule = meta.get(REST_POSE_FIELD) or {}
+    if rule.get(REST_POSE_FIRST):
+        _, first = np.unique(np.asarray(scans["subject"]), return_index=True)
+        return np.sort(first).astype(np.int64)
+    return np.flatnonzero(np.asarray(scans["pose"]) == str(rule.get("pose", REST_POSE))).astype(np.int64)
+
+
+def choose_rest_pose(scans: Mapping[str, np.ndarray], rest_pose: str | None, source: str) -> dict:
+    """The meta ``rest_pose`` rule for an import: ``rest_pose`` a pose name, REST_POSE_FIRST, or
+    None (REST_POSE if every subject has a scan of it). Raises DatabaseError when a subject has no
+    scan of the chosen pose."""
+    if rest_pose == REST_POSE_FIRST:
+        return {REST_POSE_FIRST: True}
+    name = REST_POSE if rest_pose is None else str(rest_pose)
+    subjects = np.asarray(scans["subject"])
+    having = set(subjects[np.asarray(scans["pose"]) == name].tolist())
+    lacking = [sid for sid in dict.fromkeys(subjects.tolist()) if sid not in having]
+    if lacking:
+        poses = sorted(set(np.asarray(scans["pose"]).tolist()))
+        fix = ("pass --rest-pose NAME (one of the poses) or --rest-pose first (each subject's first scan)"
+               if rest_pose is None else "choose another --rest-pose, or --rest-pose first")
+        raise DatabaseError(f"{source}: subject(s) {', '.join(map(repr, lacking[:5]))}{' ...' if len(lacking) > 5 else ''}"
+                            f" have no scan of pose '{name}' (poses: {', '.join(poses[:10])}"
+                            f"{' ...' if len(poses) > 10 else ''}); {fix}")
+    return {"pose": name}

@@ -1,0 +1,56 @@
+"""``bodyspace import``: a scan database from a user's own folder of registered meshes and a
+labels CSV (``ScanDatabase.from_meshes``), without writing Python."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from bodyspace.cli.common import ForceOption, check_choice, check_folder_output, out_console, progress
+from bodyspace.data.database import (
+    DATABASE_KIND,
+    REST_POSE_FIELD,
+    REST_POSE_FIRST,
+    ScanDatabase,
+    choose_rest_pose,
+    rest_pose_rows,
+)
+
+LENGTH_UNITS = ("m", "cm", "mm")
+
+
+def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of registered meshes (OBJ/PLY/GLB) of one "
+                                                               "topology."),
+                  labels: Path = typer.Option(..., "--labels",
+                                              help="CSV: a 'mesh' column (file name in MESH_FOLDER), optional "
+                                                   "'subject', 'pose', 'sex', and labels named with their unit "
+                                                   "(stature_cm, mass_kg, ...)."),
+                  out: Path = typer.Option(..., "--out", help="Scan database folder to write (see --force)."),
+                  rest_pose: Optional[str] = typer.Option(
+                      None, "--rest-pose",
+                      help="The pose that counts as the rest pose (build --selection rest): a pose name, or "
+                           "'first' (each subject's first mesh in the CSV). Default: 'rest' if every subject "
+                           "has it."),
+                  units: str = typer.Option("m", "--units", help="Length unit of the mesh coordinates: m, cm or mm "
+                                                                 "(stored in metres)."),
+                  force: bool = ForceOption):
+    """Import a folder of your own registered meshes and a labels CSV as a scan database."""
+    units = check_choice(units, "--units", LENGTH_UNITS)
+    check_folder_output(out, "--out", force, DATABASE_KIND)  # a bad --out is said before reading meshes
+    with progress("import") as cb:
+        cb(f"reading meshes of {mesh_folder}", 0.0)
+        db = ScanDatabase.from_meshes(mesh_folder, labels, length_unit=units)
+        rule = choose_rest_pose(db.scans, rest_pose, str(labels))
+        db.meta[REST_POSE_FIELD] = rule
+        db.meta["provenance"]["source"] = "bodyspace import"
+        cb(f"writing {out}", 0.8)
+        db.save(out, overwrite=force)
+        cb("done", 1.0)
+    n_rest = len(rest_pose_rows(db.scans, db.meta))
+    said = ("each subject's first mesh (--rest-pose first)" if rule.get(REST_POSE_FIRST)
+            else f"pose '{rule['pose']}'" + ("" if rest_pose is not None else " (the default; --rest-pose changes it)"))
+    out_console.print(f"wrote {out}: {db.n_scans} scans of {db.n_subjects} subjects, {db.n_vertices} vertices; "
+                      f"rest pose: {said}, {n_rest} scans; labels: "
+                      f"{', '.join(c for c in db.subjects if c != 'subject') or 'none'}", highlight=False, soft_wrap=True)
