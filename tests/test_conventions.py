@@ -185,6 +185,14 @@ def test_reversed_winding_is_refused_and_flipped(template, mset, library_bodies,
         ref = evaluate(s, v, f)
         assert_iso_equal(evaluate(s, v2, f2), ref)
         assert ref["volume"].value > 0.02
+    # A mirrored mesh (x -> -x, a left-handed export) reads as wound inwards; flipped, it measures
+    # what the body does (mirroring keeps every length, and the landmarks stay on their vertices).
+    v = library_bodies[13, 0]
+    mirrored = v * np.array([-1.0, 1.0, 1.0])
+    with pytest.raises(MeasurementError, match="wound inwards"):
+        cv.prepare(mirrored, template.faces, mset)
+    assert_iso_equal(evaluate(mset, *cv.prepare(mirrored, template.faces, mset, flip_winding=True)),
+                     evaluate(mset, v, template.faces))
     # In millimetres, Z up and reversed at once: one message with all three fixes.
     moved = fo.to_frame(library_bodies[0, 0], "z", 1000.0)
     with pytest.raises(MeasurementError) as err:
