@@ -176,8 +176,9 @@ def test_inches_and_centimetres_are_both_named_when_both_fit(template, mset, lib
 
 
 def test_reversed_winding_is_refused_and_flipped(template, mset, library_bodies, foreign_bodies):
+    b = foreign_bodies[0]
     for v, f, s in ((library_bodies[0, 1], template.faces, mset),
-                    (foreign_bodies[0].internal_vertices(), foreign_bodies[0].faces, _foreign_set(mset, foreign_bodies[0]))):
+                    (b.internal_vertices(), b.faces, _foreign_set(mset, b))):
         reversed_ = fo.reverse_winding(f)
         with pytest.raises(MeasurementError, match="wound inwards.*--flip-winding"):
             cv.prepare(v, reversed_, s, "body.obj", words=CLI_FLAGS)
@@ -323,7 +324,8 @@ def test_cli_refuses_with_flags_and_measures_with_them(template, mset, library_b
     assert truth["stature"]["unit"] == "cm" and truth["mass"]["unit"] == "kg"
     v, f, _ = fo.shuffle_vertices(body, template.faces, 5)
     refused = _save_and_run(tmp_path / "shuffled.obj", v, f, "--csv")
-    assert refused.exit_code == 2 and "--landmarks FILE" in refused.output and "template's vertex order" in refused.output
+    assert refused.exit_code == 2 and refused.stdout == ""
+    assert "--landmarks FILE" in refused.output and "template's vertex order" in refused.output
     # A foreign body in its own frame (mm, Z up), with its landmark file.
     b = foreign_bodies[0]
     (tmp_path / "foreign.json").write_text(json.dumps(b.landmark_file))
