@@ -1023,11 +1023,24 @@ def _mesh_cases() -> list[Case]:
     # A file given twice is measured twice, both in the output (nothing dropped), both finite.
     cases.append(Case("measure-same-mesh-twice", "measure", ("measure", "{body}", "{body}", "--json"),
                       accept=accept_measured_twice))
-    # measure refuses a body that is not human-sized in metres (a mesh in mm, cm, or garbage)
-    for unit, factor in (("mm", 1000.0), ("cm", 100.0), ("km", 1e-3), ("one_vertex_far", None)):
+    # measure refuses a body that is not human-sized in metres, with the --units that fixes it
+    # (a mesh in mm, cm, inches) or the factor (km, garbage)
+    for unit, factor in (("mm", 1000.0), ("cm", 100.0), ("in", 1 / 0.0254), ("km", 1e-3), ("one_vertex_far", None)):
+        fix = ("--units " + unit,) if unit in ("mm", "cm", "in") else ("is it in " + unit,) if factor else ()
         cases.append(Case(f"measure-obj-scaled-{unit}", "measure", ("measure", "{bad}", "--json"),
-                          setup=make_scaled_obj(factor),
-                          refusal=says("{bad}", "bounding box", *(("is it in " + unit,) if factor else ()))))
+                          setup=make_scaled_obj(factor), refusal=says("{bad}", "bounding box", *fix, one_line=True)))
+    # the convention flags: bad values refused before any work, in the flags' words; a claim the
+    # mesh contradicts (a metres mesh said to be in mm, +Y said to be Z, outward faces flipped)
+    # is refused with the flag to leave out
+    for flag, value in (("--units", "furlong"), ("--units", ""), ("--units", "MM"), ("--units", "1000"),
+                        ("--up", "w"), ("--up", ""), ("--up", "+z"), ("--up", "zz"), ("--up", "-")):
+        cases.append(Case(f"measure-flag{flag}-{value or 'empty'}", "measure", ("measure", "{body}", flag, value),
+                          refusal=says(f"{flag} {value}", "expected one of", one_line=True)))
+    for name, flags, leave in (("units-mm-on-metres", ("--units", "mm"), "leave out --units"),
+                               ("up-z-on-y-up", ("--up", "z"), "leave out --up"),
+                               ("flip-winding-on-outward-faces", ("--flip-winding",), "leave out --flip-winding")):
+        cases.append(Case(f"measure-claim-{name}", "measure", ("measure", "{body}", *flags),
+                          refusal=says("{body}", leave, one_line=True)))
     cases.append(Case("measure-json-and-csv", "measure", ("measure", "{body}", "--json", "--csv")))
     return cases
 

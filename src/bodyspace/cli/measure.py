@@ -16,13 +16,22 @@ from rich.table import Table
 
 from bodyspace.cli.common import ForceOption, check_file_output
 from bodyspace.errors import BodyspaceError, MeasurementError
-from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
+from bodyspace.measure import (
+    check_compatible,
+    evaluate,
+    load_landmarks,
+    load_measurement_set,
+    to_json,
+    with_landmarks,
+)
+from bodyspace.measure import conventions
 from bodyspace.mesh.io import load_mesh
 from bodyspace.report.render import contact_sheet
 
 
-def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up. A file "
-                                                "given twice is measured twice (its second column is 'NAME (2)')."),
+def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up (else say so with "
+                                                "--units/--up). A file given twice is measured twice (its second "
+                                                "column is 'NAME (2)')."),
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
                                                      "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
                                                      "at most 25 names; docs/measurements.md)."),
@@ -32,10 +41,20 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
                                          "(note: why a value is empty). Not with --json."),
             png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to "
                                                "this PNG file (refused if it exists, unless --force)."),
+            units: Optional[str] = typer.Option(None, "--units", help="The meshes' length unit: m, cm, mm or in "
+                                                "(inches). Default: metres; a mesh in other units is refused with "
+                                                "the --units to give."),
+            up: Optional[str] = typer.Option(None, "--up", help="The meshes' up axis: y, -y (upside down), x, -x, z "
+                                             "(Z up, facing -Y, as Blender) or -z. Default: +Y; a mesh standing "
+                                             "along another axis is refused with the --up to give."),
+            flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for meshes whose "
+                                              "faces are wound inwards (negative volume; refused without it)."),
             force: bool = ForceOption):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
     try:
         _check_outputs(json_out, csv_out, png, force, meshes)
+        words = _convention_flags(landmarks)
+        conventions.check_arguments(units, up, words)
         mset = load_measurement_set()
         if landmarks is not None:
             lms, nv = load_landmarks(landmarks)
@@ -45,6 +64,11 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
             _check_vertex_count(path, len(v), mset, landmarks)
+            check_compatible(mset, v, f, str(path))
+            # Off by a convention (mm, Z up, faces inwards, another vertex order): refused with
+            # the flag that fixes it, or brought into metres, +Y up as the flags say.
+            v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
+                                       words=words)
             results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
@@ -99,6 +123,14 @@ def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | Non
     raise MeasurementError(f"{path}: {n_vertices} vertices, but the landmark file --landmarks {landmarks} says "
                            f"n_vertices {mset.n_vertices}; give the landmark file made for this mesh's topology "
                            "(or remove its n_vertices)")
+
+
+def _convention_flags(landmarks: Path | None) -> dict:
+    """The fixes of ``conventions.prepare`` in this command's flags."""
+    order = (f"the landmark file of this mesh's vertex order with --landmarks FILE (not {landmarks})" if landmarks
+             else "--landmarks FILE, the landmark file of this mesh's vertex order, or save the mesh in the "
+                  "template's vertex order")
+    return {"units": "--units {}", "up": "--up {}", "flip_winding": "--flip-winding", "landmarks": order}
 
 
 def _labels(names: list[str]) -> list[str]:

@@ -19,17 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
 from bodyspace.measure.points import axis, format_point
 from bodyspace.mesh.geometry import check_mesh
 
 CHUNK = 64
-# The largest side of a human body's bounding box, metres (a toddler lying down .. a very tall
-# adult with the arms up): outside it the mesh is in other units, or garbage.
-BODY_EXTENT_M = (0.5, 2.6)
-# Unit mistakes by their factor to metres, for the message (a mesh 1000x too large is in mm).
-_UNIT_FACTORS = {"mm": 1000.0, "cm": 100.0, "inches": 1 / 0.0254, "km": 1e-3, "μm": 1e6}
 _DISPLAY = {"m": ("cm", 100.0)}
 
 
@@ -101,33 +97,6 @@ def check_compatible(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarr
                                    f"{max(ring)}, but {mesh_name} has {nv} vertices")
 
 
-def check_body_scale(vertices: np.ndarray, mesh_name: str = "the measured mesh") -> None:
-    """Raise MeasurementError unless every body (vertices (..., V, 3), finite) is human-sized in
-    metres: the largest side of its bounding box within ``BODY_EXTENT_M``. A mesh in mm or cm
-    would otherwise measure 1000x or 100x off (or 0.0 everywhere) without a word."""
-    v = vertices.reshape((-1,) + vertices.shape[-2:])
-    with np.errstate(over="ignore", invalid="ignore"):
-        extent = (v.max(axis=1) - v.min(axis=1)).max(axis=1)
-    lo, hi = BODY_EXTENT_M
-    bad = np.flatnonzero(~((extent >= lo) & (extent <= hi)))
-    if not bad.size:
-        return
-    i, size = int(bad[0]), float(extent[bad[0]])
-    which = f"body {i} of {mesh_name}" if len(v) > 1 else mesh_name
-    if not np.isfinite(size) or size == 0:
-        raise MeasurementError(f"{which}: its bounding box is {size:g} m across; expected a human body in metres "
-                               f"({lo:g}-{hi:g} m)")
-    factor = size / 1.7  # against a body of average height
-    unit = min(_UNIT_FACTORS, key=lambda u: abs(np.log(factor / _UNIT_FACTORS[u])))
-    near = abs(np.log(factor / _UNIT_FACTORS[unit])) < np.log(2.0)
-    shown = _UNIT_FACTORS[unit] if near else factor
-    guess = (f"the mesh is {max(shown, 1 / shown):.4g}x too {'large' if factor > 1 else 'small'}"
-             + (f": is it in {unit}? scale it to metres (multiply by {1 / _UNIT_FACTORS[unit]:g})" if near else
-                "; scale it to metres"))
-    raise MeasurementError(f"{which}: its bounding box is {size:.3g} m across, a human body's is {lo:g}-{hi:g} m; "
-                           f"{guess}")
-
-
 def _conditions(mset: MeasurementSet, lm: dict, n: int) -> dict[str, list]:
     """Per condition, per body: None if it holds, else the reason it fails."""
     out = {}
@@ -195,15 +164,17 @@ def _landmarks(L, v: np.ndarray) -> np.ndarray:
 def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
              keep_polylines: bool = False, age_years=None, male=None,
              chunk: int = CHUNK, workers: int = 1, mesh_name: str = "measured mesh",
-             check_scale: bool = True) -> dict[str, Measurement]:
+             check_scale: bool = True, check_faces: bool = True) -> dict[str, Measurement]:
     """Measure bodies: ``vertices`` (V, 3) or (N, V, 3), ``faces`` (F, 3) of the set's topology.
 
     Returns name → Measurement (values float for one body, (N,) for a batch), in the set's
     order. ``age_years`` and ``male`` (scalars or (N,)) override the set's mass defaults.
     ``keep_polylines`` adds the measured lines (for drawing; costs a little). ``workers`` > 1
     spreads the chunks over that many processes (bodies are independent). ``check_scale``
-    refuses a body that is not human-sized in metres (``check_body_scale``); False measures any
-    mesh.
+    refuses a body that is not human-sized in metres (``conventions.check_body_scale``, every
+    body); ``check_faces`` refuses faces wound inwards (``conventions.check_winding``, the
+    first body: the faces are shared). False measures any mesh. The other conventions (up axis,
+    vertex order) are checked where a user's mesh comes in (``conventions.prepare``), not here.
     """
     v = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
@@ -214,6 +185,8 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
     check_compatible(mset, v, faces, mesh_name)
     if check_scale:
         check_body_scale(v, mesh_name)
+    if check_faces:
+        check_winding(v, faces, mesh_name)
     topology = _topology(faces)
     L = mset.landmark_matrix(v.shape[1])
     jobs = []
