@@ -234,6 +234,17 @@ def test_top_influences_keeps_the_four_largest(rng):
     assert np.allclose(w.sum(axis=1), 1.0)
     W = influences_matrix(joints, w, 12)
     assert (np.diff(W.indptr) <= 4).all()
+    # with the skeleton: a dropped bone's weight goes to its nearest kept kin, nothing is rescaled
+    parents = np.array([-1, 0, 1, 2, 3, 0, 5, 6, 7, 8, 9, 10])        # two chains from bone 0
+    row = np.array([[0.0, 0.3, 0.0, 0.05, 0.0, 0.0, 0.25, 0.2, 0.0, 0.0, 0.0, 0.2]])
+    j1, w1 = top_influences(sp.csr_matrix(row), parents=parents)
+    got = dict(zip(j1[0].tolist(), w1[0].tolist()))
+    assert got == pytest.approx({1: 0.3 + 0.05, 6: 0.25, 7: 0.2, 11: 0.2})
+    assert np.allclose(w1.sum(axis=1), 1.0)
+    j2, w2 = top_influences(sp.csr_matrix(dense), parents=np.r_[-1, np.arange(11)])
+    assert np.allclose(w2.sum(axis=1), 1.0)
+    for i in range(len(dense)):   # the same four bones are kept, only their weights differ
+        assert set(j2[i][w2[i] > 0]) == set(joints[i][w[i] > 0])
     with pytest.raises(ParameterError, match="vertex 0 has no skin weight"):
         top_influences(sp.csr_matrix((3, 4)))
 
@@ -379,7 +390,7 @@ def test_threejs_skinning_matches_our_lbs(node, template, tall_short, oracle_fil
     R = load_pose_library().rotations(pose, rig)
     R[rig.bone_index("root")] = rotvec_to_matrix(np.array([0.0, 0.7, 0.0]))   # the whole body turned too
     G = forward_kinematics(R[None], s.heads, s.parents)[0]
-    j, w = top_influences(rig.weights)
+    j, w = top_influences(rig.weights, parents=rig.parents)
     W4 = influences_matrix(j, w, rig.n_bones)
     theirs, info = three_skin(node, files["morphs"], tmp_path, pose_dict(s, G), morphs=[0.5, -1.0])
     assert info["bone_names"] == list(rig.bone_names) and info["vertices"] == len(v)
@@ -406,7 +417,7 @@ def test_foreign_topology_exports_and_skins_alike(node, template, oracle_files, 
     fv, ff, s, fw = extra["foreign"]
     R = load_pose_library().rotations("star", template.rigs["default"])
     G = forward_kinematics(R[None], s.heads, s.parents)[0]
-    j, w = top_influences(sp.csr_matrix(fw))
+    j, w = top_influences(sp.csr_matrix(fw), parents=s.parents)
     ours = linear_blend_skinning(fv, influences_matrix(j, w, s.n_bones), G[None])[0]
     theirs, info = three_skin(node, files["foreign"], tmp_path, pose_dict(s, G))
     assert info["vertices"] == len(fv) != template.n_vertices
