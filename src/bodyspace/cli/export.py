@@ -80,6 +80,11 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
                  where: str = "the body") -> str:
     """Write the rigged ``.glb`` (and the ``--png``); returns a line saying what was written."""
     skeleton, weights = skeleton_and_weights(vertices, faces, rig_name, where)
+    names = [b.strip() for b in bones.split(",")] if bones else None
+    for b in names or []:
+        if b not in skeleton.bone_names:
+            raise ParameterError(f"--bones {b!r}: not a bone of rig {rig_name}; expected names such as "
+                                 f"{', '.join(skeleton.bone_names[:8])}, ... ({skeleton.n_bones} bones)")
     targets = []
     if morphs is not None:
         if body_model is None:
@@ -91,7 +96,6 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
     if targets:
         said += ", morph targets " + ", ".join(t.name for t in targets)
     if png is not None:
-        names = [b.strip() for b in bones.split(",")] if bones else None
         rig_figure(png, vertices, faces, skeleton, weights, bones=names,
                    title=f"{Path(out).name}: rig {rig_name}")
         said += f"; {png}"
