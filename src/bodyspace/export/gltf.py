@@ -222,6 +222,10 @@ def _check_inputs(vertices, faces, skeleton, weights, morphs):
     if (skeleton is None) != (weights is None):
         raise ParameterError("skeleton and weights: pass both (a rigged body) or neither (a plain mesh)")
     if skeleton is not None:
+        try:
+            weights = sp.csr_matrix(weights, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"weights: {exc}; expected a (V, B) array or sparse matrix of skin weights") from None
         if not isinstance(skeleton, Skeleton):
             raise ParameterError(f"skeleton: got {type(skeleton).__name__}, expected a bodyspace.rig.skeleton.Skeleton")
         if weights.shape != (len(v), skeleton.n_bones):
@@ -240,7 +244,7 @@ def _check_inputs(vertices, faces, skeleton, weights, morphs):
             raise ParameterError(f"morph {m.name!r} given twice; expected distinct names")
         names.add(m.name)
         out.append(d)
-    return v, f.astype(np.int64), out
+    return v, f.astype(np.int64), weights, out
 
 
 def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | None = None,
@@ -256,7 +260,7 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
     morphs: ``MorphTarget`` shape keys (V, 3) displacements each.
     name: the mesh's and mesh node's name; extras: JSON-able facts for the asset's extras.
     """
-    v, f, deltas = _check_inputs(vertices, faces, skeleton, weights, morphs)
+    v, f, weights, deltas = _check_inputs(vertices, faces, skeleton, weights, morphs)
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator=GENERATOR, version="2.0",
                                                  extras={"units": "metre", "up": "+Y", "front": "+Z",
                                                          **(extras or {})}))

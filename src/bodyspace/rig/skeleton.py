@@ -54,6 +54,7 @@ class Skeleton:
     roll: np.ndarray
 
     def __post_init__(self):
+        object.__setattr__(self, "bone_names", tuple(str(b) for b in self.bone_names))
         B = len(self.bone_names)
         parents = np.asarray(self.parents, dtype=np.int64)
         heads, tails = np.asarray(self.heads, dtype=float), np.asarray(self.tails, dtype=float)
