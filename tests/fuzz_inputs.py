@@ -1398,9 +1398,51 @@ def _asset_cases() -> list[Case]:
     return cases
 
 
+def _rig_cases() -> list[Case]:
+    """``bodyspace rig`` (a rigged glTF of a body) and the rig options of ``generate``."""
+    c = [Case(f"rig-obj-{name}", "rig", ("rig", "{bad}", "--out", "{out}/b.glb"), setup=make_mesh(".obj", name))
+         for name in MESH_VARIANTS[".obj"]]
+    c.append(Case("rig-obj-scaled-mm", "rig", ("rig", "{bad}", "--out", "{out}/b.glb"), setup=make_scaled_obj(1000.0),
+                  refusal=says("expected a body in metres", one_line=True)))
+    c.append(Case("rig-ply-tetrahedron", "rig", ("rig", "{bad}", "--out", "{out}/b.glb"),
+                  setup=lambda env, tmp: {"bad": str(_write(tmp / "tetra.ply", _tetra_ply()))},
+                  refusal=says("template topology", one_line=True)))
+    bad_options = {
+        "unknown-rig": (("--rig", "skeleton"), says("--rig 'skeleton'", one_line=True)),
+        "empty-rig": (("--rig", ""), says("--rig", one_line=True)),
+        "out-obj": (("--out", "{out}/b.obj"), says("--out", ".glb", one_line=True)),
+        "morphs-without-model": (("--morphs", "stature"), says("--model", one_line=True)),
+        "model-without-morphs": (("--model", "{model}"), says("--model", "--morphs", one_line=True)),
+        "morphs-unknown-name": (("--model", "{model}", "--morphs", "nose"), says("'nose'", one_line=True)),
+        "morphs-value-not-change": (("--model", "{model}", "--morphs", "mass=80kg"), says("mass", one_line=True)),
+        "morphs-no-unit": (("--model", "{model}", "--morphs", "stature=+5"), says("stature", one_line=True)),
+        "morphs-empty": (("--model", "{model}", "--morphs", ""), says("--morphs", one_line=True)),
+        "morphs-bare-model": (("--model", "{bare}", "--morphs", "stature"), says("semantic", one_line=True)),
+        "morphs-model-is-mesh": (("--model", "{body}", "--morphs", "stature"), None),
+        "png-not-png": (("--png", "{out}/p.jpg"), says("--png", one_line=True)),
+        "bones-without-png": (("--bones", "head"), says("--bones", "--png", one_line=True)),
+        "bones-unknown": (("--png", "{out}/p.png", "--bones", "tail_bone"), says("'tail_bone'", one_line=True)),
+    }
+    for name, (args, refusal) in bad_options.items():
+        out = () if "--out" in args else ("--out", "{out}/b.glb")
+        c.append(Case(f"rig-option-{name}", "rig", ("rig", "{body}", *out, *args), refusal=refusal,
+                      setup=lambda env, tmp: {"bare": str(env.bare)}))
+    for name, (args, refusal) in {
+        "unknown-rig": (("--rig", "skeleton", "--out", "{out}/g.glb"), says("--rig 'skeleton'", one_line=True)),
+        "rig-obj": (("--rig", "default", "--out", "{out}/g.obj"), says(".glb", one_line=True)),
+        "morphs-without-rig": (("--morphs", "stature", "--out", "{out}/g.glb"), says("--rig", one_line=True)),
+        "png-without-rig": (("--png", "{out}/p.png", "--out", "{out}/g.obj"), says("--rig", one_line=True)),
+        "morphs-unknown-name": (("--rig", "default", "--morphs", "nose", "--out", "{out}/g.glb"),
+                                says("'nose'", one_line=True)),
+    }.items():
+        c.append(Case(f"generate-rig-{name}", "generate", ("generate", "{model}", "--set", "stature=170cm", *args),
+                      refusal=refusal))
+    return c
+
+
 def all_cases() -> list[Case]:
     cases = _asset_cases() + _mesh_cases() + _model_cases() + _db_cases() + _landmark_cases() + _output_cases() + _option_cases() \
-        + _set_cases()
+        + _set_cases() + _rig_cases()
     ids = [case.id for case in cases]
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
     assert not duplicates, f"fuzz case ids repeat: {duplicates}"

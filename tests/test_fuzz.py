@@ -218,7 +218,7 @@ def test_catalogue_size_and_doors(counts, capsys):
     distinct = {case.id for case in CASES}
     doors = {case.door for case in CASES}
     expected = {"assets", "population", "build", "sample", "measure", "generate", "morph", "crowd", "evaluate",
-                "mapping fit", "mapping evaluate", "mapping shape", "demo", "BodyModel.load", "ScanDatabase.load",
+                "mapping fit", "mapping evaluate", "mapping shape", "demo", "rig", "BodyModel.load", "ScanDatabase.load",
                 "ScanDatabase.from_meshes", "load_mesh", "load_measurement_set", "load_landmarks"}
     with capsys.disabled():
         print(f"\nfuzz: {len(CASES)} bad inputs at {len(doors)} doors; {len(KNOWN_FAILURES)} known failures "

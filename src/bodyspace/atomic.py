@@ -13,7 +13,8 @@ replace what bodyspace did not write.
 * Files carry their own signature (``is_own_file``): a model ``.npz`` its header with format
   ``bodyspace.*``, a PNG the text chunk ``Software=bodyspace``, an OBJ the first line
   ``# bodyspace ...``, a Markdown file the first line ``<!-- written by bodyspace -->``, a JSON
-  file the top-level field ``"written_by": "bodyspace"``.
+  file the top-level field ``"written_by": "bodyspace"``, a rigged GLB its asset generator
+  ``bodyspace VERSION``.
 """
 
 from __future__ import annotations
@@ -232,18 +233,37 @@ def _own_json(path: Path) -> bool:
     return isinstance(obj, dict) and obj.get("written_by") == WRITTEN_BY
 
 
+def _own_glb(path: Path) -> bool:
+    """A binary glTF whose JSON chunk says ``"asset": {"generator": "bodyspace ..."}`` (the rigged
+    files of ``bodyspace.export.gltf``; plain meshes written through trimesh carry trimesh's)."""
+    with open(path, "rb") as fh:
+        head = fh.read(20)
+        if len(head) < 20 or head[:4] != b"glTF":
+            return False
+        length, ctype = struct.unpack("<I4s", head[12:20])
+        if ctype != b"JSON" or length > 1 << 26:
+            return False
+        try:
+            doc = json.loads(fh.read(length).decode("utf-8"))
+        except ValueError:
+            return False
+    generator = doc.get("asset", {}).get("generator", "") if isinstance(doc, dict) else ""
+    return isinstance(generator, str) and generator.startswith(WRITTEN_BY + " ")
+
+
 SIGNATURES = {
     ".npz": _own_npz,
     ".png": _own_png,
     ".obj": lambda p: _first_line(p).startswith("# bodyspace"),
     ".md": lambda p: _first_line(p) == MARKDOWN_SIGNATURE,
     ".json": _own_json,
+    ".glb": _own_glb,
 }
 
 
 def is_own_file(path: str | os.PathLike) -> bool:
     """True if the file ``path`` carries bodyspace's signature for its suffix (``SIGNATURES``);
-    formats without one (PLY, GLB, CSV ...) are never recognised."""
+    formats without one (PLY, CSV, a GLB written through trimesh ...) are never recognised."""
     path = Path(path)
     check = SIGNATURES.get(path.suffix.lower())
     if check is None or not path.is_file():

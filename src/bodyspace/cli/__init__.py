@@ -1,6 +1,7 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
-One module per command group (assets, population, data (import), model, measure, semantics, mapping, demo);
+One module per command group (assets, population, data (import), model, measure, semantics, mapping, demo,
+export (rig));
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 """
@@ -14,6 +15,7 @@ from bodyspace.cli.assets import assets
 from bodyspace.cli.common import guarded, out_console
 from bodyspace.cli.data import import_meshes
 from bodyspace.cli.demo import demo
+from bodyspace.cli.export import rig
 from bodyspace.cli.mapping import mapping_evaluate, mapping_fit, mapping_shape
 from bodyspace.cli.measure import measure
 from bodyspace.cli.model import build, sample
@@ -39,7 +41,7 @@ def _main(version: bool = typer.Option(False, "--version", callback=_print_versi
 for _name, _command in (("assets", assets), ("population", population), ("demo", demo), ("import", import_meshes),
                         ("build", build),
                         ("sample", sample), ("measure", measure), ("evaluate", evaluate),
-                        ("generate", generate), ("morph", morph), ("crowd", crowd)):
+                        ("generate", generate), ("morph", morph), ("crowd", crowd), ("rig", rig)):
     app.command(_name)(guarded(_command))
 mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
 for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):

@@ -34,6 +34,7 @@ from bodyspace.cli.common import (
     progress,
     report_warnings,
 )
+from bodyspace.cli.export import BonesOption, MorphsOption, PngOption, RigOption, check_rig_options, write_rigged
 from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import BodyspaceError
 from bodyspace.measure import evaluate as evaluate_measurements
@@ -203,11 +204,15 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
              out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
              seed: int = SeedOption("Random seed for what is not asked (an integer >= 0)."),
              clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
-             accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
+             accept_misses: bool = AcceptMissesOption, force: bool = ForceOption,
+             rig: Optional[str] = RigOption, morphs: Optional[str] = MorphsOption, png: Optional[Path] = PngOption,
+             bones: Optional[str] = BonesOption):
     """A body that measures what is asked (labels such as stature, mass, sex within 4 mm / 0.5 kg, and any length of
     the measurement set, e.g. waist_size, shoulder_width, within 1 mm by exact refinement); the rest at random."""
     check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
+    rigged = None
     try:
+        check_rig_options(out, rig, morphs, png, bones, force)
         if not sets and not ranges:
             raise BodyspaceError("nothing asked; pass --set NAME=VALUE, e.g. --set stature=180cm")
         sm = _load(model_file, database, refit, clamp)
@@ -215,10 +220,16 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             result = sm.body_model.generate(targets, rng=seed, accept_misses=accept_misses)
-        _save_mesh(out, result.vertices, sm.body_model.faces)
+            if rig is not None:  # a rigged glTF (cli.export): skeleton, skin weights, morph targets
+                rigged = write_rigged(out, result.vertices, sm.body_model.faces, rig, body_model=sm.body_model,
+                                      morphs=morphs, png=png, bones=bones, where=f"{model_file} (its bodies)")
+        if rig is None:
+            _save_mesh(out, result.vertices, sm.body_model.faces)
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
+    if rigged:
+        console.print(rigged, highlight=False)
     out_console.print(_result_table(f"generated {out.name}", result, sm))
     out_console.print(f"wrote {out}: {result.iterations} correction(s), {result.mahalanobis:.2f} SD from the random "
                       "start", highlight=False)

@@ -46,8 +46,12 @@ from bodyspace.errors import AssetError, ParameterError
 TEMPLATE_ID = "makehuman-hm08-body-v1"
 N_BODY_VERTICES = 13380
 DECIMETRE = 0.1  # MakeHuman's unit; we work in metres
-COMPILED_VERSION = 4
-RIG_NAMES = ("default", "game_engine", "cmu_mb", "mixamo", "game_engine_with_breast")
+COMPILED_VERSION = 5
+RIG_NAMES = ("default", "default_no_toes", "game_engine", "cmu_mb", "mixamo", "game_engine_with_breast")
+# Rigs MPFB2 ships without a weights file, and the rig whose weights theirs are derived from
+# (``derive_weights``): default_no_toes is default with the 26 toe bones folded into one toe bone
+# per foot (toe1-1, whose head moves back to the ball of the foot).
+DERIVED_WEIGHTS = {"default_no_toes": "default"}
 TARGET_FOLDERS = ("targets/macrodetails", "targets/breast")
 # Regressor candidates: the nearest body vertices to an anchor, plus a few in each direction.
 REGRESSOR_NEIGHBOURS = 32
@@ -225,6 +229,41 @@ def fit_point_regressor(points: np.ndarray, body: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((vals, (rows, cols)), shape=(P, body.shape[1]))
 
 
+def _bone_stem(name: str) -> tuple[str, str]:
+    """A bone name's family and side: ``"toe2-3.L"`` -> ``("toe", ".L")``, ``"spine03"`` -> ``("spine", "")``."""
+    side = name[-2:] if name[-2:] in (".L", ".R") else ""
+    base = name[: len(name) - len(side)]
+    return base.rstrip("0123456789-_"), side
+
+
+def derive_weights(source_bones: list[str], source_weights: sp.spmatrix, target_bones: list[str]) -> sp.csr_matrix:
+    """Skin weights (V, B_target) of a rig whose bones are a subset of another rig's.
+
+    A bone of the target keeps its weights; a bone the target lacks hands its weights to the
+    target bone of the same family and side (``toe2-3.L`` -> ``toe1-1.L``, the one toe bone of
+    ``default_no_toes``: the toes bend together), the first such bone in the target's order.
+    Rows still sum to one (weights are moved, never dropped). Raises AssetError when a dropped
+    bone has no family member in the target.
+    """
+    index = {b: i for i, b in enumerate(target_bones)}
+    family: dict[tuple[str, str], int] = {}
+    for i, b in enumerate(target_bones):
+        family.setdefault(_bone_stem(b), i)
+    to = np.empty(len(source_bones), dtype=np.int64)
+    for j, b in enumerate(source_bones):
+        if b in index:
+            to[j] = index[b]
+        elif _bone_stem(b) in family:
+            to[j] = family[_bone_stem(b)]
+        else:
+            raise AssetError(f"deriving weights: bone {b!r} of the source rig has no counterpart among the target's "
+                             f"{len(target_bones)} bones; expected the target to keep a bone of its family")
+    W = sp.coo_matrix(source_weights)
+    out = sp.csr_matrix((W.data, (W.row, to[W.col])), shape=(W.shape[0], len(target_bones)))
+    out.sum_duplicates()
+    return out
+
+
 def _compile(root: Path) -> dict[str, np.ndarray]:
     """Read the CC0 files under ``root`` and build every array the Template needs."""
     full, groups = parse_obj(root / "3dobjs/base.obj")
@@ -255,7 +294,7 @@ def _compile(root: Path) -> dict[str, np.ndarray]:
     for rig in RIG_NAMES:
         rig_path = root / f"rigs/standard/rig.{rig}.json"
         w_path = root / f"rigs/standard/weights.{rig}.json"
-        if not (rig_path.is_file() and w_path.is_file()):
+        if not (rig_path.is_file() and (w_path.is_file() or rig in DERIVED_WEIGHTS)):
             continue
         bones = json.loads(rig_path.read_text())
         bones = bones.get("bones", bones)
@@ -276,6 +315,14 @@ def _compile(root: Path) -> dict[str, np.ndarray]:
                                      "expected CUBE, VERTEX or MEAN")
                 spec[end].append(len(anchors))
                 anchors.append(np.asarray(idx, dtype=np.int64))
+        source = DERIVED_WEIGHTS.get(rig)
+        if not w_path.is_file() and source is not None:
+            if source not in rig_specs:
+                continue
+            spec["weights"] = derive_weights(rig_specs[source]["bones"], rig_specs[source]["weights"],
+                                             spec["bones"])
+            rig_specs[rig] = spec
+            continue
         weights = json.loads(w_path.read_text())["weights"]
         r, c, v = [], [], []
         for bi, b in enumerate(spec["bones"]):
