@@ -1,4 +1,5 @@
-"""``bodyspace measure``: measure meshes with the default (or a landmark-file) measurement set."""
+"""``bodyspace measure``: measure meshes with the default measurement set, a model's (``--model``),
+or a landmark file's."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from bodyspace.cli.common import ForceOption, check_file_output
 from bodyspace.errors import BodyspaceError, MeasurementError
 from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, to_json, with_landmarks
 from bodyspace.mesh.io import load_mesh
+from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet
 
 
@@ -26,6 +28,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
                                                      "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
                                                      "at most 25 names; docs/measurements.md)."),
+            model: Optional[Path] = typer.Option(None, "--model", help="Measure with the measurement set a model file "
+                                                 "carries (bodyspace build; its topology's landmarks). Not with "
+                                                 "--landmarks."),
             json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit, note?} (several meshes: mesh → name → ...); "
                                           "an undefined value is null and its note says why. Not with --csv."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit,note "
@@ -36,7 +41,10 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
     try:
         _check_outputs(json_out, csv_out, png, force, meshes)
-        mset = load_measurement_set()
+        if model is not None and landmarks is not None:
+            raise MeasurementError("--model and --landmarks were both given; give one (the model's measurement "
+                                   "set, or a landmark file)")
+        mset = load_measurement_set() if model is None else model_measurement_set(model)
         if landmarks is not None:
             lms, nv = load_landmarks(landmarks)
             mset = with_landmarks(mset, lms, nv, str(landmarks))
@@ -44,7 +52,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         results, bodies = {}, []
         for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
-            _check_vertex_count(path, len(v), mset, landmarks)
+            _check_vertex_count(path, len(v), mset, landmarks, model)
             results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
@@ -87,10 +95,14 @@ def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool,
         raise MeasurementError(f"--png {png}: is one of the meshes to measure; choose another file name")
 
 
-def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | None) -> None:
+def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | None, model: Path | None = None) -> None:
     """The mesh's vertex count must be the set's, said in the flags that fix it."""
     if mset.n_vertices is None or n_vertices == mset.n_vertices:
         return
+    if model is not None:
+        raise MeasurementError(f"{path}: {n_vertices} vertices, but the model --model {model} is of meshes of "
+                               f"{mset.n_vertices} vertices (its measurement set, from {mset.source}); measure meshes "
+                               "of the model's topology, or give this mesh's landmarks with --landmarks FILE instead")
     if landmarks is None:
         raise MeasurementError(f"{path}: {n_vertices} vertices, but the default measurement set "
                                f"({Path(mset.source).name}) is for meshes of the {mset.template or 'default'} "
@@ -99,6 +111,17 @@ def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | Non
     raise MeasurementError(f"{path}: {n_vertices} vertices, but the landmark file --landmarks {landmarks} says "
                            f"n_vertices {mset.n_vertices}; give the landmark file made for this mesh's topology "
                            "(or remove its n_vertices)")
+
+
+def model_measurement_set(path: Path):
+    """The measurement set a model file carries (``BodyModel.measurement_set``), said in CLI words
+    when it has none."""
+    body_model = BodyModel.load(path, semantics=False)
+    if not body_model.has_measurement_set:
+        raise MeasurementError(f"--model {path}: carries no measurement set (its {len(body_model.template_vertices)}-"
+                               "vertex topology is not the template's and it was built without landmarks); build it "
+                               "with bodyspace build DB --landmarks FILE, or measure with --landmarks FILE")
+    return body_model.measurement_set
 
 
 def _labels(names: list[str]) -> list[str]:
