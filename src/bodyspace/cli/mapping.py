@@ -43,11 +43,15 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
                 out: Optional[Path] = typer.Option(None, "--out", "-o",
                                                    help="Write the model with its mapping here (default: MODEL itself)."),
                 samples: Optional[int] = typer.Option(None, min=10, help="Training bodies, at least 10 (the linear map has "
-                                                                         "7 unknowns per coefficient; default 10,000 vertex, 1,000 RRE)."),
+                                                                         "7 unknowns per coefficient; default 10,000 vertex, 1,000 RRE or "
+                                                                         "another topology)."),
                 seed: int = SeedOption("Seed of the training set and the forest (an integer >= 0)."),
                 trees: int = typer.Option(50, min=1, help="Trees of the forest."),
                 force: bool = ForceOption):
-    """Fit the forest (and the linear baseline) from six measurements to shape, and store it in the model file."""
+    """Fit the forest (and the linear baseline) from six measurements to shape, and store it in the model file.
+
+    The six are Rupprecht's on the template; on another topology the ISO measurements that stand in
+    for the template's loops (chest_girth for breast_size, ...), said in the output."""
     if out is not None and not (out.exists() and model.exists() and out.samefile(model)):
         check_file_output(out, "--out", force, (".npz",), example="model.npz")
     try:
@@ -148,9 +152,11 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
                                               help="Output folder (must not exist, see --force)."),
                      samples: Optional[int] = typer.Option(
                          None, min=10, help="Training bodies, at least 10 (Rupprecht §4.1: 10,000; default 10,000 for vertex models, "
-                                    "1,000 for RRE models, whose every body is decoded)."),
+                                    "1,000 for RRE models, whose every body is decoded, and models of another topology, "
+                                    "whose girths are sliced)."),
                      held_out: Optional[int] = typer.Option(
-                         None, min=1, help="Held-out feasible requests (default 1,000 vertex, 100 RRE)."),
+                         None, min=1, help="Held-out feasible requests (default 1,000 vertex, 100 RRE or another "
+                                           "topology)."),
                      seed: int = SeedOption("Seed of the training set (held-out: seed + 1) and forest "
                                             "(an integer >= 0)."),
                      trees: int = typer.Option(50, min=1, help="Trees of the forest."),

@@ -688,7 +688,7 @@ def write_scan_folder(template: Template, phenotype_model, out, subjects: int = 
     with atomic_dir(out, overwrite=overwrite, kind=SCAN_FOLDER_KIND) as tmp:
         for i, sid in enumerate(ids):
             rest = phenotype_model.vertices(truth.phenotypes[i][None])[0]
-            posed = pose_bodies(rest, rig, R, on_ground=True)                     # (P, V, 3)
+            posed = pose_bodies(np.repeat(rest[None], len(R), axis=0), rig, R, on_ground=True)   # (P, V, 3)
             bodies = to_frame(transfer(topology.correspondence, template.faces, posed), **frame)
             for pose, body in zip(names, bodies):
                 mesh = f"{sid}_{pose}.obj"
