@@ -204,7 +204,9 @@ def test_format_2_files_get_the_default_set_or_none(scans, vertex_model, templat
         np.savez(dst, **arrays)
     as_version_2(vertex_model, tmp_path / "old.npz")
     old = BodyModel.load(tmp_path / "old.npz")
-    assert not old.has_measurement_set
+    assert not old.has_measurement_set and BodyModel.read_measurement_set(tmp_path / "old.npz") is None
+    assert BodyModel.read_measurement_set(vertex_model).measurements == \
+        BodyModel.load(vertex_model).measurement_set.measurements
     with pytest.raises(MeasurementError, match="carries no measurement set.*--landmarks FILE"):
         old.measurement_set
     # a version 2 model of the template's topology gets the shipped set
@@ -215,6 +217,7 @@ def test_format_2_files_get_the_default_set_or_none(scans, vertex_model, templat
     BodyModel.fit(tdb, "vertex").save(tmp_path / "t.npz")
     as_version_2(tmp_path / "t.npz", tmp_path / "t2.npz")
     assert BodyModel.load(tmp_path / "t2.npz").measurement_set.names == load_measurement_set().names
+    assert BodyModel.read_measurement_set(tmp_path / "t2.npz").names == load_measurement_set().names
 
 
 def test_landmark_files_that_do_not_fit_are_refused(scans, db, tmp_path):

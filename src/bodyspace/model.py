@@ -536,39 +536,28 @@ class BodyModel:
             np.savez(fh, **arrays)
         return path
 
+    @staticmethod
+    def read_measurement_set(path) -> MeasurementSet | None:
+        """The measurement set of a model file (None: it has none), without building its encoder
+        and shape space (``measure --model``: an RRE model's encoder takes seconds to set up).
+        The header, template and stored set are checked as ``load`` checks them."""
+        path, archive = _open_archive(path)
+        with archive:
+            header = _read_header(path, _field(path, archive, "header"))
+            v, f = _field(path, archive, "template_vertices"), _field(path, archive, "faces")
+            _check_fields(path, {"template_vertices": v, "faces": f, "fitted_scans": np.zeros(0, dtype=np.int64)})
+            raw = _field(path, archive, MEASUREMENT_SET_ARRAY) if MEASUREMENT_SET_ARRAY in header["arrays"] else None
+        return _stored_measurement_set(path, raw, header["format_version"], v, f)
+
     @classmethod
     def load(cls, path, n_jobs: int | None = None, semantics: bool = True) -> "BodyModel":
         """Read a model file written by ``save`` (``allow_pickle=False``; every field checked).
         Files of format version 1 load too (``V1_RENAMES``). ``semantics=False`` leaves stored
         semantic regressors unread (to refit damaged ones)."""
-        if not isinstance(path, (str, os.PathLike)) or str(path) == "":
-            raise ModelError(f"model path {path!r}: expected the path (str or Path) of a BodyModel .npz written by "
-                             "BodyModel.save (CLI: bodyspace build)")
-        path = Path(path)
-        if not path.is_file():
-            raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
-                             "(CLI: bodyspace build)")
-        with open(path, "rb") as fh:
-            magic = fh.read(4)
-        if magic != _ZIP_MAGIC:
-            raise ModelError(f"{path}: not a BodyModel file (starts with {magic!r}, expected an .npz zip archive "
-                             "written by BodyModel.save); model files are never pickles")
-        try:
-            archive = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, zipfile.BadZipFile) as exc:
-            raise ModelError(f"{path}: cannot be read as an .npz archive ({exc})") from None
+        path, archive = _open_archive(path)
         with archive:
             def field(name: str) -> np.ndarray:
-                if name not in archive.files:
-                    raise ModelError(f"{path}: field '{name}' is missing; the file has "
-                                     f"{', '.join(sorted(archive.files)) or 'no arrays'}")
-                try:
-                    return archive[name]
-                except ValueError as exc:  # object arrays: pickled data, refused
-                    raise ModelError(f"{path}: field '{name}' cannot be loaded without pickle ({exc}); "
-                                     "expected a plain numeric array") from None
-                except (OSError, zipfile.BadZipFile, EOFError) as exc:
-                    raise ModelError(f"{path}: field '{name}' is damaged ({exc})") from None
+                return _field(path, archive, name)
 
             header = _read_header(path, field("header"))
             version, encoding = header["format_version"], header["encoding"]
@@ -630,6 +619,41 @@ class BodyModel:
 
 
 # ----------------------------------------------------------------------------------- helpers
+
+def _open_archive(path) -> tuple[Path, "np.lib.npyio.NpzFile"]:
+    """(path, the open .npz) of a model file; ``ModelError`` for a bad path, a file that is not a
+    zip archive (model files are never pickles) or one numpy cannot open."""
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise ModelError(f"model path {path!r}: expected the path (str or Path) of a BodyModel .npz written by "
+                         "BodyModel.save (CLI: bodyspace build)")
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
+                         "(CLI: bodyspace build)")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic != _ZIP_MAGIC:
+        raise ModelError(f"{path}: not a BodyModel file (starts with {magic!r}, expected an .npz zip archive "
+                         "written by BodyModel.save); model files are never pickles")
+    try:
+        return path, np.load(path, allow_pickle=False)
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        raise ModelError(f"{path}: cannot be read as an .npz archive ({exc})") from None
+
+
+def _field(path, archive, name: str) -> np.ndarray:
+    """One array of an open model file; ``ModelError`` when missing, pickled or damaged."""
+    if name not in archive.files:
+        raise ModelError(f"{path}: field '{name}' is missing; the file has "
+                         f"{', '.join(sorted(archive.files)) or 'no arrays'}")
+    try:
+        return archive[name]
+    except ValueError as exc:  # object arrays: pickled data, refused
+        raise ModelError(f"{path}: field '{name}' cannot be loaded without pickle ({exc}); "
+                         "expected a plain numeric array") from None
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise ModelError(f"{path}: field '{name}' is damaged ({exc})") from None
+
 
 def _read_header(path, raw: np.ndarray) -> dict:
     """The header JSON of a model file, every field the loader relies on checked for its type."""

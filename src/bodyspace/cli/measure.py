@@ -116,12 +116,12 @@ def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | Non
 def model_measurement_set(path: Path):
     """The measurement set a model file carries (``BodyModel.measurement_set``), said in CLI words
     when it has none."""
-    body_model = BodyModel.load(path, semantics=False)
-    if not body_model.has_measurement_set:
-        raise MeasurementError(f"--model {path}: carries no measurement set (its {len(body_model.template_vertices)}-"
-                               "vertex topology is not the template's and it was built without landmarks); build it "
-                               "with bodyspace build DB --landmarks FILE, or measure with --landmarks FILE")
-    return body_model.measurement_set
+    mset = BodyModel.read_measurement_set(path)
+    if mset is None:
+        raise MeasurementError(f"--model {path}: carries no measurement set (its topology is not the template's and "
+                               "it was built without landmarks); build it with bodyspace build DB --landmarks FILE, "
+                               "or measure with --landmarks FILE")
+    return mset
 
 
 def _labels(names: list[str]) -> list[str]:
