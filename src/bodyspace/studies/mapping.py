@@ -5,8 +5,10 @@ like the training set, so some body meets each exactly): the linear mapping of t
 (Rupprecht Table 2), the linear-leaf forest (Rupprecht Table 1), and the forest followed by ``refine.refine``. For
 each, the body of the predicted coefficients is measured again and ``measured - requested`` (cm)
 is summarized per parameter by its mean and variance, as in the paper's tables; plus the share
-of requests with all six within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
-other five held at the training set's median.
+of requests with all inputs within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
+other five held at the training set's median. The inputs are the model's (``mapping_inputs`` of its
+measurement set): Rupprecht's six on the template, ISO stand-ins on another topology (their
+sweep: shoulder width over the training set's 5th-95th percentiles).
 
 RRE models: every body is decoded (training set, held-out requests, both predictions, each
 refinement iteration), so the default sizes are smaller (``default_sizes``) and
