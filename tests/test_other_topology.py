@@ -8,6 +8,8 @@ One scan folder for the module: 10 subjects in the A-pose and the T-pose, 3,000 
 """
 
 import json
+import re
+import warnings
 
 import numpy as np
 import pytest
@@ -244,6 +246,16 @@ def test_landmark_files_that_do_not_fit_are_refused(scans, db, tmp_path):
     mset = landmark_measurement_set(root / "scans" / "landmarks.json", VERTICES)
     check = check_set_on_bodies(mset, db.read(db.rest_rows()), db.faces, "the rest scans")
     assert check.n_bodies == SUBJECTS and min(check.defined.values()) == SUBJECTS
+    # two rest scans tilted by 29°: the set is kept, and the build says what is undefined where
+    tilted = db.rest_pose()
+    c, s = np.cos(0.5), np.sin(0.5)
+    tilted.vertices[:2] = tilted.vertices[:2] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32).T
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert BodyModel.fit(tilted, "vertex", landmarks=root / "scans" / "landmarks.json").has_measurement_set
+    said = [str(w.message) for w in caught]
+    assert any(re.search(r"stature, .*undefined on 2 of 10 rest scans checked \(not upright", m) for m in said), said
+    assert any(re.search(r"mass, bmi undefined on 2 of 10", m) for m in said), said
 
 
 def test_regions_from_landmarks_match_the_templates(scans, template):

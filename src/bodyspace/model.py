@@ -792,7 +792,13 @@ def measurement_set_for(db, landmarks=None) -> MeasurementSet | None:
     rows = rest_pose_rows(db.scans, db.meta)
     rows = rows if len(rows) else np.arange(db.n_scans)
     rows = rows[np.linspace(0, len(rows) - 1, min(len(rows), 16)).round().astype(int)]
-    check_set_on_bodies(mset, db.read(rows), db.faces, f"the rest scans of the database ({len(rows)} checked)")
+    check = check_set_on_bodies(mset, db.read(rows), db.faces, f"the rest scans of the database ({len(rows)} checked)")
+    grouped: dict = {}
+    for name, (count, why) in check.partly_undefined.items():
+        grouped.setdefault((count, why), []).append(name)
+    for (count, why), names in grouped.items():
+        warnings.warn(f"{mset.source}: {', '.join(names)} undefined on {count} of {check.n_bodies} rest scans checked "
+                      f"({why}); kept: defined on the others", RuntimeWarning, stacklevel=3)
     return mset
 
 
