@@ -86,7 +86,8 @@ def check_set_on_bodies(mset: MeasurementSet, vertices: np.ndarray, faces: np.nd
         if not ok.any():
             raise MeasurementError(f"{mset.source}: measurement {name!r} is undefined on all {len(v)} of {bodies}"
                                    f" ({notes[0] if notes else 'no value'}){used}; expected it to measure bodies "
-                                   "standing in the rest pose: check those landmark ids")
+                                   "standing in the rest pose: check those landmark ids, or which pose is the rest "
+                                   "pose (bodyspace import --rest-pose)")
         med = float(np.median(val[ok]))
         out.median[name] = med
         if not ok.all():
