@@ -256,6 +256,10 @@ def test_landmark_files_that_do_not_fit_are_refused(scans, db, tmp_path):
     said = [str(w.message) for w in caught]
     assert any(re.search(r"stature, .*undefined on 2 of 10 rest scans checked \(not upright", m) for m in said), said
     assert any(re.search(r"mass, bmi undefined on 2 of 10", m) for m in said), said
+    # every rest scan tilted: the landmarks (or the rest pose) cannot be right
+    tilted.vertices[2:] = tilted.vertices[2:] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float32).T
+    with pytest.raises(MeasurementError, match=r"'stature' is undefined on all 10 .*not upright.*--rest-pose"):
+        BodyModel.fit(tilted, "vertex", landmarks=root / "scans" / "landmarks.json")
 
 
 def test_regions_from_landmarks_match_the_templates(scans, template):
