@@ -371,6 +371,13 @@ def _plain_npz(good: Path, out: Path) -> Path:
     return _save_npz(out, {"x": np.arange(3.0)})
 
 
+def _json_array(a: np.ndarray, edit: Callable[[dict], None]) -> np.ndarray:
+    """A uint8 JSON array (the model's measurement set) with its document edited."""
+    doc = json.loads(a.tobytes())
+    edit(doc)
+    return np.frombuffer(json.dumps(doc).encode(), dtype=np.uint8)
+
+
 def _other_template(good: Path, out: Path) -> Path:
     """Consistent arrays for a 4-vertex template (a model of another topology)."""
     arrays = _npz_arrays(good)
@@ -442,6 +449,13 @@ MODEL_VARIANTS: dict[str, Callable[[Path, Path], Path]] = {
     "template_vertices_nan": _edit_array("template_vertices", lambda a: np.full_like(a, np.nan)),
     "fitted_scans_float": _edit_array("fitted_scans", lambda a: a.astype(np.float64) + 0.5),
     "another_topology": _other_template,
+    "measurement_set_not_json": _edit_array("measurement_set", lambda a: np.frombuffer(b"\xff{oops", np.uint8)),
+    "measurement_set_float": _edit_array("measurement_set", lambda a: a.astype(np.float64)),
+    "measurement_set_off_the_mesh": _edit_array("measurement_set", lambda a: _json_array(
+        a, lambda d: d["landmarks"].update(crotch=10**6))),
+    "measurement_set_method_banana": _edit_array("measurement_set", lambda a: _json_array(
+        a, lambda d: d["measurements"][0].update(method="banana"))),
+    "measurement_set_listed_not_stored": _drop_array("measurement_set", from_header=False),
     "damaged_member_data": _damage_member("pca_components.npy", "data"),
     "damaged_member_header": _damage_member("pca_mean.npy", "header"),
     "damaged_header_member": _damage_member("header.npy", "data"),
@@ -451,7 +465,8 @@ MODEL_VARIANTS: dict[str, Callable[[Path, Path], Path]] = {
 # The model variants also fed to the CLI (sample): one of each kind of damage; the library door
 # (BodyModel.load) gets all of them.
 CLI_MODEL_VARIANTS = ("garbage", "truncated_0.5", "pickle", "header_arrays_string", "header_n_samples_many",
-                      "missing_member_pca_components", "variance_negative", "another_topology", "damaged_member_data")
+                      "missing_member_pca_components", "variance_negative", "another_topology", "damaged_member_data",
+                      "measurement_set_off_the_mesh")
 
 
 def make_model(name: str, base: str = "model") -> Callable[[Env, Path], dict]:
@@ -1134,6 +1149,13 @@ def _landmark_cases() -> list[Case]:
                           setup=make_text(text, name)))
         cases.append(Case(f"measure-landmarks-{name}", "measure", ("measure", "{body}", "--landmarks", "{bad}"),
                           setup=make_text(text, name)))
+        cases.append(Case(f"build-landmarks-{name}", "build", ("build", "{db}", "--encoding", "vertex", "--landmarks",
+                                                               "{bad}", "--out", "{out}/m.npz"),
+                          setup=make_text(text, name), refusal=says("{bad}", one_line=True)))
+    cases.append(Case("measure-model-and-landmarks", "measure", ("measure", "{body}", "--model", "{model}",
+                                                                 "--landmarks", "{bad}"),
+                      setup=make_text(json.dumps({"landmarks": {"crotch": 1}}), "lm"),
+                      refusal=says("--model and --landmarks", one_line=True)))
     for name, text in MEASUREMENT_SET_VARIANTS.items():
         cases.append(Case(f"load_measurement_set-{name}", "load_measurement_set",
                           call=lambda env, p: load_measurement_set(p["bad"]), setup=make_text(text, name)))

@@ -13,7 +13,8 @@ from bodyspace.cli import app
 from bodyspace.encoding import RelativeRotationEncoder, VertexEncoder
 from bodyspace.errors import BodyspaceError, MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
-from bodyspace.model import BodyModel, ModelError
+from bodyspace.measure import load_measurement_set
+from bodyspace.model import FORMAT_VERSION, BodyModel, ModelError
 from bodyspace.report.shape_report import write_generalization_report, write_interpolation_report
 from bodyspace.shape import ShapeSpace
 from bodyspace.shape.solvers import pca_full, pca_randomized
@@ -139,11 +140,15 @@ def test_model_files_of_format_version_1_still_load(model, db, template, tmp_pat
         np.testing.assert_array_equal(back.project(x), m.project(x))
         z = m.sample_coefficients(2, rng=3)
         np.testing.assert_array_equal(back.reconstruct(z), m.reconstruct(z))
-        # and a version 1 file re-saved is a version 2 file with the same content
-        again = BodyModel.load(back.save(tmp_path / "v2.npz"))
-        with np.load(tmp_path / "v2.npz") as f:
-            assert json.loads(f["header"].tobytes())["format_version"] == 2
+        # a version 1 file of the template's topology gets the shipped measurement set, and
+        # re-saved is a file of the current version with the same content and that set stored
+        assert back.measurement_set.names == load_measurement_set().names
+        again = BodyModel.load(back.save(tmp_path / "v3.npz"))
+        with np.load(tmp_path / "v3.npz") as f:
+            assert json.loads(f["header"].tobytes())["format_version"] == FORMAT_VERSION == 3
+            assert "measurement_set" in f.files
         np.testing.assert_array_equal(again.reconstruct(z), m.reconstruct(z))
+        assert again.measurement_set.measurements == load_measurement_set().measurements
 
 
 def test_vertex_model_rest_selection_and_sampling(db, template, tmp_path):
@@ -183,7 +188,7 @@ def test_load_refuses_garbage_pickles_versions_and_missing_fields(model, tmp_pat
         h["format_version"] = 99
         a["header"] = np.frombuffer(json.dumps(h).encode(), dtype=np.uint8)
     _rewrite(good, tmp_path / "v99.npz", bump)
-    with pytest.raises(ModelError, match="v99.npz: format_version 99.*reads versions 1, 2.*upgrade"):
+    with pytest.raises(ModelError, match="v99.npz: format_version 99.*reads versions 1, 2, 3.*upgrade"):
         BodyModel.load(tmp_path / "v99.npz")
     _rewrite(good, tmp_path / "missing.npz", lambda a: a.pop("encoder_mean_stretch"))
     with pytest.raises(ModelError, match="missing.npz: field 'encoder_mean_stretch' is missing"):

@@ -10,7 +10,7 @@ and parameters, selection, provenance, the expected name, shape and dtype of eve
 ``load`` reads it with ``allow_pickle=False`` and checks all of it, so loading never executes
 code from the file.
 
-Array layout of a model file (``FORMAT_VERSION = 2``); each part writes its own arrays
+Array layout of a model file (``FORMAT_VERSION = 3``); each part writes its own arrays
 (``to_arrays(prefix)``) and reads them back (``from_arrays``)::
 
     header                  (B,) uint8      UTF-8 JSON, see above
@@ -23,6 +23,10 @@ Array layout of a model file (``FORMAT_VERSION = 2``); each part writes its own 
                             components (K, D) float32, explained_variance(_ratio), singular_values
                             (K,), n_samples ()
     fitted_scans            (N,) int64      rows of the source database the model was fitted on
+    measurement_set         optional (B,) uint8: UTF-8 JSON of the model's measurement set
+                            (``MeasurementSet.to_dict``: landmarks of its topology, conditions,
+                            definitions; read back by ``measurement_set_from_dict``, data only);
+                            the header's "measurement_set" summarizes it
     mapping_*               optional: the measurements-to-shape mapping (``mapping.bundle``);
                             the header's "mapping" names it
     semantics_*             optional: the semantic regressors (``SemanticModel.to_arrays``: labels,
@@ -30,7 +34,9 @@ Array layout of a model file (``FORMAT_VERSION = 2``); each part writes its own 
 
 Version 1 files (bodyspace before the parts stored themselves) differ only in names:
 ``rre_mean_rotvecs`` / ``rre_mean_stretch`` for ``encoder_mean_*``, and the sample count in
-the header alone (``V1_RENAMES``); they load.
+the header alone (``V1_RENAMES``); they load. Version 1 and 2 files carry no measurement set: a
+model of the template's topology gets the shipped hm08 set on load, any other none (a command
+that measures then says how to give it one: ``build --landmarks FILE``).
 
 Components are kept at float32 precision in memory too (float64 values exactly representable in
 float32), so a saved model loads bit-exactly; the PCA itself runs in float64 up to
@@ -53,6 +59,7 @@ import os
 import time
 import warnings
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -62,10 +69,12 @@ from bodyspace.atomic import atomic_path
 from bodyspace.data.database import rest_pose_name, rest_pose_rows
 from bodyspace.data.template import load_template
 from bodyspace.encoding import ENCODERS
-from bodyspace.errors import BodyspaceError, ModelError, ParameterError
+from bodyspace.errors import BodyspaceError, MeasurementError, ModelError, ParameterError
 from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.mapping.refine import refine
+from bodyspace.measure import MeasurementSet, load_measurement_set, measurement_set_from_dict
+from bodyspace.measure.landmark_check import check_set_on_bodies, landmark_measurement_set
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
 from bodyspace.semantics.model import (
     TOLERANCES,
@@ -86,8 +95,14 @@ from bodyspace.units import format_value
 from bodyspace.validation import as_seed
 
 FORMAT = "bodyspace.BodyModel"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
+# The array holding the model's measurement set (UTF-8 JSON of ``MeasurementSet.to_dict``).
+MEASUREMENT_SET_ARRAY = "measurement_set"
+# What a model without a measurement set tells the user to do.
+GIVE_LANDMARKS = ("build it with the landmarks of its topology: bodyspace build DB --landmarks FILE (or a "
+                  "landmarks.json in the database folder, e.g. from bodyspace import --landmarks FILE); API: "
+                  "BodyModel.fit(db, landmarks=FILE)")
 # Array names of format version 1 -> version 2 (the encoder's own names).
 V1_RENAMES = {"rre_mean_rotvecs": "encoder_mean_rotvecs", "rre_mean_stretch": "encoder_mean_stretch"}
 ENCODER_PREFIX = "encoder_"
@@ -147,12 +162,15 @@ class BodyModel:
         selection: "rest", "all" or "indices": which scans the model was fitted on.
         fitted_scans: (N,) int64 rows of the source database.
         provenance: dict (source database, sizes, timings, flipped scans, versions).
+        measurement_set: the ``MeasurementSet`` of the model's topology (what ``generate``,
+            ``mapping`` and ``measure --model`` measure with); raises ``MeasurementError``
+            saying how to give one when the model has none (``has_measurement_set``).
     """
 
     def __init__(self, template_vertices, faces, encoder, space: ShapeSpace, *, encoding: str,
                  template_id: str = "unknown", selection: str = "all", fitted_scans=None,
                  encoder_params: dict | None = None, provenance: dict | None = None, mapping=None,
-                 semantics=None):
+                 semantics=None, measurement_set: MeasurementSet | None = None):
         if encoding not in ENCODINGS:
             raise ParameterError(f"encoding={encoding!r}, expected one of {', '.join(ENCODINGS)}")
         self.template_vertices = np.asarray(template_vertices, dtype=float)
@@ -171,12 +189,40 @@ class BodyModel:
         # The fitted semantic regressors (``semantics.model.SemanticModel`` of this model), or
         # None; ``save`` stores them in the same file, ``load`` restores them.
         self.semantics = semantics
+        self._measurement_set = None
+        if measurement_set is not None:
+            self.measurement_set = measurement_set
+
+    # ------------------------------------------------------------------ the measurement set
+    @property
+    def has_measurement_set(self) -> bool:
+        return self._measurement_set is not None
+
+    @property
+    def measurement_set(self) -> MeasurementSet:
+        """The measurement set of the model's topology (stored in the model file)."""
+        if self._measurement_set is None:
+            raise MeasurementError(f"this model ({len(self.template_vertices)} vertices, template "
+                                   f"{self.template_id!r}) carries no measurement set, so nothing can be measured or "
+                                   f"asked on its bodies; {GIVE_LANDMARKS}")
+        return self._measurement_set
+
+    @measurement_set.setter
+    def measurement_set(self, mset: MeasurementSet) -> None:
+        if not isinstance(mset, MeasurementSet):
+            raise ParameterError(f"measurement_set: got {type(mset).__name__}, expected a MeasurementSet")
+        nv = len(self.template_vertices)
+        if (mset.n_vertices is not None and mset.n_vertices != nv) or mset.max_vertex_id() >= nv:
+            raise MeasurementError(f"{mset.source}: made for meshes of {mset.n_vertices} vertices (ids up to "
+                                   f"{mset.max_vertex_id()}), but the model's have {nv}; give the landmarks of "
+                                   "the model's topology")
+        self._measurement_set = mset
 
     # ------------------------------------------------------------------ fitting
     @classmethod
     def fit(cls, db, encoding: str = "rre", selection="rest", n_components: int | float | None = None, *,
             template=None, on_flipped: str = "accept", pca_solver: str = "auto", rng=0,
-            n_jobs: int | None = None, template_id: str | None = None,
+            n_jobs: int | None = None, template_id: str | None = None, landmarks=None,
             progress: Callable[[str, float], None] | None = None) -> "BodyModel":
         """Encode the selected scans of ``db`` (a ``ScanDatabase``) and fit the shape space.
 
@@ -201,6 +247,13 @@ class BodyModel:
             rng: seed of the Krylov solver's start block.
             n_jobs: encoder and PCA threads (default: all cores).
             template_id: recorded in the file (default ``db.meta['template']``).
+            landmarks: the measurement set the model keeps (``measurement_set``): a landmark
+                file of the scans' topology (``measure.load_landmarks``; the hm08 set re-pointed
+                at it, ``with_landmarks``), or a ``MeasurementSet``; default: the database
+                folder's ``landmarks.json`` if it has one, else the shipped hm08 set when the
+                scans are of the template's topology, else none. Checked on the rest scans
+                (``measure.landmark_check.check_set_on_bodies``): ids on the mesh, every
+                measurement defined and of a human size.
             progress: ``progress(message, fraction)``.
         """
         report = progress or (lambda msg, frac: None)
@@ -220,6 +273,8 @@ class BodyModel:
         else:
             template_vertices = None
         faces = np.asarray(db.faces, dtype=np.int64)
+        report("checking the measurement set", 0.0)
+        mset = measurement_set_for(db, landmarks)
         t0 = time.perf_counter()
         timings = {}
 
@@ -279,9 +334,10 @@ class BodyModel:
             "total_variance": space.total_variance_,
             "timings_s": {key: round(v, 3) for key, v in timings.items()},
         }
+        provenance["measurement_set"] = None if mset is None else mset.source
         return cls(template_vertices, faces, encoder, space, encoding=encoding,
                    template_id=template_id or db.meta.get("template", "unknown"), selection=sel_name,
-                   fitted_scans=rows, encoder_params=params, provenance=provenance)
+                   fitted_scans=rows, encoder_params=params, provenance=provenance, measurement_set=mset)
 
     # ------------------------------------------------------------------ bodies
     @property
@@ -448,6 +504,9 @@ class BodyModel:
             arrays.update(self.mapping.to_arrays(MAPPING_PREFIX))
         if self.semantics is not None:
             arrays.update(self.semantics.to_arrays(SEMANTICS_PREFIX))
+        if self._measurement_set is not None:
+            text = json.dumps(self._measurement_set.to_dict(), allow_nan=False)
+            arrays[MEASUREMENT_SET_ARRAY] = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
         return arrays
 
     def save(self, path) -> Path:
@@ -467,6 +526,9 @@ class BodyModel:
                                                           "samples": self.mapping.samples, "units": "cm"},
             "semantics": None if self.semantics is None else {"labels": list(self.semantics.labels_),
                                                               "lengths": len(self.semantics.lengths_)},
+            "measurement_set": None if self._measurement_set is None else {
+                "source": self._measurement_set.source, "landmarks": len(self._measurement_set.landmarks),
+                "measurements": list(self._measurement_set.names)},
             "arrays": {name: {"shape": list(a.shape), "dtype": a.dtype.str} for name, a in arrays.items()},
         }
         arrays["header"] = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
@@ -474,39 +536,28 @@ class BodyModel:
             np.savez(fh, **arrays)
         return path
 
+    @staticmethod
+    def read_measurement_set(path) -> MeasurementSet | None:
+        """The measurement set of a model file (None: it has none), without building its encoder
+        and shape space (``measure --model``: an RRE model's encoder takes seconds to set up).
+        The header, template and stored set are checked as ``load`` checks them."""
+        path, archive = _open_archive(path)
+        with archive:
+            header = _read_header(path, _field(path, archive, "header"))
+            v, f = _field(path, archive, "template_vertices"), _field(path, archive, "faces")
+            _check_fields(path, {"template_vertices": v, "faces": f, "fitted_scans": np.zeros(0, dtype=np.int64)})
+            raw = _field(path, archive, MEASUREMENT_SET_ARRAY) if MEASUREMENT_SET_ARRAY in header["arrays"] else None
+        return _stored_measurement_set(path, raw, header["format_version"], v, f)
+
     @classmethod
     def load(cls, path, n_jobs: int | None = None, semantics: bool = True) -> "BodyModel":
         """Read a model file written by ``save`` (``allow_pickle=False``; every field checked).
         Files of format version 1 load too (``V1_RENAMES``). ``semantics=False`` leaves stored
         semantic regressors unread (to refit damaged ones)."""
-        if not isinstance(path, (str, os.PathLike)) or str(path) == "":
-            raise ModelError(f"model path {path!r}: expected the path (str or Path) of a BodyModel .npz written by "
-                             "BodyModel.save (CLI: bodyspace build)")
-        path = Path(path)
-        if not path.is_file():
-            raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
-                             "(CLI: bodyspace build)")
-        with open(path, "rb") as fh:
-            magic = fh.read(4)
-        if magic != _ZIP_MAGIC:
-            raise ModelError(f"{path}: not a BodyModel file (starts with {magic!r}, expected an .npz zip archive "
-                             "written by BodyModel.save); model files are never pickles")
-        try:
-            archive = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, zipfile.BadZipFile) as exc:
-            raise ModelError(f"{path}: cannot be read as an .npz archive ({exc})") from None
+        path, archive = _open_archive(path)
         with archive:
             def field(name: str) -> np.ndarray:
-                if name not in archive.files:
-                    raise ModelError(f"{path}: field '{name}' is missing; the file has "
-                                     f"{', '.join(sorted(archive.files)) or 'no arrays'}")
-                try:
-                    return archive[name]
-                except ValueError as exc:  # object arrays: pickled data, refused
-                    raise ModelError(f"{path}: field '{name}' cannot be loaded without pickle ({exc}); "
-                                     "expected a plain numeric array") from None
-                except (OSError, zipfile.BadZipFile, EOFError) as exc:
-                    raise ModelError(f"{path}: field '{name}' is damaged ({exc})") from None
+                return _field(path, archive, name)
 
             header = _read_header(path, field("header"))
             version, encoding = header["format_version"], header["encoding"]
@@ -557,6 +608,7 @@ class BodyModel:
         model = cls(v, f, encoder, space, encoding=encoding, template_id=header.get("template_id", "unknown"),
                     selection=header.get("selection", "all"), fitted_scans=a["fitted_scans"],
                     encoder_params=params, provenance=header.get("provenance"), mapping=mapping)
+        model._measurement_set = _stored_measurement_set(path, a.get(MEASUREMENT_SET_ARRAY), version, v, f)
         if semantics and any(name.startswith(SEMANTICS_PREFIX) for name in a):
             try:
                 model.semantics = SemanticModel.from_arrays(a, model, SEMANTICS_PREFIX)
@@ -567,6 +619,41 @@ class BodyModel:
 
 
 # ----------------------------------------------------------------------------------- helpers
+
+def _open_archive(path) -> tuple[Path, "np.lib.npyio.NpzFile"]:
+    """(path, the open .npz) of a model file; ``ModelError`` for a bad path, a file that is not a
+    zip archive (model files are never pickles) or one numpy cannot open."""
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise ModelError(f"model path {path!r}: expected the path (str or Path) of a BodyModel .npz written by "
+                         "BodyModel.save (CLI: bodyspace build)")
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such file; expected a BodyModel .npz written by BodyModel.save "
+                         "(CLI: bodyspace build)")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic != _ZIP_MAGIC:
+        raise ModelError(f"{path}: not a BodyModel file (starts with {magic!r}, expected an .npz zip archive "
+                         "written by BodyModel.save); model files are never pickles")
+    try:
+        return path, np.load(path, allow_pickle=False)
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        raise ModelError(f"{path}: cannot be read as an .npz archive ({exc})") from None
+
+
+def _field(path, archive, name: str) -> np.ndarray:
+    """One array of an open model file; ``ModelError`` when missing, pickled or damaged."""
+    if name not in archive.files:
+        raise ModelError(f"{path}: field '{name}' is missing; the file has "
+                         f"{', '.join(sorted(archive.files)) or 'no arrays'}")
+    try:
+        return archive[name]
+    except ValueError as exc:  # object arrays: pickled data, refused
+        raise ModelError(f"{path}: field '{name}' cannot be loaded without pickle ({exc}); "
+                         "expected a plain numeric array") from None
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise ModelError(f"{path}: field '{name}' is damaged ({exc})") from None
+
 
 def _read_header(path, raw: np.ndarray) -> dict:
     """The header JSON of a model file, every field the loader relies on checked for its type."""
@@ -675,3 +762,76 @@ def _template_for(db, faces: np.ndarray) -> np.ndarray:
     rows = rest_pose_rows(db.scans, db.meta)
     rows = rows if len(rows) else np.arange(db.n_scans)
     return db.read(rows[:64]).mean(axis=0)
+
+
+def _is_template_topology(n_vertices: int, faces: np.ndarray) -> bool:
+    """Are meshes of ``n_vertices`` and ``faces`` the installed template's topology (the one the
+    shipped hm08 measurement set is made for)? Without the assets: by the vertex count."""
+    default_n = load_measurement_set().n_vertices
+    if n_vertices != default_n:
+        return False
+    try:
+        return bool(np.array_equal(load_template().faces, faces))
+    except BodyspaceError:
+        return True
+
+
+def measurement_set_for(db, landmarks=None) -> MeasurementSet | None:
+    """The measurement set a model of ``db`` keeps (see ``BodyModel.fit``'s ``landmarks``):
+    checked on (up to 16 of) the database's rest scans, None for scans of another topology
+    without a landmark file."""
+    if isinstance(landmarks, MeasurementSet):
+        mset = landmarks
+    else:
+        path = landmarks if landmarks is not None else getattr(db, "landmarks_path", None)
+        if path is None:
+            if _is_template_topology(db.n_vertices, np.asarray(db.faces)):
+                return load_measurement_set()
+            return None
+        mset = landmark_measurement_set(path, db.n_vertices)
+    rows = rest_pose_rows(db.scans, db.meta)
+    rows = rows if len(rows) else np.arange(db.n_scans)
+    rows = rows[np.linspace(0, len(rows) - 1, min(len(rows), 16)).round().astype(int)]
+    check = check_set_on_bodies(mset, db.read(rows), db.faces, f"the rest scans of the database ({len(rows)} checked)")
+    grouped: dict = {}
+    for name, (count, why) in check.partly_undefined.items():
+        grouped.setdefault((count, why), []).append(name)
+    for (count, why), names in grouped.items():
+        warnings.warn(f"{mset.source}: {', '.join(names)} undefined on {count} of {check.n_bodies} rest scans checked "
+                      f"({why}); kept: defined on the others", RuntimeWarning, stacklevel=3)
+    return mset
+
+
+def check_landmark_file(path, db) -> str:
+    """The text of landmark file ``path`` once it is checked against database ``db`` (its vertex
+    count, ids on faces, every measurement of the set it gives defined on the rest scans and of
+    a human size: ``measurement_set_for``), for a copy into the database folder."""
+    measurement_set_for(db, Path(path))
+    return Path(path).read_text(encoding="utf-8")
+
+
+def _stored_measurement_set(path, raw, version: int, vertices: np.ndarray, faces: np.ndarray):
+    """The measurement set of a model file: the stored one (version 3; ``raw`` its UTF-8 JSON
+    array, or None: the model has none), or for version 1 and 2 files the shipped hm08 set when
+    the model is of the template's topology, else None."""
+    if raw is None:
+        return load_measurement_set() if version < 3 and _is_template_topology(len(vertices), faces) else None
+    if raw.dtype != np.uint8 or raw.ndim != 1:
+        raise ModelError(f"{path}: field '{MEASUREMENT_SET_ARRAY}' has dtype {raw.dtype} and shape {raw.shape}, "
+                         "expected (B,) uint8 JSON")
+    try:
+        doc = json.loads(raw.tobytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{path}: field '{MEASUREMENT_SET_ARRAY}' is not UTF-8 JSON ({exc})") from None
+    source = doc.get("source") if isinstance(doc, dict) else None
+    try:
+        mset = measurement_set_from_dict(doc, f"{path}: measurement set"
+                                              + (f" (from {source})" if isinstance(source, str) else ""))
+    except MeasurementError as exc:
+        raise ModelError(f"{path}: the stored measurement set does not load ({exc})") from None
+    if (mset.n_vertices is not None and mset.n_vertices != len(vertices)) or mset.max_vertex_id() >= len(vertices):
+        raise ModelError(f"{path}: the stored measurement set is for meshes of {mset.n_vertices} vertices (ids up to "
+                         f"{mset.max_vertex_id()}), but the model's template has {len(vertices)}")
+    if isinstance(source, str):
+        mset = replace(mset, source=source)
+    return mset

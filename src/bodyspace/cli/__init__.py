@@ -1,7 +1,7 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
-One module per command group (assets, population, data (import), model, measure, semantics, mapping, demo,
-export (rig));
+One module per command group (assets, population, examples (example-scans), data (import), model, measure,
+semantics, mapping, demo, export (rig));
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 """
@@ -15,6 +15,7 @@ from bodyspace.cli.assets import assets
 from bodyspace.cli.common import guarded, out_console
 from bodyspace.cli.data import import_meshes
 from bodyspace.cli.demo import demo
+from bodyspace.cli.examples import example_scans
 from bodyspace.cli.export import rig
 from bodyspace.cli.mapping import mapping_evaluate, mapping_fit, mapping_shape
 from bodyspace.cli.measure import measure
@@ -38,7 +39,8 @@ def _main(version: bool = typer.Option(False, "--version", callback=_print_versi
     """Statistical human body models: assets, synthetic scan databases, pictures."""
 
 
-for _name, _command in (("assets", assets), ("population", population), ("demo", demo), ("import", import_meshes),
+for _name, _command in (("assets", assets), ("population", population), ("example-scans", example_scans),
+                        ("demo", demo), ("import", import_meshes),
                         ("build", build),
                         ("sample", sample), ("measure", measure), ("evaluate", evaluate),
                         ("generate", generate), ("morph", morph), ("crowd", crowd), ("rig", rig)):

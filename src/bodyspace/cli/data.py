@@ -11,12 +11,14 @@ import typer
 from bodyspace.cli.common import ForceOption, check_choice, check_folder_output, out_console, progress
 from bodyspace.data.database import (
     DATABASE_KIND,
+    LANDMARKS_FILE,
     REST_POSE_FIELD,
     REST_POSE_FIRST,
     ScanDatabase,
     choose_rest_pose,
     rest_pose_rows,
 )
+from bodyspace.model import check_landmark_file
 
 LENGTH_UNITS = ("m", "cm", "mm")
 
@@ -35,6 +37,10 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
                            "has it."),
                   units: str = typer.Option("m", "--units", help="Length unit of the mesh coordinates: m, cm or mm "
                                                                  "(stored in metres)."),
+                  landmarks: Optional[Path] = typer.Option(
+                      None, "--landmarks", help="Landmark file of the meshes' topology (docs/measurements.md): "
+                                                "checked on the rest scans and copied into the database as "
+                                                "landmarks.json, so bodyspace build gives the model its measurements."),
                   force: bool = ForceOption):
     """Import a folder of your own registered meshes and a labels CSV as a scan database."""
     units = check_choice(units, "--units", LENGTH_UNITS)
@@ -45,8 +51,12 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
         rule = choose_rest_pose(db.scans, rest_pose, str(labels))
         db.meta[REST_POSE_FIELD] = rule
         db.meta["provenance"]["source"] = "bodyspace import"
+        extra = {}
+        if landmarks is not None:
+            cb(f"checking {landmarks} on the rest scans", 0.7)
+            extra[LANDMARKS_FILE] = check_landmark_file(landmarks, db)
         cb(f"writing {out}", 0.8)
-        db.save(out, overwrite=force)
+        db.save(out, overwrite=force, extra_files=extra)
         cb("done", 1.0)
     n_rest = len(rest_pose_rows(db.scans, db.meta))
     said = ("each subject's first mesh (--rest-pose first)" if rule.get(REST_POSE_FIRST)
@@ -54,3 +64,6 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
     out_console.print(f"wrote {out}: {db.n_scans} scans of {db.n_subjects} subjects, {db.n_vertices} vertices; "
                       f"rest pose: {said}, {n_rest} scans; labels: "
                       f"{', '.join(c for c in db.subjects if c != 'subject') or 'none'}", highlight=False, soft_wrap=True)
+    if landmarks is not None:
+        out_console.print(f"landmarks: {landmarks} measures the rest scans; stored as {out / LANDMARKS_FILE} "
+                          "(bodyspace build uses it)", highlight=False, soft_wrap=True)

@@ -23,6 +23,7 @@ from bodyspace.cli.common import (
     progress,
 )
 from bodyspace.errors import BodyspaceError
+from bodyspace.mapping.gradients import RUPPRECHT_SIX, SUBSTITUTES
 from bodyspace.mapping.training import default_sizes
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import BodyModel
@@ -42,11 +43,15 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
                 out: Optional[Path] = typer.Option(None, "--out", "-o",
                                                    help="Write the model with its mapping here (default: MODEL itself)."),
                 samples: Optional[int] = typer.Option(None, min=10, help="Training bodies, at least 10 (the linear map has "
-                                                                         "7 unknowns per coefficient; default 10,000 vertex, 1,000 RRE)."),
+                                                                         "7 unknowns per coefficient; default 10,000 vertex, 1,000 RRE or "
+                                                                         "another topology)."),
                 seed: int = SeedOption("Seed of the training set and the forest (an integer >= 0)."),
                 trees: int = typer.Option(50, min=1, help="Trees of the forest."),
                 force: bool = ForceOption):
-    """Fit the forest (and the linear baseline) from six measurements to shape, and store it in the model file."""
+    """Fit the forest (and the linear baseline) from six measurements to shape, and store it in the model file.
+
+    The six are Rupprecht's on the template; on another topology the ISO measurements that stand in
+    for the template's loops (chest_girth for breast_size, ...), said in the output."""
     if out is not None and not (out.exists() and model.exists() and out.samefile(model)):
         check_file_output(out, "--out", force, (".npz",), example="model.npz")
     try:
@@ -59,6 +64,32 @@ def mapping_fit(model: Path = typer.Argument(..., help="A BodyModel file (.npz),
     m = body_model.mapping
     console.print(f"wrote {path}: mapping from {', '.join(m.names)} (cm) to {m.k} coefficients, "
                   f"{m.samples} training bodies", soft_wrap=True, highlight=False)
+    note = inputs_note(m.names)
+    if note:
+        console.print(note, soft_wrap=True, highlight=False)
+
+
+def _check_in_set(text: str, name: str, mset) -> None:
+    """Refuse a --set name the model's measurement set does not measure, with the stand-in of a
+    template loop (waist_size -> waist_girth) when the set has one."""
+    if name in mset.names:
+        return
+    sub = next((n for n in SUBSTITUTES.get(name, ()) if n in mset.names), None)
+    lengths = [m["name"] for m in mset.measurements if m["unit"] == "m"]
+    hint = (f"{name} is a vertex loop of the template, which this model's topology does not have; ask {sub} "
+            f"instead (--set {sub}=...)" if sub else f"expected one of {', '.join(lengths)}")
+    raise UnitError(f"--set {text}: {name} is not in the model's measurement set ({mset.source}); {hint}")
+
+
+def inputs_note(names) -> str:
+    """Which of Rupprecht's six the mapping's inputs stand in for (another topology), or ''."""
+    stand_ins = {sub: orig for orig, subs in SUBSTITUTES.items() for sub in subs}
+    pairs = [f"{n} for {stand_ins[n]}" for n in names if n in stand_ins and n not in RUPPRECHT_SIX]
+    missing = [n for n in RUPPRECHT_SIX if n not in names and not any(s in names for s in SUBSTITUTES[n])]
+    if not pairs and not missing:
+        return ""
+    return ("inputs: the model's measurement set has not all of Rupprecht's six (four are vertex loops of the "
+            "template): " + ", ".join(pairs) + (f"; without {', '.join(missing)}" if missing else ""))
 
 
 def mapping_shape(model: Path = typer.Argument(..., help="A BodyModel file with a mapping (bodyspace mapping fit)."),
@@ -92,6 +123,7 @@ def mapping_shape(model: Path = typer.Argument(..., help="A BodyModel file with 
                 raise UnitError(f"--set {text}: expected a length value such as {t.name}=90cm")
             if t.name in targets:
                 raise UnitError(f"--set {t.name}: asked twice ({text!r} after an earlier value); give each name once")
+            _check_in_set(text, t.name, body_model.measurement_set)
             targets[t.name] = 100.0 * t.value
         result = mapping.shape(body_model, targets, refine_result=refine_body, rng=seed)
         drawn = {n: v for n, v in zip(mapping.names, mapping.inputs(body_model, targets, seed)[0])
@@ -120,9 +152,11 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
                                               help="Output folder (must not exist, see --force)."),
                      samples: Optional[int] = typer.Option(
                          None, min=10, help="Training bodies, at least 10 (Rupprecht §4.1: 10,000; default 10,000 for vertex models, "
-                                    "1,000 for RRE models, whose every body is decoded)."),
+                                    "1,000 for RRE models, whose every body is decoded, and models of another topology, "
+                                    "whose girths are sliced)."),
                      held_out: Optional[int] = typer.Option(
-                         None, min=1, help="Held-out feasible requests (default 1,000 vertex, 100 RRE)."),
+                         None, min=1, help="Held-out feasible requests (default 1,000 vertex, 100 RRE or another "
+                                           "topology)."),
                      seed: int = SeedOption("Seed of the training set (held-out: seed + 1) and forest "
                                             "(an integer >= 0)."),
                      trees: int = typer.Option(50, min=1, help="Trees of the forest."),
@@ -157,6 +191,9 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
         table.add_row(n, *(f"{tabs[m][n]['mean']:+.4f} / {tabs[m][n]['variance']:.4f}" for m in ev.errors))
     table.add_row("all within 1 mm", *(f"{100 * ev.within(m):.1f} %" for m in ev.errors))
     out_console.print(table)
+    note = inputs_note(ev.names)
+    if note:
+        console.print(note, soft_wrap=True, highlight=False)
     out_console.print(f"refinement: {ev.timings['refine_ms_per_request']:.2f} ms per request, "
                   f"{ev.settings['refine_iterations_mean']:.1f} iterations on average "
                   f"(max {ev.settings['refine_iterations_max']}), {ev.settings['refine_decodes']} bodies decoded; "

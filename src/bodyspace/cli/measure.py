@@ -1,4 +1,5 @@
-"""``bodyspace measure``: measure meshes with the default (or a landmark-file) measurement set."""
+"""``bodyspace measure``: measure meshes with the default measurement set, a model's (``--model``),
+or a landmark file's."""
 
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from bodyspace.measure import (
 )
 from bodyspace.measure import conventions
 from bodyspace.mesh.io import load_mesh
+from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet
 
 
@@ -35,6 +37,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="Landmark file for another topology "
                                                      "(JSON {\"landmarks\": {name: vertex id or {\"vertices\": [...], \"weights\": [...]}}}, "
                                                      "at most 25 names; docs/measurements.md)."),
+            model: Optional[Path] = typer.Option(None, "--model", help="Measure with the measurement set a model file "
+                                                 "carries (bodyspace build; its topology's landmarks). Not with "
+                                                 "--landmarks."),
             json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit, note?} (several meshes: mesh → name → ...); "
                                           "an undefined value is null and its note says why. Not with --csv."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit,note "
@@ -53,9 +58,12 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
     try:
         _check_outputs(json_out, csv_out, png, force, meshes)
+        if model is not None and landmarks is not None:
+            raise MeasurementError("--model and --landmarks were both given; give one (the model's measurement "
+                                   "set, or a landmark file)")
         words = _convention_flags(landmarks)
         conventions.check_arguments(units, up, words)
-        mset = load_measurement_set()
+        mset = load_measurement_set() if model is None else model_measurement_set(model)
         if landmarks is not None:
             lms, nv = load_landmarks(landmarks)
             mset = with_landmarks(mset, lms, nv, str(landmarks))
@@ -63,7 +71,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         results, bodies = {}, []
         for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
-            _check_vertex_count(path, len(v), mset, landmarks)
+            _check_vertex_count(path, len(v), mset, landmarks, model)
             check_compatible(mset, v, f, str(path))
             # Off by a convention (mm, Z up, faces inwards, another vertex order): refused with
             # the flag that fixes it, or brought into metres, +Y up as the flags say.
@@ -111,10 +119,14 @@ def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool,
         raise MeasurementError(f"--png {png}: is one of the meshes to measure; choose another file name")
 
 
-def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | None) -> None:
+def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | None, model: Path | None = None) -> None:
     """The mesh's vertex count must be the set's, said in the flags that fix it."""
     if mset.n_vertices is None or n_vertices == mset.n_vertices:
         return
+    if model is not None:
+        raise MeasurementError(f"{path}: {n_vertices} vertices, but the model --model {model} is of meshes of "
+                               f"{mset.n_vertices} vertices (its measurement set, from {mset.source}); measure meshes "
+                               "of the model's topology, or give this mesh's landmarks with --landmarks FILE instead")
     if landmarks is None:
         raise MeasurementError(f"{path}: {n_vertices} vertices, but the default measurement set "
                                f"({Path(mset.source).name}) is for meshes of the {mset.template or 'default'} "
@@ -131,6 +143,17 @@ def _convention_flags(landmarks: Path | None) -> dict:
              else "--landmarks FILE, the landmark file of this mesh's vertex order, or save the mesh in the "
                   "template's vertex order")
     return {"units": "--units {}", "up": "--up {}", "flip_winding": "--flip-winding", "landmarks": order}
+
+
+def model_measurement_set(path: Path):
+    """The measurement set a model file carries (``BodyModel.measurement_set``), said in CLI words
+    when it has none."""
+    mset = BodyModel.read_measurement_set(path)
+    if mset is None:
+        raise MeasurementError(f"--model {path}: carries no measurement set (its topology is not the template's and "
+                               "it was built without landmarks); build it with bodyspace build DB --landmarks FILE, "
+                               "or measure with --landmarks FILE")
+    return mset
 
 
 def _labels(names: list[str]) -> list[str]:

@@ -22,8 +22,9 @@ from bodyspace.cli.common import (
     progress,
 )
 from bodyspace.cli.resources import check_disk, check_memory, mesh_bytes
-from bodyspace.data.database import META_FILE, ScanDatabase
+from bodyspace.data.database import LANDMARKS_FILE, META_FILE, ScanDatabase
 from bodyspace.errors import DatabaseError, ParameterError
+from bodyspace.measure import load_measurement_set
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import ON_FLIPPED, BodyModel
 from bodyspace.report.render import contact_sheet
@@ -52,24 +53,50 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                          help="Scans with folded (flipped) triangles: accept (encode them and "
                                               "count the scans), warn (also a warning each), raise (refuse) "
                                               "or ignore (do not look)."),
+          landmarks: Optional[Path] = typer.Option(None, "--landmarks",
+                                                   help="Landmark file of the scans' topology (JSON {\"landmarks\": "
+                                                        "{name: vertex id or {\"vertices\": [...], \"weights\": "
+                                                        "[...]}}}, docs/measurements.md): the model keeps the "
+                                                        "measurement set it gives. Default: DATABASE/landmarks.json "
+                                                        "if present, else the built-in set for the template's "
+                                                        "topology."),
           force: bool = ForceOption):
-    """Build a BodyModel (template, encoder statistics, PCA shape space) from a scan database."""
+    """Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
     on_flipped = check_choice(on_flipped, "--on-flipped", ON_FLIPPED)
     _check_not_mesh_folder(database)
+    if landmarks is not None and not landmarks.is_file():
+        raise ParameterError(f"--landmarks {landmarks}: no such file; expected a landmark file (JSON, "
+                             "docs/measurements.md)")
     db = ScanDatabase.load(database)
     with progress("build") as cb:
-        model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, progress=cb)
+        model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
+                              progress=cb)
     model.save(out)
     folded = model.provenance.get("flipped_scans")
     if folded:
         console.print(f"{folded} of {len(model.fitted_scans)} scan(s) have flipped (folded) triangles (at most "
                       f"{model.provenance['flipped_triangles_max']} in a scan); encoded anyway (--on-flipped "
                       f"{on_flipped}; raise refuses them)", highlight=False)
+    console.print(_measurement_set_line(model, database), soft_wrap=True, highlight=False)
     ratio = float(model.space.explained_variance_ratio_.sum())
     t = model.provenance["timings_s"]
     out_console.print(f"wrote {out}: {model!r}; {100 * ratio:.1f}% of the variance; "
                       f"encode {t['encode_s']:.1f} s, PCA {t['pca_s']:.1f} s, total {t['total_s']:.1f} s")
+
+
+def _measurement_set_line(model: BodyModel, database: Path) -> str:
+    """What the model measures with, said after build (and what to do when it has nothing)."""
+    if not model.has_measurement_set:
+        return (f"no measurement set: the scans ({len(model.template_vertices)} vertices) are not of the template's "
+                "topology and no landmark file was given, so measure --model, generate, morph, crowd, evaluate and "
+                f"mapping cannot use this model; build it again with --landmarks FILE (or put {LANDMARKS_FILE} in "
+                f"{database})")
+    mset = model.measurement_set
+    loops = [m["name"] for m in load_measurement_set().measurements if m["method"] == "loop"
+             and m["name"] not in mset.names]
+    return (f"measurement set: {len(mset.names)} measurements from {mset.source}"
+            + (f" (the template's vertex loops {', '.join(loops)} do not exist on this topology)" if loops else ""))
 
 
 def _check_not_mesh_folder(folder: Path) -> None:

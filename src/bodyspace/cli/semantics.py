@@ -37,6 +37,7 @@ from bodyspace.cli.common import (
 from bodyspace.cli.export import BonesOption, MorphsOption, PngOption, RigOption, check_rig_options, write_rigged
 from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import BodyspaceError
+from bodyspace.mapping.gradients import SUBSTITUTES
 from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
 from bodyspace.mesh.io import load_mesh, save_mesh
@@ -123,6 +124,7 @@ def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
     for text in list(sets or []) + list(ranges or []):
         name = str(text).partition("=")[0].strip()
         if sm is not None and "=" in str(text) and name:
+            _check_stand_in(text, ALIASES.get(name, name), sm)
             sm.regressor(ALIASES.get(name, name))
         t = parse_assignment(text)
         if text in (ranges or []) and t.kind != "range":
@@ -135,6 +137,17 @@ def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
                             f"give each name once")
         out[t.name] = t
     return out
+
+
+def _check_stand_in(text: str, name: str, sm) -> None:
+    """A template loop (waist_size, ...) asked of a model of another topology: name the ISO
+    measurement that stands in for it there (``mapping.gradients.SUBSTITUTES``)."""
+    if name in getattr(sm, "regressors_", {}) or name not in SUBSTITUTES:
+        return
+    sub = next((n for n in SUBSTITUTES[name] if n in getattr(sm, "regressors_", {})), None)
+    if sub is not None:
+        raise UnitError(f"--set {text}: {name} is a vertex loop of the template, which this model's topology does not "
+                        f"have; ask {sub} instead (--set {sub}=...)")
 
 
 def _result_table(title: str, result, sm) -> Table:

@@ -88,6 +88,9 @@ SUBJECTS_FILE = "subjects.csv"
 SCANS_FILE = "scans.csv"
 ROTATIONS_FILE = "rotations.npy"
 META_FILE = "meta.json"
+# Optional: the landmark file of the database's topology (a ``measure.load_landmarks`` document,
+# written by ``bodyspace import --landmarks``); ``BodyModel.fit`` keeps the measurement set it gives.
+LANDMARKS_FILE = "landmarks.json"
 # Kind in the .bodyspace marker of a database folder (bodyspace.atomic): --force replaces only these.
 DATABASE_KIND = "database"
 
@@ -376,14 +379,16 @@ def validate_database(vertices, faces, subjects: Mapping, scans: Mapping, meta: 
 
 def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, subjects: Mapping,
                    scans: Mapping, meta: Mapping | None = None, rotations: np.ndarray | None = None,
-                   joints: list[str] | None = None, overwrite: bool = False) -> Path:
+                   joints: list[str] | None = None, overwrite: bool = False,
+                   extra_files: Mapping[str, str] | None = None) -> Path:
     """Write a database folder; it appears complete or not at all (temp folder, then rename).
 
     vertices (N, V, 3) in metres (any float; stored float32, copied in chunks so a memmap
     input is never loaded whole); faces (F, 3) int; subjects {column: (n_subjects,)};
     scans {'subject', 'pose', optional 'scan': (N,)}; meta: template, provenance, licence,
     units (counts and format_version are filled in here); rotations (N, J, 3) axis-angle with
-    ``joints`` (J names). Returns the folder path.
+    ``joints`` (J names); extra_files: file name -> text written into the folder too (e.g.
+    ``LANDMARKS_FILE``). Returns the folder path.
     """
     folder = Path(folder)
     if folder.exists():
@@ -415,6 +420,8 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
         write_csv_table(tmp / SUBJECTS_FILE, subjects)
         write_csv_table(tmp / SCANS_FILE, scans)
         (tmp / META_FILE).write_text(meta_text, encoding="utf-8")
+        for name, text in (extra_files or {}).items():
+            (tmp / name).write_text(text, encoding="utf-8")
     return folder
 
 
@@ -692,6 +699,8 @@ class ScanDatabase:
         self.scans = dict(scans)
         self.meta = dict(meta)
         self.rotations = rotations
+        # The folder ``load`` read (None in memory): where its LANDMARKS_FILE would be.
+        self.folder: Path | None = None
 
     # -- constructors -------------------------------------------------------------------------
 
@@ -701,8 +710,10 @@ class ScanDatabase:
 
         ``check_values=False`` skips the NaN scan of vertices.npy (a full read of the file).
         """
-        return cls(**load_database_arrays(as_path(folder, "database folder"), check_values=check_values),
-                   _checked=True)
+        path = as_path(folder, "database folder")
+        db = cls(**load_database_arrays(path, check_values=check_values), _checked=True)
+        db.folder = path
+        return db
 
     @classmethod
     def from_meshes(cls, folder: str | os.PathLike, labels_csv: str | os.PathLike,
@@ -720,10 +731,19 @@ class ScanDatabase:
             parts["meta"][REST_POSE_FIELD] = choose_rest_pose(parts["scans"], rest_pose, str(labels_csv))
         return cls(**parts, _checked=True)
 
-    def save(self, folder: str | os.PathLike, overwrite: bool = False) -> Path:
-        """Write this database as a folder (atomically); returns the folder path."""
+    def save(self, folder: str | os.PathLike, overwrite: bool = False,
+             extra_files: Mapping[str, str] | None = None) -> Path:
+        """Write this database as a folder (atomically); returns the folder path. ``extra_files``:
+        name -> text written into it too (``LANDMARKS_FILE``)."""
         return write_database(folder, self.vertices, self.faces, self.subjects, self.scans, self.meta,
-                              rotations=self.rotations, joints=self.meta.get("joints"), overwrite=overwrite)
+                              rotations=self.rotations, joints=self.meta.get("joints"), overwrite=overwrite,
+                              extra_files=extra_files)
+
+    @property
+    def landmarks_path(self) -> Path | None:
+        """The database folder's landmark file (``LANDMARKS_FILE``), or None if it has none."""
+        path = None if self.folder is None else self.folder / LANDMARKS_FILE
+        return path if path is not None and path.is_file() else None
 
     # -- sizes --------------------------------------------------------------------------------
 

@@ -20,7 +20,7 @@ import numpy as np
 from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.forest import LinearLeafForest
-from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
+from bodyspace.mapping.gradients import LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import RefineResult, refine
 from bodyspace.mapping.training import default_sizes, make_training_set, sample_uniform
@@ -68,7 +68,8 @@ class MeasurementMapping:
     shape coefficients of the model it was fitted on.
 
     Attributes:
-        names: measurement names (hm08 set), e.g. Rupprecht's six.
+        names: its input measurements (of the model's set): Rupprecht's six on the template, their
+            stand-ins on another topology (``gradients.mapping_inputs``).
         k: coefficients the mapping predicts (the rest stay 0).
         forest: ``LinearLeafForest`` (measurements -> k coefficients).
         linear: ``LinearMapping``, the related work's baseline, same interface.
@@ -218,9 +219,13 @@ def forest_for(n_samples: int, rng=0, n_trees: int = 50, n_jobs: int | None = No
     return LinearLeafForest(n_trees=n_trees, rng=rng, n_jobs=n_jobs, min_samples_leaf=min(30, n_samples))
 
 
-def fit_mapping(model, samples: int | None = None, k: int = 25, names=RUPPRECHT_SIX, rng=0,
+def fit_mapping(model, samples: int | None = None, k: int = 25, names=None, rng=0,
                 n_trees: int = 50, n_jobs: int | None = None, progress=None) -> MeasurementMapping:
     """Fit the mapping of ``model`` (a ``BodyModel``) from a training set drawn from it.
+
+    ``names``: its input measurements, default ``gradients.mapping_inputs`` of the model's
+    measurement set (Rupprecht's six on the template; ISO girths standing in for the template's
+    loops on another topology); the mapping stores them (``MeasurementMapping.names``).
 
     ``samples`` defaults to 10,000 for vertex models and 1,000 for RRE models (every RRE body is
     decoded; see docs/mapping.md). Deterministic given ``rng`` (a seed). ``progress(message, fraction)``.

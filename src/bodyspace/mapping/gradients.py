@@ -36,9 +36,18 @@ import weakref
 import numpy as np
 
 from bodyspace.errors import ParameterError
-from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
+from bodyspace.measure.definitions import MeasurementSet
 
 RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length", "shoulder_size")
+# Four of Rupprecht's six are vertex loops of the template (Rupprecht §3.1.2), which a set of
+# another topology does not have (``with_landmarks`` drops them). Each input then stands in by
+# the first of these the set has: the same body dimension measured the ISO 8559-1 way (a tape
+# round the chest for the breast loop, the biacromial breadth for the loop round both shoulders).
+SUBSTITUTES = {"height": ("stature",), "breast_size": ("chest_girth",), "waist_size": ("waist_girth",),
+               "hip_size": ("hip_girth",), "leg_length": ("inside_leg_length", "crotch_height"),
+               "shoulder_size": ("shoulder_width",)}
+# A mapping from fewer measurements than this is refused (two numbers do not pin a body shape).
+MIN_INPUTS = 3
 UP = np.array([0.0, 1.0, 0.0])
 DIFFERENTIABLE = ("loop", "distance", "path")
 _CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
@@ -98,6 +107,24 @@ def path_length_grad(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n.sum(axis=1), g
 
 
+def mapping_inputs(mset: MeasurementSet) -> tuple[str, ...]:
+    """The mapping's input measurements for a measurement set: Rupprecht's six where the set has
+    them (the template's set), else each one's first ``SUBSTITUTES`` entry the set has, in the
+    order of ``RUPPRECHT_SIX``; an input with neither is left out. Raises ``ParameterError``
+    when fewer than ``MIN_INPUTS`` remain, naming what is missing."""
+    have = set(mset.names)
+    out, missing = [], []
+    for name in RUPPRECHT_SIX:
+        found = next((n for n in (name,) + SUBSTITUTES[name] if n in have), None)
+        (out if found else missing).append(found or name)
+    if len(out) < MIN_INPUTS:
+        raise ParameterError(f"measurement set {mset.source}: only {len(out)} of the mapping's inputs "
+                             f"({', '.join(out) or 'none'}) can be measured, expected at least {MIN_INPUTS}; missing "
+                             + "; ".join(f"{n} (or {' / '.join(SUBSTITUTES[n])})" for n in missing)
+                             + ": give the landmarks they need (docs/measurements.md)")
+    return tuple(out)
+
+
 # ---------------------------------------------------------------------- measurements of linear bodies
 def subset(mset: MeasurementSet, names) -> MeasurementSet:
     """The measurement set restricted to ``names`` (in that order; dependencies kept)."""
@@ -122,11 +149,12 @@ class LinearBodyMeasures:
 
     Args:
         base: (V, 3) body at z = 0; basis: (K, V, 3) d v / d z_k.
-        mset: measurement set; names: which of its measurements (loop, distance or path).
+        mset: measurement set; names: which of its measurements (loop, distance or path;
+            default ``mapping_inputs(mset)``).
     """
 
-    def __init__(self, base: np.ndarray, basis: np.ndarray, mset: MeasurementSet, names=RUPPRECHT_SIX):
-        self.names = tuple(names)
+    def __init__(self, base: np.ndarray, basis: np.ndarray, mset: MeasurementSet, names=None):
+        self.names = mapping_inputs(mset) if names is None else tuple(names)
         by_name = {m["name"]: m for m in mset.measurements}
         self.defs = []
         for n in self.names:
@@ -185,9 +213,10 @@ class LinearBodyMeasures:
         return self
 
     @classmethod
-    def from_model(cls, model, mset: MeasurementSet | None = None, names=RUPPRECHT_SIX, k: int | None = None,
+    def from_model(cls, model, mset: MeasurementSet | None = None, names=None, k: int | None = None,
                    linearization=None):
-        """For a ``BodyModel`` and its first ``k`` components (default all; 25 at most for RRE).
+        """For a ``BodyModel`` and its first ``k`` components (default all; 25 at most for RRE),
+        with its measurement set (``model.measurement_set``) unless ``mset`` is given.
 
         The basis of ``model.encoder.linearize(space, k)``: exact for a linear encoding (vertex);
         for RRE the given ``linearization`` (an ``encoding.linearize.DecoderLinearization`` fitted
@@ -196,7 +225,9 @@ class LinearBodyMeasures:
         decoded bodies with approximate Jacobians, and ``__call__`` measures the linearized bodies.
         Cached per model (weakly) and arguments: a second call for one request costs nothing.
         """
-        key = (id(mset), tuple(names), k, id(linearization))
+        mset = model.measurement_set if mset is None else mset
+        names = mapping_inputs(mset) if names is None else tuple(names)
+        key = (id(mset), names, k, id(linearization))
         try:
             per_model = _CACHE.setdefault(model, {})
         except TypeError:
@@ -210,7 +241,6 @@ class LinearBodyMeasures:
 
     @classmethod
     def _from_model(cls, model, mset, names, k, linearization=None):
-        mset = load_measurement_set() if mset is None else mset
         sp = model.space
         # The encoder's own linearization of its decoder (exact for a linear encoding, which a
         # fitted one could only approximate), unless a fitted one is given.

@@ -43,11 +43,11 @@ import numpy as np
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.gradients import (
     DIFFERENTIABLE,
-    RUPPRECHT_SIX,
     LinearBodyMeasures,
+    mapping_inputs,
     subset,
 )
-from bodyspace.measure import load_measurement_set, measure
+from bodyspace.measure import measure
 
 # RRE: after a rejected step the damping (relative to diag(H)) is at least this, so the next
 # step is shorter at once instead of after ~6 rejections (each costs a decode).
@@ -65,16 +65,6 @@ FD_STEP = 1e-3
 # steps; residuals are always measured on the true bodies), then differenced again. Slices and
 # mass are smooth in the coefficients; differencing every iteration tripled generate's time.
 FD_REUSE = 8
-
-
-_DEFAULT_MSET = []
-
-
-def default_measurement_set():
-    """The hm08 measurement set, read once per process (refinement asks for it per request)."""
-    if not _DEFAULT_MSET:
-        _DEFAULT_MSET.append(load_measurement_set())
-    return _DEFAULT_MSET[0]
 
 
 def analytic_names(mset, names) -> tuple:
@@ -113,7 +103,7 @@ class RefineResult:
         return np.array([not m for m in self.misses])
 
 
-def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, measurer=None, k: int = 25,
+def refine(model, coefficients0, targets, names=None, *, mset=None, measurer=None, k: int = 25,
            prior_weight: float = 1e-4, max_sigma: float = 3.0, tol_cm: float = 0.1, max_iter: int = 40,
            xtol: float = 1e-9, ftol: float = 1e-6, linearization=None, stop_cm: float | None = None,
            update: str = "broyden", damping: float = 0.1, tolerances=None, linear=None, offset=None,
@@ -124,7 +114,8 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
         model: a ``BodyModel``, vertex or RRE encoding (selected by ``model.encoder.is_linear``).
         coefficients0: (N, K') or (K',) start, e.g. the forest's prediction (only the first ``k`` are refined).
         targets: (N, M) or (M,) requested measurements in cm, columns in the order of ``names``.
-        names: the measurements (loop, distance or path methods); mset: their set (default hm08).
+        names: the measurements (default ``mapping_inputs(mset)``: Rupprecht's six on the
+            template); mset: their set (default the model's own, ``model.measurement_set``).
         measurer: a prebuilt ``LinearBodyMeasures`` for these names (saves its setup per call).
         k: coefficients refined (the first 25, as sampled for training).
         prior_weight: ``w`` above, per cm² of measurement error per sigma².
@@ -162,7 +153,8 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     t = np.asarray(targets, dtype=float)
     single = t.ndim == 1
     z0, t = np.atleast_2d(z0), np.atleast_2d(t)
-    names = tuple(names)
+    mset = model.measurement_set if mset is None else mset
+    names = mapping_inputs(mset) if names is None else tuple(names)
     if t.shape[1] != len(names) or len(z0) != len(t):
         raise ParameterError(f"targets: shape {t.shape} for {len(z0)} start(s), expected ({len(z0)}, {len(names)}) "
                              f"(one column per name: {', '.join(names)})")
@@ -174,8 +166,6 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     tol = np.full(len(names), float(tol_cm)) if tolerances is None else np.asarray(tolerances, dtype=float)
     if tol.shape != (len(names),) or not np.all(tol > 0):
         raise ParameterError(f"tolerances: {tolerances!r}, expected {len(names)} positive values (one per name)")
-    given_mset = mset                          # None: LinearBodyMeasures' cache key for the default set
-    mset = default_measurement_set() if mset is None else mset
     measured_names = tuple(n for n in names if n not in linear)
     fast = analytic_names(mset, measured_names) if measured_names else ()
     if bodies is not None:                     # dv/dz is not the model's basis: difference everything
@@ -183,7 +173,7 @@ def refine(model, coefficients0, targets, names=RUPPRECHT_SIX, *, mset=None, mea
     general = (bool(linear) or len(fast) < len(measured_names) or tolerances is not None or offset is not None
                or bodies is not None)
     if measurer is None and (fast or not general):
-        measurer = LinearBodyMeasures.from_model(model, given_mset, fast if general else names, k,
+        measurer = LinearBodyMeasures.from_model(model, mset, fast if general else names, k,
                                                  linearization=linearization)
     k = min(measurer.n_coefficients if measurer is not None else int(k), model.n_components)
     sd = np.sqrt(model.space.explained_variance_[:k])

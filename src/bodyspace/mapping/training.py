@@ -3,7 +3,9 @@
 The first ``k`` shape coefficients (25 in the paper) are drawn uniformly within ``±sigma_range``
 standard deviations (the rest are 0), the bodies are reconstructed and measured with the loop
 definitions of Rupprecht §3.1.2 (``height``, ``breast_size``, ``waist_size``, ``hip_size``,
-``leg_length``, ``shoulder_size``) and, optionally, any other measurements of a set.
+``leg_length``, ``shoulder_size``) and, optionally, any other measurements of a set. The set is
+the model's own (``model.measurement_set``); on another topology the template's loops are stood
+in for by ISO girths (``gradients.mapping_inputs``), measured as slices.
 
 With the vertex encoding, loops, distances and paths are computed straight from the
 coefficients on the few vertices they touch (``gradients.LinearBodyMeasures``, the same numbers
@@ -27,11 +29,11 @@ from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.gradients import (
     DIFFERENTIABLE,
-    RUPPRECHT_SIX,
     LinearBodyMeasures,
+    mapping_inputs,
     subset,
 )
-from bodyspace.measure import load_measurement_set, measure
+from bodyspace.measure import measure
 
 CHUNK = 256
 # RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.
@@ -43,7 +45,8 @@ class TrainingSet:
     """coefficients (N, K) (the first ``k`` vary), measurements (N, M) in cm for lengths,
     names (M,), units (M,) as shown ("cm", "kg", ...), k, sigma_range, seed; linearization: RRE
     models only, the least-squares ``encoding.linearize.DecoderLinearization`` of the decoded bodies (None
-    for the vertex encoding, which is linear)."""
+    for the vertex encoding, which is linear); dropped: bodies left out because a measurement was
+    undefined on them (a failed condition)."""
 
     coefficients: np.ndarray
     measurements: np.ndarray
@@ -53,6 +56,7 @@ class TrainingSet:
     sigma_range: float
     seed: object = None
     linearization: object = None
+    dropped: int = 0
 
 
     def column(self, name: str) -> np.ndarray:
@@ -60,9 +64,14 @@ class TrainingSet:
 
 
 def default_sizes(model) -> tuple[int, int]:
-    """(training samples, held-out requests) by encoding: the paper's 10,000 / 1,000 for vertex
-    models; 1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each)."""
-    return (10000, 1000) if model.encoder.is_linear else (1000, 100)
+    """(training samples, held-out requests): the paper's 10,000 / 1,000 for vertex models whose
+    inputs are loops and lengths (Rupprecht's six: measured on the few vertices they touch);
+    1,000 / 100 for RRE models, whose every body is decoded (~0.03-0.4 s each), and for models
+    of another topology, whose girth inputs are slices of every reconstructed body (~3-10 ms each)."""
+    mset = model.measurement_set
+    by_name = {m["name"]: m for m in mset.measurements}
+    sliced = any(by_name[n]["method"] not in DIFFERENTIABLE for n in mapping_inputs(mset))
+    return (10000, 1000) if model.encoder.is_linear and not sliced else (1000, 100)
 
 
 def sample_uniform(model, n: int, k: int = 25, sigma_range: float = 3.0, rng=None) -> np.ndarray:
@@ -81,15 +90,17 @@ def _display(unit: str) -> tuple[str, float]:
     return ("cm", 100.0) if unit == "m" else (unit, 1.0)
 
 
-def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, measurer=None,
+def measure_coefficients(model, z: np.ndarray, names=None, mset=None, measurer=None,
                          progress=None, linearization=None) -> tuple[np.ndarray, tuple]:
     """Measurements (N, M) (cm for lengths) and their display units of bodies with coefficients z (N, K).
 
+    ``mset``: default the model's own (``model.measurement_set``); ``names``: default the
+    mapping's inputs for it (``gradients.mapping_inputs``: Rupprecht's six on the template).
     RRE models decode every body; pass ``linearization`` (a ``DecoderLinearization``) to have
     it accumulate the decoded bodies on the way (``partial_fit``).
     """
-    mset = load_measurement_set() if mset is None else mset
-    names = tuple(names)
+    mset = model.measurement_set if mset is None else mset
+    names = mapping_inputs(mset) if names is None else tuple(names)
     by_name = {m["name"]: m for m in subset(mset, names).measurements}
     units = tuple(_display(by_name[n]["unit"])[0] for n in names)
     scale = np.array([_display(by_name[n]["unit"])[1] for n in names])
@@ -129,7 +140,7 @@ def measure_coefficients(model, z: np.ndarray, names=RUPPRECHT_SIX, mset=None, m
     return out * scale, units
 
 
-def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT_SIX, mset=None,
+def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=None, mset=None,
                       sigma_range: float = 3.0, progress=None) -> TrainingSet:
     """Sample ``n`` bodies from ``model`` and measure them (Rupprecht §4.1).
 
@@ -139,10 +150,13 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT
             ``TrainingSet.linearization``, for refinement).
         n: number of bodies (10,000 in the paper); k: coefficients that vary (25).
         rng: seed or Generator; the same seed gives the same set, bit for bit.
-        names: measurements to take (default Rupprecht's six); mset: their set (default hm08).
+        names: measurements to take (default ``mapping_inputs(mset)``: Rupprecht's six on the
+            template); mset: their set (default the model's, ``model.measurement_set``).
         sigma_range: half-width of the uniform box in standard deviations (3).
         progress: ``progress(message, fraction)``.
     """
+    mset = model.measurement_set if mset is None else mset
+    names = mapping_inputs(mset) if names is None else tuple(names)
     z = sample_uniform(model, n, k, sigma_range, rng)
     kk = min(int(k), model.n_components)
     lin = None
@@ -151,5 +165,15 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=RUPPRECHT
     x, units = measure_coefficients(model, z, names, mset, progress=progress, linearization=lin)
     if lin is not None and not hasattr(lin, "basis_"):
         lin = None                                       # n <= k bodies: not determined
+    # A measurement with a condition (stature: upright) is NaN on a body that fails it (a pose
+    # of a pose-and-shape model): such bodies are left out, and too many of them refused.
+    ok = np.isfinite(x).all(axis=1)
+    if not ok.all():
+        bad = [n for n, col in zip(names, np.isfinite(x).all(axis=0)) if not col]
+        if ok.sum() < max(2, len(x) // 2):
+            raise ParameterError(f"training set: {int((~ok).sum())} of {len(x)} bodies drawn from the model have "
+                                 f"undefined {', '.join(bad)} (conditions such as 'upright' fail on them); expected "
+                                 "a shape model whose bodies stand (build --selection rest)")
+        z, x = z[ok], x[ok]
     return TrainingSet(z, x, tuple(names), units, kk, float(sigma_range),
-                       rng if isinstance(rng, (int, np.integer)) else None, lin)
+                       rng if isinstance(rng, (int, np.integer)) else None, lin, int((~ok).sum()))

@@ -107,6 +107,19 @@ class MeasurementSet:
         ids += [max(template_vertices(m)) for m in self.measurements if template_vertices(m)]
         return max(ids, default=-1)
 
+    def to_dict(self) -> dict:
+        """The whole set as a JSON-able document that ``measurement_set_from_dict`` reads back
+        into an equal set (how a BodyModel file stores it: data, never code). A one-vertex
+        landmark is its id, a weighted one ``{"vertices": [...], "weights": [...]}`` (floats
+        round-trip exactly through JSON); measurements and conditions as validated."""
+        landmarks = {}
+        for name, (ids, w) in self.landmarks.items():
+            landmarks[name] = (int(ids[0]) if len(ids) == 1 and float(w[0]) == 1.0 else
+                               {"vertices": [int(i) for i in ids], "weights": [float(x) for x in w]})
+        return {"format": FORMAT, "template": self.template, "n_vertices": self.n_vertices,
+                "source": self.source, "landmarks": landmarks, "conditions": _plain(self.conditions),
+                "measurements": _plain(list(self.measurements))}
+
 
 def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarray]:
     """A landmark value → (vertex ids (k,), convex weights (k,)); errors name the landmark."""
@@ -212,6 +225,19 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
     n = d.get("n_vertices")
     return MeasurementSet(landmarks, tuple(out), dict(conditions), _n_vertices(source, n),
                           str(d.get("template", "")), source)
+
+
+def _plain(x: Any) -> Any:
+    """``x`` with numpy scalars and arrays as Python numbers and lists (for ``to_dict``)."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def _vertex_id(where: str, val: Any) -> int:
@@ -351,3 +377,7 @@ def _point_fields(m: dict) -> set:
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])
     return set().union(*(point_names(p) for p in pts)) if pts else set()
+
+
+# Public name of ``_point_fields`` (the landmarks a measurement uses, for messages elsewhere).
+point_fields = _point_fields

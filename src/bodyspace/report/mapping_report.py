@@ -31,8 +31,11 @@ def mapping_tables_markdown(ev: MappingEvaluation) -> str:
         rows.append(f"| {n} | " + " | ".join(f"{tabs[m][n]['mean']:.4f} | {tabs[m][n]['variance']:.4f}"
                                              for m in ev.errors) + " |")
     cells = sum(([f"{100 * ev.within(m):.1f} %", ""] for m in ev.errors), [])
-    rows.append("| all six within 1 mm | " + " | ".join(cells) + " |")
-    return (f"Error (measured − requested) in cm over {len(ev.requests)} held-out feasible requests "
+    rows.append(f"| all {len(ev.names)} within 1 mm | " + " | ".join(cells) + " |")
+    inputs = ev.settings.get("inputs")
+    said = (f"Inputs: {', '.join(inputs)} (the model's measurement set, {ev.settings.get('measurement_set')})\n\n"
+            if inputs else "")
+    return (f"{said}Error (measured − requested) in cm over {len(ev.requests)} held-out feasible requests "
             "(mean in cm, variance in cm²)\n\n" + "\n".join(rows) + "\n")
 
 
@@ -79,7 +82,7 @@ def write_mapping_report(model, ev: MappingEvaluation, out) -> dict[str, Path]:
         md += "| requested | " + " | ".join(sw["names"]) + " | missed |\n|---|" + "---|" * (len(sw["names"]) + 1) + "\n"
         for i, s in enumerate(sw["sizes_cm"]):
             miss = ", ".join(f"{k} {v['difference']:+.2f}" for k, v in sw["misses"][i].items()) or "—"
-            md += f"| {s:.0f} | " + " | ".join(f"{v:.2f}" for v in sw["measured"][i]) + f" | {miss} |\n"
+            md += f"| {s:g} | " + " | ".join(f"{v:.2f}" for v in sw["measured"][i]) + f" | {miss} |\n"
     with atomic_path(files["tables"]) as tmp:
         Path(tmp).write_text(md)
     with atomic_path(files["json"]) as tmp:
@@ -90,8 +93,8 @@ def write_mapping_report(model, ev: MappingEvaluation, out) -> dict[str, Path]:
         files["sweep_png"] = out / "shoulder_sweep.png"
         j = sw["names"].index(sw["swept"])
         bodies = model.reconstruct(np.asarray(sw["coefficients"]))
-        labels = [f"{s:.0f} cm → {m[j]:.1f}" + (" (missed)" if miss else "")
+        labels = [f"{s:g} cm → {m[j]:.1f}" + (" (missed)" if miss else "")
                   for s, m, miss in zip(sw["sizes_cm"], sw["measured"], sw["misses"])]
         contact_sheet(bodies, model.faces, files["sweep_png"], labels=labels, views=("front", "side"),
-                      title=f"{sw['swept']} from {sw['sizes_cm'][0]:.0f} to {sw['sizes_cm'][-1]:.0f} cm (Rupprecht Figure 6)")
+                      title=f"{sw['swept']} from {sw['sizes_cm'][0]:g} to {sw['sizes_cm'][-1]:g} cm (Rupprecht Figure 6)")
     return files

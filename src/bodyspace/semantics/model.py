@@ -35,7 +35,7 @@ import numpy as np
 
 from bodyspace.data.template import load_template
 from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError, TargetError
-from bodyspace.measure import load_measurement_set, measure
+from bodyspace.measure import measure
 from bodyspace.semantics.closed_loop import closed_loop
 from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
 from bodyspace.semantics.labels import (
@@ -50,7 +50,9 @@ from bodyspace.semantics.labels import (
 )
 from bodyspace.semantics.masks import (
     REGIONS,
+    SKELETON_LANDMARKS,
     MaskedPoissonBlend,
+    region_weights_from_landmarks,
     region_weights_from_template,
 )
 from bodyspace.semantics.regressors import (
@@ -147,8 +149,8 @@ class SemanticModel:
         self.max_iter = int(max_iter)
         self.on_infeasible = on_infeasible
         self._check_params()
-        self._mset = None
         self._sub_msets = {}
+        self._landmark_regions = None
         self._blends = {}
         self._projector = None
         self.lengths_ = []
@@ -170,9 +172,8 @@ class SemanticModel:
     # ------------------------------------------------------------------ fitting
     @property
     def mset(self):
-        if self._mset is None:
-            self._mset = load_measurement_set()
-        return self._mset
+        """The body model's measurement set (``BodyModel.measurement_set``: its topology's)."""
+        return self.body_model.measurement_set
 
     def _is_measured(self, name: str) -> bool:
         return name in self.measured_ or name in self.lengths_
@@ -397,11 +398,33 @@ class SemanticModel:
         if isinstance(mask, str):
             mask = [mask]
         if isinstance(mask, (list, tuple)) and all(isinstance(m, str) for m in mask):
-            bad = [m for m in mask if m not in self.regions_]
+            regions = self.regions()
+            bad = [m for m in mask if m not in regions]
             if bad:
-                raise ParameterError(f"mask: unknown region(s) {bad}; expected one of {', '.join(self.regions_) or '(none: this model has no template regions; pass per-vertex weights)'}")
-            return np.max([self.regions_[m] for m in mask], axis=0)
+                raise ParameterError(f"mask: unknown region(s) {bad}; expected one of "
+                                     f"{', '.join(regions) or self._no_regions()}")
+            return np.max([regions[m] for m in mask], axis=0)
         return np.asarray(mask, dtype=float)
+
+    def regions(self) -> dict:
+        """Region name -> (V,) weights: the template's (``regions_``, from its rig), or on another
+        topology those of the skeleton the model's landmarks define
+        (``masks.region_weights_from_landmarks`` on the mean body; derived once, not stored)."""
+        if getattr(self, "regions_", None):
+            return self.regions_
+        if self._landmark_regions is None:
+            bm = self.body_model
+            self._landmark_regions = (region_weights_from_landmarks(bm.mean_vertices, bm.measurement_set)
+                                      if bm.has_measurement_set else {})
+        return self._landmark_regions
+
+    def _no_regions(self) -> str:
+        bm = self.body_model
+        if not bm.has_measurement_set:
+            return "(none: this model carries no measurement set, whose landmarks define the regions; pass per-vertex weights)"
+        missing = [n for n in SKELETON_LANDMARKS if n not in bm.measurement_set.landmarks]
+        return (f"(none: the model's landmarks lack {', '.join(missing)}, which the regions are made from; give "
+                "them in the landmark file, or pass per-vertex weights)")
 
     def masked_blend(self, weights) -> MaskedPoissonBlend:
         """The ``MaskedPoissonBlend`` of a mask, built on the model's mean body and cached: its

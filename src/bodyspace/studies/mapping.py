@@ -5,8 +5,10 @@ like the training set, so some body meets each exactly): the linear mapping of t
 (Rupprecht Table 2), the linear-leaf forest (Rupprecht Table 1), and the forest followed by ``refine.refine``. For
 each, the body of the predicted coefficients is measured again and ``measured - requested`` (cm)
 is summarized per parameter by its mean and variance, as in the paper's tables; plus the share
-of requests with all six within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
-other five held at the training set's median.
+of requests with all inputs within 1 mm. Rupprecht Figure 6: shoulder size swept from 100 to 140 cm, the
+other five held at the training set's median. The inputs are the model's (``mapping_inputs`` of its
+measurement set): Rupprecht's six on the template, ISO stand-ins on another topology (their
+sweep: shoulder width over the training set's 5th-95th percentiles).
 
 RRE models: every body is decoded (training set, held-out requests, both predictions, each
 refinement iteration), so the default sizes are smaller (``default_sizes``) and
@@ -25,10 +27,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bodyspace.mapping.bundle import forest_for
-from bodyspace.mapping.gradients import RUPPRECHT_SIX, LinearBodyMeasures
+from bodyspace.mapping.gradients import SUBSTITUTES, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
-from bodyspace.mapping.refine import refine
-from bodyspace.mapping.training import default_sizes, make_training_set, sample_uniform
+from bodyspace.mapping.refine import analytic_names, refine
+from bodyspace.mapping.training import (
+    default_sizes,
+    make_training_set,
+    measure_coefficients,
+    sample_uniform,
+)
 from bodyspace.validation import as_seed
 
 METHODS = ("linear", "forest", "forest + refinement")
@@ -150,7 +157,21 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     t = time.perf_counter()
     forest = forest_for(len(X), seed, n_trees, n_jobs).fit(X, Y)
     timings["forest_fit_s"] = time.perf_counter() - t
-    measurer = LinearBodyMeasures.from_model(model, names=RUPPRECHT_SIX, k=kk, linearization=train.linearization)
+    names, mset = train.names, model.measurement_set
+    # Rupprecht's six (loops, distances) have analytic Jacobians and are measured on the touched
+    # vertices; stand-ins of another topology (slices) are measured on reconstructed bodies.
+    measurer = None
+    if analytic_names(mset, names) == tuple(names):
+        measurer = LinearBodyMeasures.from_model(model, mset, names, k=kk, linearization=train.linearization)
+
+    def measure_z(z, progress=lambda msg, f: None):
+        """Measurements (N, M) cm of the bodies of coefficients z (N, K)."""
+        if measurer is None:
+            return measure_coefficients(model, z, names, mset, progress=progress)[0]
+        if decoded:
+            return _measure_decoded(model, measurer, z, kk, progress)
+        return measurer(z[:, :kk]) * 100.0
+
     req = held.measurements
     K = model.n_components
     preds = {"linear": _pad(lin.predict(req), K)}
@@ -158,26 +179,27 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     preds["forest"] = _pad(forest.predict(req), K)
     timings["forest_predict_s"] = time.perf_counter() - t
     errors = {}
-    if decoded:     # measure the decoded bodies of both predictions
-        for i, m in enumerate(("linear", "forest")):
-            errors[m] = _measure_decoded(model, measurer, preds[m], kk, lambda msg, f, i=i: report(
-                f"{m}: {msg}", f_fit + (i + f) / 2 * (f_pred - f_fit))) - req
+    for i, m in enumerate(("linear", "forest")):
+        errors[m] = measure_z(preds[m], lambda msg, f, i=i, m=m: report(
+            f"{m}: {msg}", f_fit + (i + f) / 2 * (f_pred - f_fit))) - req
     report("refinement", f_pred)
     t = time.perf_counter()
-    ref = refine(model, preds["forest"], req, measurer=measurer, k=kk,
+    ref = refine(model, preds["forest"], req, names, mset=mset, measurer=measurer, k=kk,
+                 linearization=train.linearization,
                  progress=lambda msg, f: report(f"refinement: {msg}", f_pred + f * (f_ref - f_pred)))
     timings["refine_s"] = time.perf_counter() - t
     timings["refine_ms_per_request"] = 1000 * timings["refine_s"] / len(req)
     preds["forest + refinement"] = ref.coefficients
-    if decoded:
-        errors["forest + refinement"] = ref.measured - req      # measured on the decoded bodies
-    else:
-        errors = {m: measurer(preds[m][:, :kk]) * 100.0 - req for m in METHODS}
+    # measured on the reconstructed (RRE: truly decoded) bodies, as refine measured them
+    errors["forest + refinement"] = ref.measured - req if decoded or measurer is None else \
+        measure_z(ref.coefficients) - req
     report("shoulder sweep", f_ref)
-    sw = shoulder_sweep(model, forest, train, measurer) if sweep else {}
+    sw = shoulder_sweep(model, forest, train, measure_z, mset=mset, measurer=measurer) if sweep else {}
     report("done", 1.0)
     ev = MappingEvaluation(train.names, req, errors, timings, sw,
                            {"samples": samples, "held_out": held_out, "seed": seed, "k": kk, "n_trees": n_trees,
+                            "inputs": list(names), "measurement_set": mset.source,
+                            "dropped_bodies": int(train.dropped + held.dropped),
                             "encoding": model.encoding, "refine_misses": int(sum(bool(m) for m in ref.misses)),
                             "refine_iterations_mean": float(ref.iterations.mean()),
                             "refine_iterations_max": int(ref.iterations.max()), "refine_decodes": int(ref.decodes)})
@@ -199,24 +221,30 @@ def _measure_decoded(model, measurer, z, k, progress, chunk: int = 32) -> np.nda
     return out
 
 
-def shoulder_sweep(model, forest, train, measurer, sizes=SWEEP_CM, name: str = "shoulder_size") -> dict:
+def shoulder_sweep(model, forest, train, measure_z, sizes=None, name: str | None = None, mset=None,
+                   measurer=None) -> dict:
     """Rupprecht Figure 6: ``name`` set to each of ``sizes`` (cm), the other parameters at the training median.
 
+    ``measure_z(z (N, K)) -> (N, M) cm`` measures bodies; ``name`` defaults to shoulder_size (or its
+    stand-in, ``SUBSTITUTES``), ``sizes`` to ``SWEEP_CM`` for shoulder_size, else five steps over
+    the training set's 5th-95th percentiles. ``mset``, ``measurer`` go to ``refine``.
     Returns requests (S, M), coefficients (S, K) (forest + refinement), measured (S, M) cm,
     forest_measured (S, M) cm (forest alone), misses (per size: what refinement could not meet).
     """
     names = train.names
+    if name is None:
+        name = next((n for n in ("shoulder_size",) + SUBSTITUTES["shoulder_size"] if n in names), names[-1])
     j = names.index(name)
+    if sizes is None:
+        sizes = SWEEP_CM if name == "shoulder_size" else tuple(
+            float(x) for x in np.round(np.linspace(*np.percentile(train.measurements[:, j], [5, 95]), 5), 1))
     base = np.median(train.measurements, axis=0)
     req = np.tile(base, (len(sizes), 1))
     req[:, j] = sizes
     K = model.n_components
     z0 = _pad(forest.predict(req), K)
-    res = refine(model, z0, req, measurer=measurer, k=train.k)
-    if model.encoder.is_linear:
-        start = measurer(z0[:, :train.k]) * 100.0
-    else:
-        start = measurer.measure_bodies(model.reconstruct(z0)) * 100.0
+    res = refine(model, z0, req, names, mset=mset, measurer=measurer, k=train.k, linearization=train.linearization)
+    start = measure_z(z0)
     return {"names": list(names), "swept": name, "sizes_cm": list(sizes), "requests": req,
             "coefficients": res.coefficients, "measured": res.measured,
             "forest_measured": start, "misses": res.misses}

@@ -29,19 +29,26 @@ VTK or MeshLab (pymeshlab is GPL).
 
 from __future__ import annotations
 
+import csv
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
 
 import fast_simplification
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from bodyspace.atomic import atomic_dir
 from bodyspace.data.template import Template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.mesh.geometry import face_normals
+from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, years_to_age
+from bodyspace.synth.population import REST_POSE, Subjects, sample_subjects
 from bodyspace.synth.poses import load_pose_library
 from bodyspace.validation import as_generator
 
@@ -593,3 +600,112 @@ def foreign_body(template, phenotype_model, topology: ForeignTopology | None = N
     return ForeignBody(vertices, topology.faces, topology.landmark_file(),
                        dict(zip(mset.landmark_names, true_lm)), to_frame(joints, **frame), body,
                        phenotype, pose, frame, topology)
+
+
+# ------------------------------------------------------------------------------ a user's scan folder
+
+SCAN_FOLDER_KIND = "scans"
+LABELS_FILE = "labels.csv"
+LANDMARKS_FILE = "landmarks.json"
+# Length units a scan folder can be written in: scale per metre.
+FOLDER_UNITS = {"m": 1.0, "cm": 100.0, "mm": 1000.0}
+# Poses of a scan folder besides the rest pose: standing poses a scanning session would ask
+# for, in this order (a folder of P poses uses the first P).
+SESSION_POSES = ("t_pose", "arms_overhead", "elbows_flexed", "step_forward_left", "arms_at_sides",
+                 "head_turn_left", "torso_twist_left", "knee_lift_left", "squat")
+
+
+@dataclass(frozen=True)
+class ScanFolder:
+    """A folder of registered scans as a user would bring them (``write_scan_folder``).
+
+    folder: the folder; meshes: (N,) file names in it, in the CSV's order; labels_csv,
+    landmarks_json: the paths of the labels CSV and the landmark file.
+    subjects: the ground truth of the subjects (``synth.population.Subjects``: phenotypes,
+    stature_m, mass_kg, ... measured on the template-topology rest bodies, metres).
+    subject_ids: (S,) ids as in the CSV; poses: the pose names of each subject, the rest first.
+    topology: the shared ``ForeignTopology``; frame: the ``to_frame`` arguments of the meshes.
+    """
+
+    folder: Path
+    meshes: list
+    labels_csv: Path
+    landmarks_json: Path
+    subjects: Subjects
+    subject_ids: list
+    poses: list
+    topology: ForeignTopology
+    frame: dict
+
+
+def write_scan_folder(template: Template, phenotype_model, out, subjects: int = 10, poses: int = 2, *,
+                      target_vertices: int = 5000, units: str = "mm", rest_name: str = "a_pose", rng=None,
+                      frame: dict | None = None, overwrite: bool = False,
+                      progress: Callable[[str, float], None] | None = None) -> ScanFolder:
+    """Write a folder of registered scans of one foreign topology, as a user would bring them.
+
+    ``subjects`` adults drawn like the synthetic population (``sample_subjects``: survey stature
+    and BMI), each in MakeHuman's A-pose (named ``rest_name``, not "rest") and the first
+    ``poses`` of ``SESSION_POSES``, posed on the ground by the rig, put on one remeshed and
+    reordered topology of ``target_vertices`` (``foreign_topology``), then moved into the
+    user's frame (``to_frame``: default +Y up, turned 25° about the vertical, 0.42 m right,
+    0.93 m forward, the floor at -0.17 m) and written in ``units`` ("m", "cm" or "mm").
+
+    Files: ``s01_a_pose.obj``, ... (one per scan), ``labels.csv`` (columns mesh, subject, pose,
+    sex, age_years, stature_cm, mass_kg: stature and mass of the rest body on the template
+    topology, rounded to 0.1 cm / 0.1 kg as a clinic would write them) and ``landmarks.json``
+    (the hm08 landmarks carried to the topology, a ``load_landmarks`` document). The folder is
+    written atomically with the ``.bodyspace`` marker of kind ``SCAN_FOLDER_KIND``; an existing
+    ``out`` is refused unless ``overwrite`` (and then replaced only if it is such a folder).
+    ``bodyspace import OUT --labels OUT/labels.csv --units mm --rest-pose a_pose --landmarks
+    OUT/landmarks.json --out DB`` reads it. Returns a ``ScanFolder`` with the ground truth.
+    """
+    if units not in FOLDER_UNITS:
+        raise ParameterError(f"units={units!r}; expected one of {', '.join(FOLDER_UNITS)}")
+    if not 1 <= int(subjects):
+        raise ParameterError(f"subjects={subjects}; expected at least 1")
+    if not 0 <= int(poses) <= len(SESSION_POSES):
+        raise ParameterError(f"poses={poses}; expected 0 to {len(SESSION_POSES)} (the session poses "
+                             f"{', '.join(SESSION_POSES)})")
+    if not isinstance(rest_name, str) or not rest_name or rest_name in SESSION_POSES[:int(poses)]:
+        raise ParameterError(f"rest_name={rest_name!r}; expected a pose name other than "
+                             f"{', '.join(SESSION_POSES[:int(poses)])}")
+    rng = as_generator(rng)
+    report = progress or (lambda msg, frac: None)
+    frame = dict(up="y", translation=(0.42, -0.17, 0.93), yaw_degrees=25.0) | (frame or {})
+    frame["scale"] = FOLDER_UNITS[units]
+    report(f"drawing {subjects} subjects", 0.0)
+    truth = sample_subjects(phenotype_model, int(subjects), rng)
+    report(f"remeshing the template to {target_vertices} vertices", 0.2)
+    topology = foreign_topology(template, target_vertices, rng)
+    library = load_pose_library()
+    rig = template.rigs["default"]
+    session = [REST_POSE] + list(SESSION_POSES[:int(poses)])
+    names = [rest_name] + session[1:]
+    R = np.stack([library.rotations(p, rig) for p in session])
+    ids = [f"s{i + 1:02d}" for i in range(int(subjects))]
+    rows, meshes = [], []
+    with atomic_dir(out, overwrite=overwrite, kind=SCAN_FOLDER_KIND) as tmp:
+        for i, sid in enumerate(ids):
+            rest = phenotype_model.vertices(truth.phenotypes[i][None])[0]
+            posed = pose_bodies(np.repeat(rest[None], len(R), axis=0), rig, R, on_ground=True)   # (P, V, 3)
+            bodies = to_frame(transfer(topology.correspondence, template.faces, posed), **frame)
+            for pose, body in zip(names, bodies):
+                mesh = f"{sid}_{pose}.obj"
+                save_mesh(tmp / mesh, body, topology.faces)
+                meshes.append(mesh)
+                rows.append({"mesh": mesh, "subject": sid, "pose": pose,
+                             "sex": "male" if truth.male[i] else "female",
+                             "age_years": f"{truth.age_years[i]:.0f}",
+                             "stature_cm": f"{100 * truth.stature_m[i]:.1f}",
+                             "mass_kg": f"{truth.mass_kg[i]:.1f}"})
+            report(f"wrote the scans of {sid}", 0.3 + 0.65 * (i + 1) / len(ids))
+        with open(tmp / LABELS_FILE, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        (tmp / LANDMARKS_FILE).write_text(json.dumps(topology.landmark_file(), indent=1) + "\n",
+                                          encoding="utf-8")
+    report("done", 1.0)
+    out = Path(out)
+    return ScanFolder(out, meshes, out / LABELS_FILE, out / LANDMARKS_FILE, truth, ids, names, topology, frame)
