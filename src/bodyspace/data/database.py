@@ -732,7 +732,7 @@ def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int
         cached[first] = _load_with_faces(paths[first])
         topology = _Topology(cached[first][1], len(cached[first][0]), paths[first])
     vertices = np.empty((len(paths), topology.n_vertices, 3), dtype=np.float32)
-    scales = np.empty(len(paths))
+    scales, edges = np.empty(len(paths)), scale_edges(topology.faces)
     for i, path in enumerate(paths):
         suffix = path.suffix.lower()
         if suffix == ".npy":
@@ -743,7 +743,7 @@ def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int
             mesh_vertices, mesh_faces = cached.pop(i, None) or load_mesh(path)
             _check_same_topology(path, mesh_vertices, mesh_faces, topology)
         vertices[i] = mesh_vertices
-        scales[i] = _mean_edge_length(mesh_vertices, topology.faces)
+        scales[i] = _mean_edge_length(mesh_vertices, edges)
     _check_common_scale(scales, paths, lines, source)
     return vertices, topology.faces
 
@@ -908,11 +908,22 @@ _UNIT_RATIOS = {"mm among meshes in m (or m among mm)": 1000.0, "cm among meshes
                 "mm among meshes in cm (or cm among mm)": 10.0, "inches among meshes in m": 1 / 0.0254}
 
 
-def _mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Mean length of the face edges (each interior edge counted twice): the mesh's scale,
-    independent of its pose."""
-    corners = vertices[faces]
-    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).mean())
+# Faces whose edges estimate a mesh's scale: an even stride of at most this many (the mean over
+# 12,000 edges is within ~1 % of the mean over all; units differ by 10x or more).
+SCALE_FACES = 4096
+
+
+def scale_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) vertex pairs: the edges of an even stride of at most ``SCALE_FACES`` faces (F, 3)."""
+    f = np.asarray(faces)[:: max(1, -(-len(faces) // SCALE_FACES))]
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+def _mean_edge_length(vertices: np.ndarray, edges: np.ndarray) -> float:
+    """Mean length of ``edges`` (E, 2) (``scale_edges``): the mesh's scale, independent of its
+    pose."""
+    d = vertices[edges[:, 0]] - vertices[edges[:, 1]]
+    return float(np.sqrt(np.einsum("ij,ij->i", d, d)).mean())
 
 
 def _check_common_scale(scales: np.ndarray, paths: list[Path], lines: list[int], source: str) -> None:
