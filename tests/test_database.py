@@ -249,7 +249,10 @@ def test_bad_vertices_array(db_folder, bad_vertices):
 
 def test_object_array_needs_pickle(db_folder):
     np.save(db_folder / "faces.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(DatabaseError, match="faces.npy: could not read"):
+    with pytest.raises(DatabaseError, match="faces.npy: holds Python objects, which bodyspace never loads"):
+        ScanDatabase.load(db_folder)
+    (db_folder / "faces.npy").write_bytes(b"garbage" * 10)   # numpy would call this "pickled data"
+    with pytest.raises(DatabaseError, match=r"faces.npy: not a .npy file \(it starts with b'garbag'\)"):
         ScanDatabase.load(db_folder)
 
 

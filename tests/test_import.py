@@ -327,13 +327,17 @@ def test_npy_meshes_take_their_faces_from_a_mesh_or_faces_file(foreign, tmp_path
     (np.zeros((4000, 2)), None, ["p1_rest.npy: found an array of shape (4000, 2)", "expected (V, 3) vertex coordinates"]),
     (np.zeros((3999, 3)), None, ["p1_rest.npy: 3999 vertices", "are for 4000", "mixed topology"]),
     (np.full((4000, 3), np.nan), None, ["p1_rest.npy: 4000 vertices contain NaN"]),
+    (b"not numpy" * 20, None, ["p1_rest.npy: not a .npy file", "expected a numeric array written by numpy.save"]),
+    (np.array([{"x": 1}], dtype=object), None, ["p1_rest.npy: holds Python objects, which bodyspace never loads"]),
     (None, np.zeros((5, 2), dtype=np.int64), ["--faces", "shape (5, 2)", "expected (F, 3) integer vertex ids"]),
     (None, np.full((5, 3), 0.5), ["--faces", "dtype float64", "expected (F, 3) integer vertex ids"]),
 ])
 def test_bad_npy_files_are_refused(foreign, tmp_path, array, faces, words):
     npy = _copy(foreign, tmp_path / "npy", suffix=".npy")
-    if array is not None:
-        np.save(npy / "p1_rest.npy", array)
+    if isinstance(array, bytes):
+        (npy / "p1_rest.npy").write_bytes(array)
+    elif array is not None:
+        np.save(npy / "p1_rest.npy", array, allow_pickle=array.dtype == object)
     faces_file = foreign[0] / "p0_rest.obj"
     if faces is not None:
         faces_file = tmp_path / "faces.npy"

@@ -479,12 +479,29 @@ def read_meta(path: Path) -> dict:
     return meta
 
 
+_NPY_MAGIC = b"\x93NUMPY"
+
+
 def _load_npy(path: Path, mmap: bool) -> np.ndarray:
+    """A numeric .npy array, never unpickled: numpy calls any non-NPY file 'pickled data' (and
+    suggests loading it unsafely), so the magic string is checked first."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(len(_NPY_MAGIC))
+    except OSError as exc:
+        raise DatabaseError(f"{path}: could not read: {exc.strerror or exc}") from exc
+    if head != _NPY_MAGIC:
+        raise DatabaseError(f"{path}: not a .npy file (it starts with {head!r}); expected a numeric array written "
+                            "by numpy.save")
     try:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        # ValueError also covers object arrays, which would need pickle.
+    except ValueError as exc:
+        if "allow_pickle" in str(exc) or "pickled" in str(exc):
+            raise DatabaseError(f"{path}: holds Python objects, which bodyspace never loads (no pickle); expected "
+                                "a numeric array written by numpy.save") from None
         raise DatabaseError(f"{path}: could not read as a numeric .npy array: {exc}") from exc
+    except (OSError, EOFError) as exc:
+        raise DatabaseError(f"{path}: could not read as a numeric .npy array ({exc}); it may be truncated") from exc
 
 
 def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
@@ -778,13 +795,16 @@ def _faces_from_file(path: Path, spelling: str) -> _Topology:
     if not path.is_file():
         raise DatabaseError(f"{flag}: file not found; expected a mesh of the meshes' topology or an (F, 3) integer "
                             ".npy of vertex ids")
-    if path.suffix.lower() != ".npy":
-        try:
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise DatabaseError(f"{flag}: suffix '{path.suffix}'; expected a mesh of the meshes' topology "
+                            f"({', '.join(s for s in MESH_SUFFIXES if s != '.npy')}) or an (F, 3) integer .npy")
+    try:
+        if path.suffix.lower() != ".npy":
             vertices, faces = _load_with_faces(path)
-        except BodyspaceError as exc:
-            raise DatabaseError(f"{flag}: {exc}") from None
-        return _Topology(faces, len(vertices), path)
-    faces = _load_npy(path, mmap=False)
+            return _Topology(faces, len(vertices), path)
+        faces = _load_npy(path, mmap=False)
+    except BodyspaceError as exc:
+        raise DatabaseError(f"{flag}: {str(exc).removeprefix(str(path) + ': ')}") from None
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.dtype.kind not in "iu":
         raise DatabaseError(f"{flag}: found an array of shape {faces.shape} and dtype {faces.dtype}; expected "
                             "(F, 3) integer vertex ids, one row per triangle (counted from 0)")
