@@ -269,3 +269,13 @@ def test_foreign_import_labels_and_generation(template, phenotype_model, tmp_pat
     assert lo <= 1.55 and hi >= 1.80
     result = sm.generate({"stature": 1.80}, rng=1)
     assert result.converged and abs(result.values["stature"] - 1.80) <= tolerance("stature")
+
+
+def test_label_columns_names_and_aliases():
+    from bodyspace.semantics.labels import label_columns
+    mset = load_measurement_set()
+    assert label_columns(mset, ["height_cm", "weight_kg", "waist_size_cm", "volume_m3", "bmi_kg_m2"]) == {
+        "stature": "height_cm", "waist_size": "waist_size_cm", "mass": "weight_kg"}
+    # each column gives one label; a measurement's own name wins over an alias
+    assert label_columns(mset, ["height_cm", "stature_cm", "mass_kg", "weight_kg"]) == {
+        "stature": "stature_cm", "height": "height_cm", "mass": "mass_kg"}

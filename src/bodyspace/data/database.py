@@ -564,6 +564,8 @@ UP_EXTENT_SHARE = 0.6
 # the arms overhead); a folder whose median is below 1 / UPSIDE_DOWN_RATIO stands on its head.
 END_SLAB = 0.05
 UPSIDE_DOWN_RATIO = 1.5
+MIXED_TOPOLOGY = ("expected every mesh registered to one topology (mixed topology); register this one to the "
+                  "others' topology, or leave it out of the CSV")
 # Per-scan values of one subject's label may differ (weighed on two days, measured per scan) by
 # this share of their median; more is more likely two people under one id or a typo.
 LABEL_SPREAD = 0.10
@@ -603,7 +605,7 @@ def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m", up:
     """
     if not isinstance(length_unit, str) or length_unit not in _LENGTH_UNITS:
         raise DatabaseError(f"length unit {length_unit!r}: expected one of {', '.join(_LENGTH_UNITS)} "
-                            f"({_say(spelling, 'length_unit', 'mm')})")
+                            f"(e.g. {_say(spelling, 'length_unit', 'mm')})")
     if up is not None and (not isinstance(up, str) or up not in UP_ROTATIONS):
         raise DatabaseError(f"up axis {up!r}: expected one of {', '.join(UP_ROTATIONS)} (the axis the meshes' "
                             f"head points along, e.g. {_say(spelling, 'up', 'z')})")
@@ -820,10 +822,11 @@ def _npy_vertices(path: Path, topology: _Topology) -> np.ndarray:
         raise DatabaseError(f"{path}: found an array of shape {vertices.shape} and dtype {vertices.dtype}; expected "
                             "(V, 3) vertex coordinates, one row per vertex (np.save(path, vertices))")
     if len(vertices) != topology.n_vertices:
-        fewer = len(vertices) < topology.n_vertices and topology.path.suffix.lower() == ".npy"
-        raise DatabaseError(f"{path}: {len(vertices)} vertices, but the faces of {topology.path} "
-                            f"{'use vertex ids up to ' + str(topology.n_vertices - 1) if fewer else f'are for {topology.n_vertices}'}"
-                            "; expected every mesh registered to one topology (mixed topology)")
+        # a faces .npy knows only its largest vertex id; a mesh file its vertex count
+        which = (f"use vertex ids 0..{topology.n_vertices - 1}" if topology.path.suffix.lower() == ".npy"
+                 else f"are for {topology.n_vertices} vertices")
+        raise DatabaseError(f"{path}: {len(vertices)} vertices, but the faces of {topology.path} {which}; "
+                            f"{MIXED_TOPOLOGY}")
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
         raise DatabaseError(f"{path}: {int(bad.sum())} vertices contain NaN or infinity (first: vertex "
@@ -840,7 +843,7 @@ def _stl_vertices(path: Path, topology: _Topology, loaded=None) -> np.ndarray:
     corners = corners[triangles]                                     # (F, 3, 3)
     if len(corners) != len(topology.faces):
         raise DatabaseError(f"{path}: {len(corners)} triangles, but {topology.path} has {len(topology.faces)}; "
-                            "expected every mesh registered to one topology (mixed topology)")
+                            f"{MIXED_TOPOLOGY}")
     vertices = np.full((topology.n_vertices, 3), np.nan)
     vertices[topology.faces.reshape(-1)] = corners.reshape(-1, 3)
     if np.isnan(vertices).any():
@@ -861,12 +864,11 @@ def _check_same_topology(path: Path, vertices: np.ndarray, faces: np.ndarray, to
     """A mesh with faces must have the topology's vertex count and exactly its faces."""
     if len(vertices) != topology.n_vertices:
         raise DatabaseError(f"{path}: {len(vertices)} vertices, but {topology.path} has {topology.n_vertices}; "
-                            f"expected every mesh registered to one topology (mixed topology)")
+                            f"{MIXED_TOPOLOGY}")
     if not np.array_equal(faces, topology.faces):
         detail = (f"{len(faces)} faces vs {len(topology.faces)}" if len(faces) != len(topology.faces) else
                   f"{int((faces != topology.faces).any(axis=1).sum())} of {len(faces)} faces differ")
-        raise DatabaseError(f"{path}: faces differ from {topology.path} ({detail}); expected every mesh "
-                            f"registered to one topology (mixed topology)")
+        raise DatabaseError(f"{path}: faces differ from {topology.path} ({detail}); {MIXED_TOPOLOGY}")
 
 
 def _check_body_frame(vertices: np.ndarray, folder: Path, length_unit: str, spelling: str,

@@ -42,8 +42,9 @@ MIN_LABELLED = 4
 # A subject column that gives a measurement of the set: the measurement's SI unit -> (column
 # suffix, factor from the column's unit to SI). Stature and every other length in cm, mass in kg.
 LABEL_COLUMN_UNITS = {"m": ("_cm", 0.01), "kg": ("_kg", 1.0)}
-# Other spellings of a measurement's column (the first present of the name's own and these wins).
-LABEL_COLUMN_ALIASES = {"mass": ("weight_kg",)}
+# Other spellings of a measurement's column (the first present of the name's own and these wins;
+# a column gives one label: height_cm is the person's stature, not Rupprecht's head-top height).
+LABEL_COLUMN_ALIASES = {"mass": ("weight_kg",), "stature": ("height_cm",)}
 
 
 def first_scan_per_subject(subject_of_scan, fitted_scans) -> tuple[np.ndarray, np.ndarray]:
@@ -149,19 +150,20 @@ def measurement_subset(mset, names):
 # ----------------------------------------------------------------------------- the user's labels
 def label_columns(mset, columns) -> dict[str, str]:
     """Measurement name -> the subject column that gives its values: ``<name>_cm`` for a length
-    of measurement set ``mset`` (stature_cm, waist_girth_cm, thigh_girth_l_cm, ...), ``mass_kg``
-    (or ``weight_kg``) for mass; only columns present in ``columns`` (a mapping or names)."""
+    of measurement set ``mset`` (stature_cm, waist_girth_cm, thigh_girth_l_cm, ...; stature also
+    from ``height_cm``), ``mass_kg`` (or ``weight_kg``) for mass; only columns present in
+    ``columns`` (a mapping or names), each giving one measurement, in the set's order."""
     present = set(columns)
     out = {}
-    for m in mset.measurements:
+    for m in sorted(mset.measurements, key=lambda m: m["name"] not in LABEL_COLUMN_ALIASES):  # aliases first
         unit = LABEL_COLUMN_UNITS.get(m["unit"])
         if unit is None or (m["unit"] == "kg" and m["name"] != "mass"):
             continue
         for column in (m["name"] + unit[0],) + LABEL_COLUMN_ALIASES.get(m["name"], ()):
-            if column in present:
+            if column in present and column not in out.values():
                 out[m["name"]] = column
                 break
-    return out
+    return {m["name"]: out[m["name"]] for m in mset.measurements if m["name"] in out}
 
 
 @dataclass
