@@ -797,7 +797,8 @@ FROM_MESHES_VARIANTS: dict[str, dict] = {
     "labels_height_abc": {"csv_text": _labels(["s0.obj,p0,female,abc", "s1.obj,p1,male,180"])},
     "labels_height_inf": {"csv_text": _labels(["s0.obj,p0,female,inf", "s1.obj,p1,male,180"])},
     "labels_sex_banana": {"csv_text": _labels(["s0.obj,p0,banana,170", "s1.obj,p1,male,180"])},
-    "labels_subject_disagrees": {"csv_text": _labels(["s0.obj,p0,female,170", "s1.obj,p0,female,180"])},
+    # more than 10 % apart within one subject (closer values are reduced to one, with a note)
+    "labels_subject_disagrees": {"csv_text": _labels(["s0.obj,p0,female,170", "s1.obj,p0,female,195"])},
     "labels_ragged_row": {"csv_text": _labels(["s0.obj,p0,female,170,extra", "s1.obj,p1,male,180"])},
     "labels_binary": {"csv_text": garbage(300, "labels").decode("latin-1")},
     "labels_duplicate_column": {"csv_text": _labels(["s0.obj,s0.obj"], "mesh,mesh")},

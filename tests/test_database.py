@@ -155,10 +155,12 @@ def test_from_meshes(tmp_path):
 
 def test_from_meshes_minimal_csv_and_length_unit(tmp_path):
     expected = write_meshes(tmp_path / "meshes", 2)
+    for i, suffix in enumerate(("obj", "ply")):  # the same spheres in cm: 2 m across, human-sized
+        save_mesh(tmp_path / "meshes" / f"m{i}.{suffix}", expected[i] * 100, SPHERE.faces)
     labels = tmp_path / "labels.csv"
     labels.write_text("mesh\nm0.obj\nm1.ply\n")
     db = ScanDatabase.from_meshes(tmp_path / "meshes", labels, length_unit="cm")
-    np.testing.assert_allclose(db.vertices, expected / 100, atol=1e-8)
+    np.testing.assert_allclose(db.vertices, expected, atol=1e-6)
     assert db.subjects["subject"].tolist() == ["m0", "m1"]
 
 
@@ -182,11 +184,25 @@ def test_from_meshes_different_faces_names_both_files(tmp_path):
         ScanDatabase.from_meshes(tmp_path / "meshes", labels)
 
 
-def test_from_meshes_labels_must_agree_per_subject(tmp_path):
-    write_meshes(tmp_path / "meshes", 2)
+def test_from_meshes_per_scan_labels_become_one_per_subject(tmp_path):
+    """A subject's scans may give different values of a label (weighed twice): the rest-pose
+    scan's value is kept, else the mean, and a note says so; values more than 10 % apart, or
+    a text label that differs, are refused."""
+    write_meshes(tmp_path / "meshes", 3)
     labels = tmp_path / "labels.csv"
-    labels.write_text("mesh,subject,mass_kg\nm0.obj,p1,60\nm1.ply,p1,61\n")
-    with pytest.raises(DatabaseError, match=r"labels.csv, line 3, column 'mass_kg': subject 'p1'"):
+    labels.write_text("mesh,subject,pose,mass_kg\nm0.obj,p1,squat,60\nm1.ply,p1,rest,61\nm2.obj,p2,squat,70\n")
+    db = ScanDatabase.from_meshes(tmp_path / "meshes", labels)
+    np.testing.assert_array_equal(db.subjects["mass_kg"], [61.0, 70.0])
+    assert "column 'mass_kg': the scans of 1 subject(s) ('p1') give different values" in db.meta["import_notes"][0]
+    labels.write_text("mesh,subject,pose,mass_kg\nm0.obj,p1,a,60\nm1.ply,p1,b,61\nm2.obj,p2,a,\n")
+    db = ScanDatabase.from_meshes(tmp_path / "meshes", labels, rest_pose="first")
+    np.testing.assert_array_equal(db.subjects["mass_kg"], [60.0, np.nan])
+    labels.write_text("mesh,subject,mass_kg\nm0.obj,p1,60\nm1.ply,p1,70\n")
+    with pytest.raises(DatabaseError, match=r"labels.csv, column 'mass_kg': subject 'p1' has 60 on line 2 and 70 on "
+                                            r"line 3, more than 10% apart"):
+        ScanDatabase.from_meshes(tmp_path / "meshes", labels)
+    labels.write_text("mesh,subject,sex\nm0.obj,p1,female\nm1.ply,p1,male\n")
+    with pytest.raises(DatabaseError, match=r"labels.csv, line 3, column 'sex': subject 'p1' has 'male' here"):
         ScanDatabase.from_meshes(tmp_path / "meshes", labels)
 
 
@@ -233,7 +249,10 @@ def test_bad_vertices_array(db_folder, bad_vertices):
 
 def test_object_array_needs_pickle(db_folder):
     np.save(db_folder / "faces.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(DatabaseError, match="faces.npy: could not read"):
+    with pytest.raises(DatabaseError, match="faces.npy: holds Python objects, which bodyspace never loads"):
+        ScanDatabase.load(db_folder)
+    (db_folder / "faces.npy").write_bytes(b"garbage" * 10)   # numpy would call this "pickled data"
+    with pytest.raises(DatabaseError, match=r"faces.npy: not a .npy file \(it starts with b'garbag'\)"):
         ScanDatabase.load(db_folder)
 
 

@@ -3,6 +3,7 @@ database the other commands read: the rest-pose choice, label names and plausibl
 `build MESHDIR`'s pointer to import, and the output policy."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from bodyspace.cli import app
 from bodyspace.data.database import ScanDatabase
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel
+from bodyspace.synth import foreign as fo
 
 runner = CliRunner()
 SUBJECTS = ("ann", "bob", "cy")
@@ -144,3 +146,201 @@ def test_existing_out_needs_force(meshes, tmp_path):
     again = run("import", meshes, "--labels", csv, "--out", written, "--rest-pose", "a_pose", "--force")
     assert again.exit_code == 0, again.output
     assert ScanDatabase.load(written).meta["rest_pose"] == {"pose": "a_pose"}
+
+
+# -- meshes that are not ours: another topology, posed, in mm, Z up, off the origin ---------------
+
+FOREIGN_SUBJECTS = ("p0", "p1", "p2", "p3")
+FOREIGN_POSES = ("rest", "t_pose")
+
+
+@pytest.fixture(scope="module")
+def foreign(template, phenotype_model, tmp_path_factory):
+    """4 subjects x 2 poses of a 4,000-vertex foreign topology (synth.foreign: remeshed, vertices
+    shuffled, edge-of-population phenotypes) in millimetres, Z up, turned and off the origin, as
+    OBJ files with a labels CSV; and each body's true internal vertices (metres, +Y up)."""
+    folder = tmp_path_factory.mktemp("foreign") / "scans"
+    folder.mkdir()
+    rng = np.random.default_rng(12)
+    topology = fo.foreign_topology(template, 4000, rng)
+    truth, rows = {}, []
+    for s, subject in enumerate(FOREIGN_SUBJECTS):
+        phenotype = None
+        for pose in FOREIGN_POSES:
+            body = fo.foreign_body(template, phenotype_model, topology, rng, phenotype=phenotype, pose=pose)
+            phenotype = body.phenotype
+            name = f"{subject}_{pose}.obj"
+            save_mesh(folder / name, body.vertices, body.faces)
+            truth[name] = fo.transfer(topology.correspondence, template.faces, body.template_vertices)
+            rows.append(f"{name},{subject},{pose},{158 + 6 * s},{52 + 9 * s}")
+    (folder / "labels.csv").write_text("mesh,subject,pose,stature_cm,mass_kg\n" + "\n".join(rows) + "\n")
+    return folder, truth, topology
+
+
+def _copy(foreign, folder: Path, convert=None, suffix=".obj", names=None):
+    """The foreign folder rewritten: each mesh's vertices through ``convert`` and saved as
+    ``suffix`` (".npy": vertices only); the CSV's mesh names follow."""
+    source, _, _ = foreign
+    folder.mkdir()
+    csv = (source / "labels.csv").read_text()
+    for path in sorted(source.glob("*.obj")):
+        if names is not None and path.name not in names:
+            continue
+        v, f = load_mesh(path)
+        v = convert(path.name, v) if convert else v
+        target = folder / (path.stem + suffix)
+        if suffix == ".npy":
+            np.save(target, v)
+        else:
+            save_mesh(target, v, f)
+        csv = csv.replace(path.name, target.name)
+    (folder / "labels.csv").write_text(csv)
+    return folder
+
+
+def test_import_foreign_meshes_in_mm_z_up(foreign, tmp_path):
+    """--units mm --up z: stored in metres, +Y up; the bodies are the true ones turned about the
+    vertical and moved (what to_frame did besides the axis and unit), nothing else."""
+    folder, truth, _ = foreign
+    result = run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "db", "--units", "mm",
+                 "--up", "z")
+    assert result.exit_code == 0, result.output
+    assert "8 scans of 4 subjects, 4000 vertices (read in mm; turned from z up to +Y)" in " ".join(result.output.split())
+    db = ScanDatabase.load(tmp_path / "db")
+    assert db.meta["provenance"]["up"] == "z" and db.meta["rest_pose"] == {"pose": "rest"}
+    np.testing.assert_allclose(db.subjects["stature_cm"], [158, 164, 170, 176])
+    for i, name in enumerate(f"{s}_{p}.obj" for s in FOREIGN_SUBJECTS for p in FOREIGN_POSES):
+        got, true = db.mesh(i), truth[name]
+        lift = got[:, 1] - true[:, 1]                    # y kept up to the floor's offset
+        assert np.ptp(lift) < 1e-5, name
+        horizontal = lambda v: np.linalg.norm(v[:, [0, 2]] - v[:1, [0, 2]], axis=1)  # noqa: E731
+        np.testing.assert_allclose(horizontal(got), horizontal(true), atol=1e-5)
+
+
+@pytest.mark.parametrize("args, words", [
+    ((), ["are they in mm? pass --units mm"]),
+    (("--units", "mm"), ["tallest along Z", "expected +Y up; pass --up z"]),
+    (("--units", "cm", "--up", "z"), ["are they in mm? pass --units mm"]),
+    (("--units", "mm", "--up", "w"), ["--up 'w'", "expected one of y, -y, z, -z, x, -x"]),
+])
+def test_foreign_folder_in_another_frame_is_refused_with_the_flag(foreign, tmp_path, args, words):
+    folder, _, _ = foreign
+    refused(run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "db", *args),
+            str(folder) if args[-1:] != ("w",) else "--up", *words)
+    assert not (tmp_path / "db").exists()
+
+
+def test_upside_down_and_x_up_folders(foreign, tmp_path):
+    """A Z-up folder standing on its head and an X-up folder are recognised; --up turns them."""
+    flip = _copy(foreign, tmp_path / "flip", lambda n, v: v * np.array([1.0, -1.0, -1.0]))   # 180 deg about X
+    refused(run("import", flip, "--labels", flip / "labels.csv", "--out", tmp_path / "a", "--units", "mm"),
+            "pass --up -z")
+    sideways = _copy(foreign, tmp_path / "side", lambda n, v: v[:, [2, 0, 1]])               # Z -> X, X -> Y
+    refused(run("import", sideways, "--labels", sideways / "labels.csv", "--out", tmp_path / "b", "--units", "mm"),
+            "tallest along X", "pass --up x")
+    upside = _copy(foreign, tmp_path / "upside", lambda n, v: v[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0]))
+    refused(run("import", upside, "--labels", upside / "labels.csv", "--out", tmp_path / "c", "--units", "mm"),
+            "stand on their heads along Y", "pass --up -y")
+    ok = run("import", flip, "--labels", flip / "labels.csv", "--out", tmp_path / "d", "--units", "mm", "--up", "-z")
+    assert ok.exit_code == 0, ok.output
+    reference = run("import", foreign[0], "--labels", foreign[0] / "labels.csv", "--out", tmp_path / "e",
+                    "--units", "mm", "--up", "z")
+    assert reference.exit_code == 0, reference.output
+    # Turned 180 degrees about X and read with --up -z: the same bodies as the folder read with --up z.
+    np.testing.assert_allclose(ScanDatabase.load(tmp_path / "d").vertices, ScanDatabase.load(tmp_path / "e").vertices,
+                               atol=1e-6)
+
+
+def test_one_foreign_mesh_in_metres_among_mm_is_refused(foreign, tmp_path):
+    mixed = _copy(foreign, tmp_path / "mixed", lambda n, v: v / 1000 if n == "p2_t_pose.obj" else v)
+    refused(run("import", mixed, "--labels", mixed / "labels.csv", "--out", tmp_path / "db", "--units", "mm",
+                "--up", "z"), "p2_t_pose.obj", "x smaller than the other meshes", "mm among meshes in m (or m among mm)",
+            "convert this one")
+
+
+@pytest.mark.parametrize("header, value, words", [
+    ("stature", "170", ["'stature'", "did you mean stature_cm?"]),
+    ("waist_girth", "80", ["did you mean waist_girth_cm?"]),
+    ("stature_cm", "1700", ["1700 cm", "40 to 280 cm"]),
+    ("stature_cm", "1.70", ["1.7 cm", "40 to 280 cm"]),
+    ("mass_kg", "-60", ["-60 kg", "2 to 650 kg"]),
+])
+def test_foreign_labels_named_and_plausible(foreign, tmp_path, header, value, words):
+    folder, _, _ = foreign
+    rows = [f"{s}_{p}.obj,{s},{p},{value}" for s in FOREIGN_SUBJECTS for p in FOREIGN_POSES]
+    csv = tmp_path / "labels.csv"
+    csv.write_text("\n".join([f"mesh,subject,pose,{header}", *rows]) + "\n")
+    refused(run("import", folder, "--labels", csv, "--out", tmp_path / "db", "--units", "mm", "--up", "z"),
+            str(csv), *words)
+
+
+def _imported(folder, out, *args):
+    result = run("import", folder, "--labels", folder / "labels.csv", "--out", out, "--units", "mm", "--up", "z",
+                 *args)
+    assert result.exit_code == 0, result.output
+    return ScanDatabase.load(out)
+
+
+def test_stl_meshes(foreign, tmp_path):
+    """STL stores triangle corners only: welded into shared vertices (numbered in the order the
+    triangles use them), the same bodies as the OBJ files; an STL among OBJ files takes the OBJ
+    numbering; an STL with its triangles in another order is refused."""
+    reference = _imported(foreign[0], tmp_path / "obj")
+    stl = _copy(foreign, tmp_path / "stl", suffix=".stl")
+    db = _imported(stl, tmp_path / "stl_db")
+    assert (db.n_vertices, len(db.faces)) == (reference.n_vertices, len(reference.faces))
+    np.testing.assert_allclose(db.vertices[:, db.faces], reference.vertices[:, reference.faces], atol=1e-6)
+    # An OBJ first, STL files after: the OBJ's vertex numbering.
+    (stl / "p0_rest.stl").unlink()
+    shutil.copy(foreign[0] / "p0_rest.obj", stl / "p0_rest.obj")
+    (stl / "labels.csv").write_text((stl / "labels.csv").read_text().replace("p0_rest.stl", "p0_rest.obj"))
+    mixed = _imported(stl, tmp_path / "mixed_db")
+    np.testing.assert_array_equal(mixed.faces, reference.faces)
+    np.testing.assert_allclose(mixed.vertices, reference.vertices, atol=1e-6)
+    # Triangles in another order: the corners of one vertex disagree.
+    v, f = load_mesh(foreign[0] / "p1_rest.obj")
+    save_mesh(stl / "p1_rest.stl", v, np.roll(f, 1, axis=0))
+    refused(run("import", stl, "--labels", stl / "labels.csv", "--out", tmp_path / "bad", "--units", "mm", "--up", "z"),
+            "p1_rest.stl: corner", "expected STL files written from one registered topology with the triangles in "
+            "one order")
+
+
+def test_npy_meshes_take_their_faces_from_a_mesh_or_faces_file(foreign, tmp_path):
+    reference = _imported(foreign[0], tmp_path / "obj")
+    npy = _copy(foreign, tmp_path / "npy", suffix=".npy")
+    refused(run("import", npy, "--labels", npy / "labels.csv", "--out", tmp_path / "a", "--units", "mm", "--up", "z"),
+            "p0_rest.npy' is a .npy file of vertices only", "pass --faces FILE")
+    db = _imported(npy, tmp_path / "b", "--faces", foreign[0] / "p0_rest.obj")
+    np.testing.assert_array_equal(db.faces, reference.faces)
+    np.testing.assert_allclose(db.vertices, reference.vertices, atol=1e-6)
+    np.save(tmp_path / "faces.npy", reference.faces.astype(np.int32))
+    db = _imported(npy, tmp_path / "c", "--faces", tmp_path / "faces.npy")
+    np.testing.assert_allclose(db.vertices, reference.vertices, atol=1e-6)
+    # A mesh of the CSV with faces gives them to the NPY files.
+    shutil.copy(foreign[0] / "p3_t_pose.obj", npy / "p3_t_pose.obj")
+    (npy / "labels.csv").write_text((npy / "labels.csv").read_text().replace("p3_t_pose.npy", "p3_t_pose.obj"))
+    db = _imported(npy, tmp_path / "d")
+    np.testing.assert_allclose(db.vertices, reference.vertices, atol=1e-6)
+
+
+@pytest.mark.parametrize("array, faces, words", [
+    (np.zeros((4000, 2)), None, ["p1_rest.npy: found an array of shape (4000, 2)", "expected (V, 3) vertex coordinates"]),
+    (np.zeros((3999, 3)), None, ["p1_rest.npy: 3999 vertices", "are for 4000 vertices", "mixed topology", "leave it out of the CSV"]),
+    (np.full((4000, 3), np.nan), None, ["p1_rest.npy: 4000 vertices contain NaN"]),
+    (b"not numpy" * 20, None, ["p1_rest.npy: not a .npy file", "expected a numeric array written by numpy.save"]),
+    (np.array([{"x": 1}], dtype=object), None, ["p1_rest.npy: holds Python objects, which bodyspace never loads"]),
+    (None, np.zeros((5, 2), dtype=np.int64), ["--faces", "shape (5, 2)", "expected (F, 3) integer vertex ids"]),
+    (None, np.full((5, 3), 0.5), ["--faces", "dtype float64", "expected (F, 3) integer vertex ids"]),
+])
+def test_bad_npy_files_are_refused(foreign, tmp_path, array, faces, words):
+    npy = _copy(foreign, tmp_path / "npy", suffix=".npy")
+    if isinstance(array, bytes):
+        (npy / "p1_rest.npy").write_bytes(array)
+    elif array is not None:
+        np.save(npy / "p1_rest.npy", array, allow_pickle=array.dtype == object)
+    faces_file = foreign[0] / "p0_rest.obj"
+    if faces is not None:
+        faces_file = tmp_path / "faces.npy"
+        np.save(faces_file, faces)
+    refused(run("import", npy, "--labels", npy / "labels.csv", "--out", tmp_path / "db", "--units", "mm", "--up", "z",
+                "--faces", faces_file), *words)

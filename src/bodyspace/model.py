@@ -459,8 +459,10 @@ class BodyModel:
             tols.append(request_tolerance(sm, name) * f)
             scale.append(f)
         t0 = time.perf_counter()
-        r = refine(self, c, np.array(goal), names, mset=sm.mset, k=self.n_components, max_sigma=sm.sigma_limit,
-                   tolerances=np.array(tols), linear=linear, offset=offset, bodies=bodies)
+        # the box admits every training subject (sigma_limit, or further where one lies further out)
+        r = refine(self, c, np.array(goal), names, mset=sm.mset, k=self.n_components,
+                   max_sigma=sm.coefficient_bound, tolerances=np.array(tols), linear=linear, offset=offset,
+                   bodies=bodies)
         z = np.asarray(r.coefficients, dtype=float)
         if bodies is not None:
             v = np.asarray(bodies(z[None]))[0]
@@ -474,8 +476,8 @@ class BodyModel:
         if not converged:
             miss = ", ".join(f"{n} {format_value(n, values[n])} (asked {format_value(n, result.targets[n])}, "
                              f"tolerance {format_value(n, request_tolerance(sm, n))})" for n in r.misses[0])
-            msg = (f"not met by the exact refinement: {miss}; no body within {sm.sigma_limit:g} SD measures all of "
-                   "the request (ask for less, or fewer constraints)")
+            msg = (f"not met by the exact refinement: {miss}; no body within {sm.coefficient_bound:.3g} SD measures "
+                   "all of the request (ask for less, or fewer constraints)")
             if not (accept_misses or sm.on_infeasible == "clamp"):
                 raise TargetError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)

@@ -48,6 +48,7 @@ from bodyspace.semantics.evaluation import (
     format_angle_table,
     format_rmse_table,
 )
+from bodyspace.semantics.labels import describe_source
 from bodyspace.semantics.model import SemanticModel, semantics_path
 from bodyspace.units import (
     ALIASES,
@@ -195,21 +196,55 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
     names = [f"{n} ({unit.get(kind_of(n), '1')})" for n in table1.labels]
     shown = RegressionTable(table1.regressors, names, table1.rmse * scale, table1.n_samples, table1.folds)
     text1, text2 = format_rmse_table(shown), format_angle_table(table2)
-    out_console.print(f"Table 1: RMSE, {table1.folds}-fold cross-validation, {len(sm.X_)} subjects once each\n"
-                      f"{text1}\n\nTable 2: angles between non-linear morphing directions (degrees)\n{text2}",
-                      highlight=False)
-    md = (f"{MARKDOWN_SIGNATURE}\n# Semantic regressors of {model_file.name}\n\n## Table 1: RMSE ({table1.folds}-fold cross-validation, "
-          f"{len(sm.X_)} subjects, each once)\n\n{format_rmse_table(shown, markdown=True)}\n\n"
+    split = _split_text(table1, len(sm.X_))
+    sources = _label_sources(sm)
+    out_console.print(f"Labels: where their values came from\n" + "\n".join(f"  {line}" for line in sources) +
+                      f"\n\nTable 1: RMSE, {split}\n{text1}\n\n"
+                      f"Table 2: angles between non-linear morphing directions (degrees)\n{text2}",
+                      highlight=False, soft_wrap=True)
+    md = (f"{MARKDOWN_SIGNATURE}\n# Semantic regressors of {model_file.name}\n\n## Labels: where their values came "
+          f"from\n\n" + "\n".join(f"- {line}" for line in sources) +
+          f"\n\n## Table 1: RMSE ({split})\n\n{format_rmse_table(shown, markdown=True)}\n\n"
           f"## Table 2: angles between the non-linear model's morphing directions (degrees)\n\n"
           f"{format_angle_table(table2, markdown=True)}\n")
     with atomic_path(out) as tmp:
         tmp.write_text(md)
-    payload = {"written_by": WRITTEN_BY, "table1": {"regressors": table1.regressors, "labels": table1.labels, "rmse_si": table1.rmse.tolist(),
-                          "n_samples": table1.n_samples.tolist(), "folds": table1.folds},
+    payload = {"written_by": WRITTEN_BY,
+               "labels": {"provenance": getattr(sm, "provenance_", {}), "skipped": getattr(sm, "skipped_", {}),
+                          "unused_columns": getattr(sm, "unused_columns_", [])},
+               "table1": {"regressors": table1.regressors, "labels": table1.labels, "rmse_si": table1.rmse.tolist(),
+                          "n_samples": table1.n_samples.tolist(), "folds": table1.folds,
+                          "label_folds": dict(zip(table1.labels, table1.label_folds.tolist()))},
                "table2": {k: {"mean_deg": m, "sd_deg": s} for k, (m, s) in table2.items()}}
     with atomic_path(out.with_suffix(".json")) as tmp:
         tmp.write_text(json.dumps(payload, indent=2))
     console.print(f"wrote {out} and {out.with_suffix('.json')}")
+
+
+def _split_text(table: RegressionTable, n_subjects: int) -> str:
+    """How Table 1 split the subjects: '10-fold cross-validation, 24 subjects once each', and
+    the labels split otherwise (fewer known values: leave-one-out)."""
+    text = f"{table.folds}-fold cross-validation, {n_subjects} subjects once each"
+    if table.folds == n_subjects:
+        text = f"leave-one-out cross-validation ({n_subjects} folds), {n_subjects} subjects once each"
+    other = [f"{name} {k}-fold over its {n} known values" + (" (leave-one-out)" if k == n else "")
+             for name, k, n in zip(table.labels, table.label_folds, table.n_samples) if k != table.folds]
+    return text + (f"; {', '.join(other)}" if other else "")
+
+
+def _label_sources(sm) -> list[str]:
+    """One line per label saying where its values came from (``labels.describe_source``), then
+    the labels left out and why, and the subject columns no label uses."""
+    provenance = getattr(sm, "provenance_", {})
+    unknown = "not recorded (fitted by an earlier version; refit with --database DB --refit)"
+    lines = [f"{name}: {describe_source(name, provenance[name]) if name in provenance else unknown}"
+             for name in sm.labels_]
+    lines += [f"{name}: not learned: {why}" for name, why in getattr(sm, "skipped_", {}).items()]
+    unused = getattr(sm, "unused_columns_", [])
+    if unused:
+        source = next((p["source"] for p in provenance.values()), "the subject table")
+        lines.append(f"columns of {source} no label uses: {', '.join(unused)}")
+    return lines
 
 
 def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),

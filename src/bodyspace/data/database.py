@@ -25,13 +25,15 @@ import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Mapping
 
 import numpy as np
 
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
-from bodyspace.errors import DatabaseError
+from bodyspace.errors import BodyspaceError, DatabaseError
+from bodyspace.measure.evaluate import BODY_EXTENT_M
 from bodyspace.mesh.io import load_mesh
 
 FORMAT_VERSION = 1
@@ -97,8 +99,9 @@ DATABASE_KIND = "database"
 # Scans checked for NaN per step while loading: bounds the memory the check touches at once
 # (256 scans of 13k vertices are 40 MB) while the result stays a lazy memmap.
 _CHECK_CHUNK = 256
-# Mesh suffixes accepted by from_meshes (registered meshes need shared vertices: no STL).
-_MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf")
+# Mesh files from_meshes reads: meshes with faces (an STL file's triangle corners are welded into
+# shared vertices), and NPY files of (V, 3) vertices whose faces come from another file.
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".npy")
 
 Table = dict[str, np.ndarray]
 
@@ -483,12 +486,29 @@ def read_meta(path: Path) -> dict:
     return meta
 
 
+_NPY_MAGIC = b"\x93NUMPY"
+
+
 def _load_npy(path: Path, mmap: bool) -> np.ndarray:
+    """A numeric .npy array, never unpickled: numpy calls any non-NPY file 'pickled data' (and
+    suggests loading it unsafely), so the magic string is checked first."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(len(_NPY_MAGIC))
+    except OSError as exc:
+        raise DatabaseError(f"{path}: could not read: {exc.strerror or exc}") from exc
+    if head != _NPY_MAGIC:
+        raise DatabaseError(f"{path}: not a .npy file (it starts with {head!r}); expected a numeric array written "
+                            "by numpy.save")
     try:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        # ValueError also covers object arrays, which would need pickle.
+    except ValueError as exc:
+        if "allow_pickle" in str(exc) or "pickled" in str(exc):
+            raise DatabaseError(f"{path}: holds Python objects, which bodyspace never loads (no pickle); expected "
+                                "a numeric array written by numpy.save") from None
         raise DatabaseError(f"{path}: could not read as a numeric .npy array: {exc}") from exc
+    except (OSError, EOFError) as exc:
+        raise DatabaseError(f"{path}: could not read as a numeric .npy array ({exc}); it may be truncated") from exc
 
 
 def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
@@ -532,17 +552,70 @@ def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
 # ----------------------------------------------------------------------------------------------
 
 _LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+# The user's up axis -> the rotation R (internal = R @ user) that turns it to +Y. Proper
+# rotations (no mirror image), each about one axis: "z" turns about X, so a Z-up mesh that faces
+# -Y (Blender's convention, synth.foreign.to_frame(up="z")) ends up facing +Z, our front.
+UP_ROTATIONS = {
+    "y": np.eye(3),
+    "-y": np.diag([1.0, -1.0, -1.0]),
+    "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+    "-z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "x": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+    "-x": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+}
+# A folder whose Y extent is below this share of its tallest extent (median over the meshes) does
+# not stand along Y. A T-pose is about as wide as tall, so only a clearly shorter Y counts.
+UP_EXTENT_SHARE = 0.6
+# Feet end vs head end: bounding-box area (across the up axis) of the lowest vs the highest 5 %
+# of a body's height. Over the 39 library poses the median is 3.6 (0.7 bending forward, 16 with
+# the arms overhead); a folder whose median is below 1 / UPSIDE_DOWN_RATIO stands on its head.
+END_SLAB = 0.05
+UPSIDE_DOWN_RATIO = 1.5
+MIXED_TOPOLOGY = ("expected every mesh registered to one topology (mixed topology); register this one to the "
+                  "others' topology, or leave it out of the CSV")
+# Per-scan values of one subject's label may differ (weighed on two days, measured per scan) by
+# this share of their median; more is more likely two people under one id or a typo.
+LABEL_SPREAD = 0.10
+# How each option of read_mesh_folder is written in a message: the API's keyword, or the flag of
+# `bodyspace import` (``spelling="cli"``), so a refusal says the fix in the user's words.
+_OPTION_SPELLING = {
+    "api": {"length_unit": "length_unit='{}'", "up": "up='{}'", "faces": "faces={}", "rest_pose": "rest_pose='{}'"},
+    "cli": {"length_unit": "--units {}", "up": "--up {}", "faces": "--faces {}", "rest_pose": "--rest-pose {}"},
+}
 
 
-def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> dict:
-    """Registered meshes + labels CSV -> the parts of a ScanDatabase (vertices in memory, float32).
+def _say(spelling: str, option: str, value) -> str:
+    """How the user sets ``option`` to ``value`` in their interface: ``--units mm`` or ``length_unit='mm'``."""
+    return _OPTION_SPELLING.get(spelling, _OPTION_SPELLING["api"])[option].format(value)
 
-    labels_csv: required ``mesh`` (file name relative to ``folder``), optional ``subject``
-    (default: the mesh file stem) and ``pose`` (default 'rest'), plus per-subject label columns
-    with unit suffixes whose values must agree across the scans of one subject.
+
+def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m", up: str | None = None,
+                     faces: str | os.PathLike | None = None, rest_pose: str | None = None,
+                     spelling: str = "api") -> dict:
+    """Registered meshes + labels CSV -> the parts of a ScanDatabase (vertices in memory, float32,
+    metres, +Y up).
+
+    labels_csv: required ``mesh`` (file name relative to ``folder``: OBJ, PLY, GLB/GLTF, STL, or
+    NPY holding (V, 3) vertices), optional ``subject`` (default: the mesh file stem) and ``pose``
+    (default 'rest'), plus label columns with unit suffixes. A label is one value per subject:
+    where a subject's scans give different values, the rest-pose scan's value is kept (the scan
+    the semantic regressors learn from), else the mean of the given ones, and a note says so
+    (``meta['import_notes']``); values more than ``LABEL_SPREAD`` apart are refused.
+
+    length_unit: 'm', 'cm' or 'mm', the unit of the mesh coordinates. up: the meshes' up axis
+    ('y', '-y', 'z', '-z', 'x', '-x'), turned to +Y; None: +Y, checked (a folder that is tallest
+    along another axis, or stands on its head, is refused with the ``up`` to pass). faces: the
+    faces of NPY meshes, a mesh file of the same topology or an (F, 3) integer .npy; default: the
+    first mesh of the CSV that has faces. rest_pose: the rest pose's name or 'first' (used to
+    reduce per-scan labels; ``choose_rest_pose`` checks it). spelling: 'api' or 'cli', how
+    messages name the options.
     """
     if not isinstance(length_unit, str) or length_unit not in _LENGTH_UNITS:
-        raise DatabaseError(f"length_unit '{length_unit}', expected one of {', '.join(_LENGTH_UNITS)}")
+        raise DatabaseError(f"length unit {length_unit!r}: expected one of {', '.join(_LENGTH_UNITS)} "
+                            f"(e.g. {_say(spelling, 'length_unit', 'mm')})")
+    if up is not None and (not isinstance(up, str) or up not in UP_ROTATIONS):
+        raise DatabaseError(f"up axis {up!r}: expected one of {', '.join(UP_ROTATIONS)} (the axis the meshes' "
+                            f"head points along, e.g. {_say(spelling, 'up', 'z')})")
     if not folder.is_dir():
         raise DatabaseError(f"{folder}: not a folder, expected a folder of registered meshes")
     source = str(labels_csv)
@@ -562,78 +635,299 @@ def read_mesh_folder(folder: Path, labels_csv: Path, length_unit: str = "m") -> 
     n_scans = len(lines)
     subject_ids = [sid or Path(name).stem for sid, name in zip(cells.get(SUBJECT_ID_COLUMN, [""] * n_scans), mesh_names)]
     poses = [pose or REST_POSE for pose in cells.get("pose", [""] * n_scans)]
-
-    vertices, faces = _read_registered_meshes(folder, mesh_names, lines, source)
-    if length_unit != "m":
-        vertices *= _LENGTH_UNITS[length_unit]
-
-    # Subjects in order of first appearance; a subject's labels are read from its first row
-    # and every other row of that subject must repeat them.
-    first_row: dict[str, int] = {}
-    for row, sid in enumerate(subject_ids):
-        first_row.setdefault(sid, row)
-    subject_first_rows = np.fromiter(first_row.values(), dtype=np.int64, count=len(first_row))
-    scan_first_rows = np.fromiter((first_row[sid] for sid in subject_ids), dtype=np.int64, count=n_scans)
-    subjects: Table = {SUBJECT_ID_COLUMN: np.array(list(first_row), dtype=str)}
-    for column in cells:
-        if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
-            continue
-        per_scan = label_values(column, cells[column], source, lines)
-        check_label_ranges({column: per_scan}, source, lines)
-        repeated = per_scan[scan_first_rows]
-        agree = per_scan == repeated
-        if per_scan.dtype.kind == "f":
-            agree |= np.isnan(per_scan) & np.isnan(repeated)
-        if not agree.all():
-            bad = int(np.argmin(agree))
-            first = scan_first_rows[bad]
-            raise DatabaseError(f"{source}, line {lines[bad]}, column '{column}': subject '{subject_ids[bad]}' has "
-                                f"'{cells[column][bad]}' here but '{cells[column][first]}' on line {lines[first]}; "
-                                f"expected one value per subject")
-        subjects[column] = per_scan[subject_first_rows]
     scans = {"scan": np.arange(n_scans, dtype=np.int64), "subject": np.array(subject_ids, dtype=str),
              "pose": np.array(poses, dtype=str)}
+    rule = {"pose": REST_POSE} if rest_pose is None else choose_rest_pose(scans, rest_pose, source)
+    # Labels before meshes: a wrong label is said before minutes of reading.
+    subjects, notes = _subject_labels(cells, lines, subject_ids, rest_pose_rows(scans, {REST_POSE_FIELD: rule}),
+                                      source)
+
+    vertices, faces = _read_registered_meshes(folder, mesh_names, lines, source, faces, spelling)
+    if length_unit != "m":
+        vertices *= _LENGTH_UNITS[length_unit]
+    if up not in (None, "y"):
+        rotation = UP_ROTATIONS[up].astype(np.float32)
+        for start in range(0, len(vertices), _CHECK_CHUNK):
+            vertices[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK] @ rotation.T
+    _check_body_frame(vertices, folder, length_unit, spelling, check_up=up is None)
     meta = build_meta({"template": "custom", "units": {"length": "m"},
                        "provenance": {"source": "from_meshes", "folder": str(folder), "labels": str(labels_csv),
-                                      "length_unit": length_unit}},
+                                      "length_unit": length_unit, "up": up or "y"},
+                       **({"import_notes": notes} if notes else {})},
                       vertices.shape, len(faces), None)
     return {"vertices": vertices, "faces": faces, "subjects": subjects, "scans": scans, "meta": meta,
             "rotations": None}
 
 
-def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int],
-                            source: str) -> tuple[np.ndarray, np.ndarray]:
+def _subject_labels(cells: Mapping[str, list[str]], lines: list[int], subject_ids: list[str], rest_rows: np.ndarray,
+                    source: str) -> tuple[Table, list[str]]:
+    """Per-scan CSV cells -> one row per subject (in order of first appearance) and notes.
+
+    Text columns (sex) must agree within a subject. A numeric label's value of a subject is its
+    rest-pose scan's (``rest_rows``, when given there), else the mean of its given values; values
+    more than ``LABEL_SPREAD`` of their median apart are refused as two people or a typo.
+    """
+    first_row: dict[str, int] = {}
+    for row, sid in enumerate(subject_ids):
+        first_row.setdefault(sid, row)
+    members: dict[str, list[int]] = {sid: [] for sid in first_row}
+    for row, sid in enumerate(subject_ids):
+        members[sid].append(row)
+    rest_of: dict[str, int] = {}
+    for row in rest_rows:
+        rest_of.setdefault(subject_ids[row], int(row))  # a subject's first rest-pose scan
+    subjects: Table = {SUBJECT_ID_COLUMN: np.array(list(first_row), dtype=str)}
+    notes = []
+    for column in cells:
+        if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
+            continue
+        per_scan = label_values(column, cells[column], source, lines)
+        check_label_ranges({column: per_scan}, source, lines)
+        if per_scan.dtype.kind != "f":
+            for sid, rows in members.items():
+                other = next((r for r in rows if per_scan[r] != per_scan[rows[0]]), None)
+                if other is not None:
+                    raise DatabaseError(f"{source}, line {lines[other]}, column '{column}': subject '{sid}' has "
+                                        f"'{cells[column][other]}' here but '{cells[column][rows[0]]}' on line "
+                                        f"{lines[rows[0]]}; expected one value per subject")
+            subjects[column] = per_scan[[rows[0] for rows in members.values()]]
+            continue
+        values, differing = np.full(len(members), np.nan), []
+        for i, (sid, rows) in enumerate(members.items()):
+            given = [r for r in rows if not np.isnan(per_scan[r])]
+            if not given:
+                continue
+            v = per_scan[given]
+            if v.max() - v.min() > LABEL_SPREAD * abs(float(np.median(v))):
+                lo, hi = given[int(np.argmin(v))], given[int(np.argmax(v))]
+                raise DatabaseError(f"{source}, column '{column}': subject '{sid}' has {v.min():g} on line {lines[lo]} "
+                                    f"and {v.max():g} on line {lines[hi]}, more than {LABEL_SPREAD:.0%} apart; expected "
+                                    "one person's value (is the 'subject' column right? is one a typo?)")
+            rest = rest_of.get(sid)
+            values[i] = per_scan[rest] if rest is not None and rest in given else float(v.mean())
+            if v.max() > v.min():
+                differing.append(sid)
+        if differing:
+            notes.append(f"{source}, column '{column}': the scans of {len(differing)} subject(s) "
+                         f"({', '.join(map(repr, differing[:3]))}{' ...' if len(differing) > 3 else ''}) give different "
+                         "values; each subject's value is its rest-pose scan's, or the mean of its scans' where the "
+                         "rest-pose scan has none")
+        subjects[column] = values
+    return subjects, notes
+
+
+@dataclass
+class _Topology:
+    """The faces every mesh of a folder must share, and where they came from.
+
+    faces: (F, 3) int64. n_vertices: V. path: the file they were read from.
+    """
+
+    faces: np.ndarray
+    n_vertices: int
+    path: Path
+
+
+def _read_registered_meshes(folder: Path, mesh_names: list[str], lines: list[int], source: str,
+                            faces_file=None, spelling: str = "api") -> tuple[np.ndarray, np.ndarray]:
     """Meshes sharing one topology -> vertices (N, V, 3) float32, faces (F, 3) int64.
 
-    Every mesh must have the first mesh's vertex count and exactly its faces.
+    The topology is ``faces_file``'s, else the first listed mesh that has faces (OBJ, PLY,
+    GLB/GLTF, STL); every mesh must have exactly its faces (an STL file: its triangles in the
+    same order, see ``_stl_vertices``), every NPY file its vertex count.
     """
-    vertices = None
-    first_path = None
-    scales = np.empty(len(mesh_names))
-    for i, (name, line) in enumerate(zip(mesh_names, lines)):
+    paths = []
+    for name, line in zip(mesh_names, lines):
         path = folder / name
-        if path.suffix.lower() not in _MESH_SUFFIXES:
+        if path.suffix.lower() not in MESH_SUFFIXES:
             raise DatabaseError(f"{source}, line {line}: mesh '{name}' has suffix '{path.suffix}', "
-                                f"expected one of {', '.join(_MESH_SUFFIXES)}")
+                                f"expected one of {', '.join(MESH_SUFFIXES)}")
         if not path.is_file():
             raise DatabaseError(f"{source}, line {line}: mesh file {path} not found")
-        mesh_vertices, mesh_faces = load_mesh(path)
-        if vertices is None:
-            first_path, faces = path, mesh_faces
-            # One preallocated float32 block: no list of float64 copies, no final stacking.
-            vertices = np.empty((len(mesh_names), len(mesh_vertices), 3), dtype=np.float32)
-        elif len(mesh_vertices) != vertices.shape[1]:
-            raise DatabaseError(f"{path}: {len(mesh_vertices)} vertices, but {first_path} has {vertices.shape[1]}; "
-                                f"expected every mesh registered to one topology (mixed topology)")
-        elif not np.array_equal(mesh_faces, faces):
-            detail = (f"{len(mesh_faces)} faces vs {len(faces)}" if len(mesh_faces) != len(faces) else
-                      f"{int((mesh_faces != faces).any(axis=1).sum())} of {len(faces)} faces differ")
-            raise DatabaseError(f"{path}: faces differ from {first_path} ({detail}); expected every mesh "
-                                f"registered to one topology (mixed topology)")
+        paths.append(path)
+    cached: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if faces_file is not None:
+        topology = _faces_from_file(Path(faces_file), spelling)
+    else:
+        first = next((i for i, p in enumerate(paths) if p.suffix.lower() != ".npy"), None)
+        if first is None:
+            raise DatabaseError(f"{source}, line {lines[0]}: mesh '{mesh_names[0]}' is a .npy file of vertices "
+                                f"only, and no mesh of {source} has faces; expected the faces of the topology: "
+                                f"pass {_say(spelling, 'faces', 'FILE')} (a mesh of the same topology, or an (F, 3) "
+                                "integer .npy of vertex ids)")
+        cached[first] = _load_with_faces(paths[first])
+        topology = _Topology(cached[first][1], len(cached[first][0]), paths[first])
+    vertices = np.empty((len(paths), topology.n_vertices, 3), dtype=np.float32)
+    scales, edges = np.empty(len(paths)), scale_edges(topology.faces)
+    for i, path in enumerate(paths):
+        suffix = path.suffix.lower()
+        if suffix == ".npy":
+            mesh_vertices = _npy_vertices(path, topology)
+        elif suffix == ".stl":
+            mesh_vertices = _stl_vertices(path, topology, cached.pop(i, None))
+        else:
+            mesh_vertices, mesh_faces = cached.pop(i, None) or load_mesh(path)
+            _check_same_topology(path, mesh_vertices, mesh_faces, topology)
         vertices[i] = mesh_vertices
-        scales[i] = _mean_edge_length(mesh_vertices, faces)
-    _check_common_scale(scales, [folder / name for name in mesh_names], lines, source)
+        scales[i] = _mean_edge_length(mesh_vertices, edges)
+    _check_common_scale(scales, paths, lines, source)
+    return vertices, topology.faces
+
+
+def _load_with_faces(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh file's vertices (V, 3) and faces (F, 3); an STL file's triangle corners welded into
+    shared vertices first (``weld_corners``)."""
+    vertices, faces = load_mesh(path)
+    if path.suffix.lower() == ".stl":
+        vertices, faces = weld_corners(vertices[faces].reshape(-1, 3))
     return vertices, faces
+
+
+def weld_corners(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle corners (3F, 3) of an STL file -> shared vertices (V, 3) and faces (F, 3).
+
+    STL stores each triangle's three corners and no vertex list; corners of one vertex repeat its
+    coordinates bit for bit. Vertices are numbered in the order the triangles first use them, so
+    STL files written from one topology in one triangle order weld to the same faces.
+    """
+    unique, first, inverse = np.unique(corners, axis=0, return_index=True, return_inverse=True)
+    rank = np.empty(len(unique), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(unique))
+    vertices = np.empty_like(unique)
+    vertices[rank] = unique
+    return vertices, rank[inverse.reshape(-1)].reshape(-1, 3)
+
+
+def _faces_from_file(path: Path, spelling: str) -> _Topology:
+    """The topology of ``faces``: an (F, 3) integer .npy, or any mesh file."""
+    flag = _say(spelling, "faces", path)
+    if not path.is_file():
+        raise DatabaseError(f"{flag}: file not found; expected a mesh of the meshes' topology or an (F, 3) integer "
+                            ".npy of vertex ids")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise DatabaseError(f"{flag}: suffix '{path.suffix}'; expected a mesh of the meshes' topology "
+                            f"({', '.join(s for s in MESH_SUFFIXES if s != '.npy')}) or an (F, 3) integer .npy")
+    try:
+        if path.suffix.lower() != ".npy":
+            vertices, faces = _load_with_faces(path)
+            return _Topology(faces, len(vertices), path)
+        faces = _load_npy(path, mmap=False)
+    except BodyspaceError as exc:
+        raise DatabaseError(f"{flag}: {str(exc).removeprefix(str(path) + ': ')}") from None
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.dtype.kind not in "iu":
+        raise DatabaseError(f"{flag}: found an array of shape {faces.shape} and dtype {faces.dtype}; expected "
+                            "(F, 3) integer vertex ids, one row per triangle (counted from 0)")
+    if faces.min() < 0:
+        raise DatabaseError(f"{flag}: found vertex id {faces.min()}; expected ids counted from 0")
+    return _Topology(faces.astype(np.int64), int(faces.max()) + 1, path)
+
+
+def _npy_vertices(path: Path, topology: _Topology) -> np.ndarray:
+    """An NPY mesh: (V, 3) finite coordinates, V the topology's vertex count."""
+    vertices = _load_npy(path, mmap=False)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.dtype.kind not in "iuf":
+        raise DatabaseError(f"{path}: found an array of shape {vertices.shape} and dtype {vertices.dtype}; expected "
+                            "(V, 3) vertex coordinates, one row per vertex (np.save(path, vertices))")
+    if len(vertices) != topology.n_vertices:
+        # a faces .npy knows only its largest vertex id; a mesh file its vertex count
+        which = (f"use vertex ids 0..{topology.n_vertices - 1}" if topology.path.suffix.lower() == ".npy"
+                 else f"are for {topology.n_vertices} vertices")
+        raise DatabaseError(f"{path}: {len(vertices)} vertices, but the faces of {topology.path} {which}; "
+                            f"{MIXED_TOPOLOGY}")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise DatabaseError(f"{path}: {int(bad.sum())} vertices contain NaN or infinity (first: vertex "
+                            f"{int(np.argmax(bad))}), expected finite coordinates")
+    return vertices.astype(np.float64)
+
+
+def _stl_vertices(path: Path, topology: _Topology, loaded=None) -> np.ndarray:
+    """An STL mesh on ``topology``: its triangles, in file order, are the topology's faces, so
+    corner k of triangle f is vertex ``faces[f, k]``; the corners of one vertex must agree."""
+    if loaded is not None:  # the folder's reference itself, welded already
+        return loaded[0]
+    corners, triangles = load_mesh(path)
+    corners = corners[triangles]                                     # (F, 3, 3)
+    if len(corners) != len(topology.faces):
+        raise DatabaseError(f"{path}: {len(corners)} triangles, but {topology.path} has {len(topology.faces)}; "
+                            f"{MIXED_TOPOLOGY}")
+    vertices = np.full((topology.n_vertices, 3), np.nan)
+    vertices[topology.faces.reshape(-1)] = corners.reshape(-1, 3)
+    if np.isnan(vertices).any():
+        raise DatabaseError(f"{path}: {topology.path} has {int(np.isnan(vertices[:, 0]).sum())} vertices no triangle "
+                            "uses, which an STL file cannot hold; expected a topology of triangles only (remove the "
+                            "unused vertices, or use OBJ/PLY files)")
+    off = np.abs(vertices[topology.faces] - corners).max(axis=2)     # (F, 3)
+    scale = float(np.abs(corners).max()) or 1.0
+    if off.max() > 1e-6 * scale:
+        f, k = np.unravel_index(int(np.argmax(off)), off.shape)
+        raise DatabaseError(f"{path}: corner {k} of triangle {f} is {off[f, k]:.3g} away from the other corners of its "
+                            f"vertex {topology.faces[f, k]} (faces of {topology.path}); expected STL files written "
+                            "from one registered topology with the triangles in one order")
+    return vertices
+
+
+def _check_same_topology(path: Path, vertices: np.ndarray, faces: np.ndarray, topology: _Topology) -> None:
+    """A mesh with faces must have the topology's vertex count and exactly its faces."""
+    if len(vertices) != topology.n_vertices:
+        raise DatabaseError(f"{path}: {len(vertices)} vertices, but {topology.path} has {topology.n_vertices}; "
+                            f"{MIXED_TOPOLOGY}")
+    if not np.array_equal(faces, topology.faces):
+        detail = (f"{len(faces)} faces vs {len(topology.faces)}" if len(faces) != len(topology.faces) else
+                  f"{int((faces != topology.faces).any(axis=1).sum())} of {len(faces)} faces differ")
+        raise DatabaseError(f"{path}: faces differ from {topology.path} ({detail}); {MIXED_TOPOLOGY}")
+
+
+def _check_body_frame(vertices: np.ndarray, folder: Path, length_unit: str, spelling: str,
+                      check_up: bool = True) -> None:
+    """Refuse a folder that is not human-sized in metres or (``check_up``) does not stand along +Y.
+
+    vertices (N, V, 3), metres by ``length_unit``. The median bounding box over the meshes must
+    be human-sized (``BODY_EXTENT_M``: else the unit is wrong, and the one that fits is named);
+    Y must not be clearly shorter than the tallest axis (``UP_EXTENT_SHARE``), and the feet end
+    must be the wider one (``UPSIDE_DOWN_RATIO``): else the ``up`` that fits is named.
+    """
+    extents = np.empty((len(vertices), 3))
+    for start in range(0, len(vertices), _CHECK_CHUNK):
+        chunk = vertices[start:start + _CHECK_CHUNK]
+        extents[start:start + _CHECK_CHUNK] = chunk.max(axis=1) - chunk.min(axis=1)
+    extent = np.median(extents, axis=0)
+    size = float(extent.max())
+    lo, hi = BODY_EXTENT_M
+    where = (f"{folder}: the meshes are {size:.4g} m across (the largest side of their median bounding box, "
+             f"{len(vertices)} meshes read in {length_unit})")
+    if not lo <= size <= hi:
+        raw = size / _LENGTH_UNITS[length_unit]
+        fits = [u for u, f in _LENGTH_UNITS.items() if lo <= raw * f <= hi]
+        fix = (f"are they in {fits[0]}? pass {_say(spelling, 'length_unit', fits[0])}" if fits else
+               "scale them to metres, centimetres or millimetres")
+        raise DatabaseError(f"{where}; expected a human body, {lo:g} to {hi:g} m; {fix}")
+    if not check_up:
+        return
+    axis = 1 if extent[1] >= UP_EXTENT_SHARE * size else int(np.argmax(extent))
+    ratios = [_end_ratio(v, axis) for v in vertices[:: max(1, len(vertices) // 64)]]   # at most ~64 meshes
+    sign = "-" if np.median(ratios) < 1.0 / UPSIDE_DOWN_RATIO else ""
+    if axis == 1 and not sign:
+        return
+    up = sign + "xyz"[axis]
+    found = (f"they stand on their heads along Y (the wider end, the feet, is at +Y)" if axis == 1 else
+             f"they are tallest along {'XYZ'[axis]} ({extent[axis]:.3g} m) and {extent[1]:.3g} m along Y")
+    raise DatabaseError(f"{where}: {found}; expected +Y up; pass {_say(spelling, 'up', up)} to turn them (or "
+                        f"{_say(spelling, 'up', 'y')} if they really stand along +Y)")
+
+
+def _end_ratio(vertices: np.ndarray, axis: int) -> float:
+    """Bounding-box area across ``axis`` of the lowest ``END_SLAB`` of a body (V, 3) over that of
+    its highest: > 1 when the feet (two feet apart, a foot's length deep) are at the low end."""
+    h = vertices[:, axis]
+    lo, hi = float(h.min()), float(h.max())
+    across = [a for a in range(3) if a != axis]
+
+    def area(points):
+        e = points[:, across].max(axis=0) - points[:, across].min(axis=0)
+        return float(e[0] * e[1])
+    top = area(vertices[h >= hi - END_SLAB * (hi - lo)])
+    return area(vertices[h <= lo + END_SLAB * (hi - lo)]) / top if top > 0 else 1.0
 
 
 # Meshes of one folder whose mean edge lengths differ by more than this factor from the median
@@ -643,11 +937,22 @@ _UNIT_RATIOS = {"mm among meshes in m (or m among mm)": 1000.0, "cm among meshes
                 "mm among meshes in cm (or cm among mm)": 10.0, "inches among meshes in m": 1 / 0.0254}
 
 
-def _mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Mean length of the face edges (each interior edge counted twice): the mesh's scale,
-    independent of its pose."""
-    corners = vertices[faces]
-    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).mean())
+# Faces whose edges estimate a mesh's scale: an even stride of at most this many (the mean over
+# 12,000 edges is within ~1 % of the mean over all; units differ by 10x or more).
+SCALE_FACES = 4096
+
+
+def scale_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) vertex pairs: the edges of an even stride of at most ``SCALE_FACES`` faces (F, 3)."""
+    f = np.asarray(faces)[:: max(1, -(-len(faces) // SCALE_FACES))]
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+def _mean_edge_length(vertices: np.ndarray, edges: np.ndarray) -> float:
+    """Mean length of ``edges`` (E, 2) (``scale_edges``): the mesh's scale, independent of its
+    pose."""
+    d = vertices[edges[:, 0]] - vertices[edges[:, 1]]
+    return float(np.sqrt(np.einsum("ij,ij->i", d, d)).mean())
 
 
 def _check_common_scale(scales: np.ndarray, paths: list[Path], lines: list[int], source: str) -> None:
@@ -662,12 +967,14 @@ def _check_common_scale(scales: np.ndarray, paths: list[Path], lines: list[int],
     i = int(off[np.argmax(np.abs(np.log(np.maximum(ratio[off], 1e-300))))])
     r = float(ratio[i])
     size = max(r, 1 / r) if r > 0 else np.inf
-    guess = next((f"; one mesh in {what}?" for what, f in _UNIT_RATIOS.items() if abs(np.log(size / f)) < np.log(1.5)),
-                 "")
+    # Bodies of one folder differ in size by up to ~1.5x (short and tall people): the nearest unit
+    # ratio within 2x is the guess.
+    what, factor = min(_UNIT_RATIOS.items(), key=lambda item: abs(np.log(size / item[1])))
+    guess = f"; one mesh in {what}?" if abs(np.log(size / factor)) < np.log(2.0) else ""
     raise DatabaseError(f"{source}, line {lines[i]}: mesh {paths[i]} is {size:.4g}x "
                         f"{'larger' if r > 1 else 'smaller'} than the other meshes (mean edge length {scales[i]:.4g} "
-                        f"vs the median {median:.4g}){guess} expected every mesh of the folder in one length unit "
-                        "(length_unit converts them all); convert this one")
+                        f"vs the median {median:.4g}){guess} expected every mesh of the folder in one length unit; "
+                        "convert this one to the unit of the others")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -717,16 +1024,20 @@ class ScanDatabase:
 
     @classmethod
     def from_meshes(cls, folder: str | os.PathLike, labels_csv: str | os.PathLike,
-                    length_unit: str = "m", rest_pose: str | None = None) -> "ScanDatabase":
-        """Build an in-memory database from a folder of registered OBJ/PLY/GLB meshes and a labels CSV.
+                    length_unit: str = "m", rest_pose: str | None = None, up: str | None = None,
+                    faces: str | os.PathLike | None = None, spelling: str = "api") -> "ScanDatabase":
+        """Build an in-memory database from a folder of registered meshes (OBJ, PLY, GLB, STL, or
+        NPY vertices) and a labels CSV.
 
-        See ``read_mesh_folder`` for the CSV columns; ``length_unit`` ('m', 'cm', 'mm') is the
-        unit of the mesh coordinates, converted to metres. ``rest_pose``: a pose name or 'first'
-        (each subject's first scan), stored in meta.json and checked against every subject
-        (``choose_rest_pose``); None stores no rule (the rest pose is the pose 'rest').
+        See ``read_mesh_folder`` for the CSV columns and ``up``, ``faces``; ``length_unit``
+        ('m', 'cm', 'mm') is the unit of the mesh coordinates, converted to metres.
+        ``rest_pose``: a pose name or 'first' (each subject's first scan), stored in meta.json
+        and checked against every subject (``choose_rest_pose``); None stores no rule (the rest
+        pose is the pose 'rest'). ``spelling='cli'`` words messages in ``bodyspace import`` flags.
         """
         labels_csv = as_path(labels_csv, "labels CSV")
-        parts = read_mesh_folder(as_path(folder, "mesh folder"), labels_csv, length_unit)
+        parts = read_mesh_folder(as_path(folder, "mesh folder"), labels_csv, length_unit, up=up, faces=faces,
+                                 rest_pose=rest_pose, spelling=spelling)
         if rest_pose is not None:
             parts["meta"][REST_POSE_FIELD] = choose_rest_pose(parts["scans"], rest_pose, str(labels_csv))
         return cls(**parts, _checked=True)

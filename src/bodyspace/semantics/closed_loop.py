@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from bodyspace.errors import ParameterError
 from bodyspace.semantics.morph import morph_directions
 
 __all__ = ["closed_loop", "LoopResult", "FD_STEP", "MAX_STEP", "EXTRA_DIRECTIONS", "BACKTRACKS"]
@@ -83,7 +84,9 @@ def closed_loop(c0, goal, tolerance, variances, gradients,
         extra_directions: leading PCA components added to the search span.
 
     Returns:
-        ``LoopResult``; a miss is reported (``converged`` False, ``missed``), never raised.
+        ``LoopResult``; a miss is reported (``converged`` False, ``missed``), never raised. A
+        start body whose values are not all finite is refused (ParameterError); a step to a
+        body with an undefined value counts as no progress.
 
     Steps:
         1. Hasler Equation 11: the minimum-norm step ``z`` (metric ``1 / var``) with
@@ -109,6 +112,11 @@ def closed_loop(c0, goal, tolerance, variances, gradients,
     x = body(c)
     vals, meas = current if current is not None else values_of(x, c)
     vals = np.asarray(vals, dtype=float)
+    if not np.isfinite(vals).all():
+        # a NaN residual would become a NaN step and NaN coefficients: the caller picks a start
+        # body whose values are defined (SemanticModel._defined_start) or refuses
+        raise ParameterError(f"closed_loop: the start body's values {vals.tolist()} are not all finite; expected a "
+                             "start body on which every asked value is defined")
 
     def score(v):
         e = np.abs(g - v) / tol

@@ -2,7 +2,10 @@
 
 Hasler Table 1: RMSE from 10-fold cross-validation, for each label and each regressor, on a model
 that contains every subject exactly once (``cross_validated_rmse``; pass one row per subject,
-or ``groups`` = subject ids so that no subject is split between training and test folds).
+or ``groups`` = subject ids so that no subject is split between training and test folds). A
+label is split over the rows that know it; with few of them (a small database, a label given
+for some subjects only) the split becomes leave-one-out, so that every training set keeps the
+rows a regressor needs (``label_folds``).
 
 Hasler Table 2: mean and SD of the angles between the morphing directions (gradients) of the
 non-linear model taken at every subject (``direction_angles``). Small angles mean the gradient
@@ -25,8 +28,8 @@ from bodyspace.semantics.regressors import (
 )
 from bodyspace.validation import as_generator, as_matrix
 
-__all__ = ["RegressionTable", "default_regressors", "cross_validated_rmse", "direction_angles",
-           "format_rmse_table", "format_angle_table"]
+__all__ = ["RegressionTable", "MIN_TRAINING_ROWS", "label_folds", "default_regressors", "cross_validated_rmse",
+           "direction_angles", "format_rmse_table", "format_angle_table"]
 
 
 def default_regressors(rng=None) -> dict[str, Callable]:
@@ -38,22 +41,41 @@ def default_regressors(rng=None) -> dict[str, Callable]:
     }
 
 
+# The filtered linear and the kernel regressor fit on at least this many rows; a label's folds
+# leave every training set at least this many known values (leave-one-out when few are known).
+MIN_TRAINING_ROWS = 3
+
+
 @dataclass
 class RegressionTable:
     """Hasler Table 1: ``rmse[r, l]`` of regressor ``regressors[r]`` on label ``labels[l]``;
-    ``n_samples[l]`` rows with that label were used (rows with NaN labels are left out)."""
+    ``n_samples[l]`` rows with that label were used (rows with NaN labels are left out).
+    ``folds``: the folds asked for; ``label_folds[l]``: the folds label l was split into (fewer
+    when it has fewer known values, leave-one-out when a fold would leave fewer than
+    ``MIN_TRAINING_ROWS`` to train on)."""
 
     regressors: list[str]
     labels: list[str]
     rmse: np.ndarray
     n_samples: np.ndarray
     folds: int
+    label_folds: np.ndarray | None = None
 
     def __str__(self) -> str:
         return format_rmse_table(self)
 
     def to_markdown(self) -> str:
         return format_rmse_table(self, markdown=True)
+
+
+def label_folds(units: int, folds: int) -> int:
+    """The folds for a label known on ``units`` rows (or subjects): ``folds``, at most ``units``,
+    and ``units`` (leave-one-out) when a fold of ``folds`` would leave fewer than
+    ``MIN_TRAINING_ROWS`` to train on."""
+    k = min(int(folds), units)
+    if units - -(-units // k) < MIN_TRAINING_ROWS:
+        k = units
+    return k
 
 
 def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, folds: int = 10,
@@ -63,13 +85,15 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
     Args:
         X: (N, D) bodies (encodings or PCA coefficients), one per subject.
         labels: name -> (N,) label values; NaN marks a missing label (that row is left out for
-            that label).
+            that label). Each label needs ``MIN_TRAINING_ROWS + 1`` known values.
         regressors: name -> factory (a class or a zero-argument callable) of an unfitted
             regressor; None: ``default_regressors(rng)``.
         folds: k, 2 up to the number of rows (groups); k = rows is leave-one-out. More folds
-            than rows are refused (which k was meant?).
-        rng: numpy Generator, seed or None: the shuffle (the same folds for every regressor and
-            label, so the rows of the table are paired comparisons).
+            than rows are refused (which k was meant?). A label is split over its known rows
+            only, into ``label_folds(known, folds)`` folds (leave-one-out for a label known on
+            few rows: every training set keeps ``MIN_TRAINING_ROWS``).
+        rng: numpy Generator, seed or None: the shuffle (one split per label, the same for
+            every regressor, so the rows of the table are paired comparisons).
         groups: optional (N,) subject ids; a subject's rows stay in one fold.
 
     Returns:
@@ -87,38 +111,46 @@ def cross_validated_rmse(X, labels: Mapping, regressors: Mapping | None = None, 
     for name, factory in regressors.items():
         if not callable(factory):
             raise ParameterError(f"regressors[{name!r}]: {factory!r} is not callable, expected a class or factory")
-    values = {}
+    group_ids = None if groups is None else np.asarray(groups)
+    if group_ids is not None and group_ids.shape != (n,):
+        raise ParameterError(f"groups: shape {group_ids.shape}, expected ({n},) (one group id per row)")
+    values, units = {}, {}
     for name, y in labels.items():
         v = np.asarray(y, dtype=float)
         if v.shape != (n,):
             raise ParameterError(f"labels[{name!r}]: shape {v.shape}, expected ({n},) (one value per row of X)")
         if np.isinf(v).any():
             raise ParameterError(f"labels[{name!r}]: contains infinity, expected finite values or NaN for missing")
-        if np.isfinite(v).sum() < 3:
-            raise ParameterError(f"labels[{name!r}]: {int(np.isfinite(v).sum())} known value(s), expected at least 3")
+        known = np.isfinite(v)
+        units[name] = int(known.sum()) if group_ids is None else len(np.unique(group_ids[known]))
+        if units[name] < MIN_TRAINING_ROWS + 1:
+            what = "known value(s)" if group_ids is None else "subject(s) with a known value"
+            raise ParameterError(f"labels[{name!r}]: {units[name]} {what}, expected at least {MIN_TRAINING_ROWS + 1} "
+                                 f"(one to hold out, {MIN_TRAINING_ROWS} to train on)")
         values[name] = v
-    units = n if groups is None else len(np.unique(np.asarray(groups)))
-    if isinstance(folds, (bool, np.bool_)) or not isinstance(folds, (int, np.integer)) or not 2 <= folds <= units:
+    total = n if group_ids is None else len(np.unique(group_ids))
+    if isinstance(folds, (bool, np.bool_)) or not isinstance(folds, (int, np.integer)) or not 2 <= folds <= total:
         what = "rows (subjects)" if groups is None else "subjects (groups)"
-        raise ParameterError(f"folds {folds!r}: there are {units} {what} to split, expected 2..{units} folds "
-                             f"({units} is leave-one-out)")
-    tests = kfold_indices(n, folds, gen, groups)
+        raise ParameterError(f"folds {folds!r}: there are {total} {what} to split, expected 2..{total} folds "
+                             f"({total} is leave-one-out)")
     rmse = np.empty((len(regressors), len(values)))
     counts = np.empty(len(values), dtype=int)
+    used_folds = np.empty(len(values), dtype=int)
     for li, (lname, v) in enumerate(values.items()):
-        known = np.isfinite(v)
-        counts[li] = known.sum()
+        known = np.flatnonzero(np.isfinite(v))
+        counts[li] = len(known)
+        k = label_folds(units[lname], folds)
+        tests = [known[t] for t in kfold_indices(len(known), k, gen,
+                                                 None if group_ids is None else group_ids[known])]
+        used_folds[li] = len(tests)
         for ri, (rname, factory) in enumerate(regressors.items()):
             sq = []
             for test in tests:
-                te = test[known[test]]
-                tr = np.setdiff1d(np.flatnonzero(known), te)
-                if te.size == 0:
-                    continue
-                model = factory().fit(x[tr], v[tr])
-                sq.append((model.predict(x[te]) - v[te]) ** 2)
+                train = np.setdiff1d(known, test)
+                model = factory().fit(x[train], v[train])
+                sq.append((model.predict(x[test]) - v[test]) ** 2)
             rmse[ri, li] = np.sqrt(np.mean(np.concatenate(sq)))
-    return RegressionTable(list(regressors), list(values), rmse, counts, len(tests))
+    return RegressionTable(list(regressors), list(values), rmse, counts, int(folds), used_folds)
 
 
 def direction_angles(regressor, X, reference="mean") -> tuple[float, float]:

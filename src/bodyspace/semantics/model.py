@@ -5,8 +5,11 @@ learned state ends in ``_``. It holds one ``FilteredLinearRegressor`` (Hasler Ta
 winner) per label on a shape-only ``BodyModel``'s PCA coefficients ``c`` (K,), whose gradient is
 the label's morphing direction, and calls the pure parts of the package:
 
-- ``labels``: which labels, from one rest scan per subject (measured on the scans, or the
-  database's subject columns) and every other length of the measurement set as a target;
+- ``labels``: which labels, from one rest scan per subject: the user's own values where the
+  database's subject table has them (stature_cm, mass_kg, waist_girth_cm, any ``<length>_cm``),
+  measured on the rest scans where it has not, the subject columns (sex, age, ...), and every
+  other length of the measurement set as a target; where each label's values came from is kept
+  (``provenance_``) and stored with the model;
 - ``closed_loop``: Hasler Equation 11, then decode, measure and correct until every value is
   within tolerance (``TOLERANCES``: 4 mm stature, 9 mm lengths, 0.5 kg mass); a miss is never
   silent (``on_infeasible``);
@@ -14,8 +17,15 @@ the label's morphing direction, and calls the pure parts of the package:
 
 Requests the model cannot reach: the reachable range of a label is its linear regressor over
 the coefficients within ``sigma_limit`` standard deviations (``f(0) +- sigma sqrt(sum s_k^2
-var_k)``); outside it a request is refused (``TargetError`` with the range) or, with
-``on_infeasible="clamp"``, clamped with a warning.
+var_k)``), widened to every training subject's value (``spans_``: a subject's own body is in the
+model, so its values are reachable even where a regressor fitted on few subjects predicts a
+narrower range); outside it a request is refused (``TargetError`` with the range) or, with
+``on_infeasible="clamp"``, clamped with a warning. The exact refinement's box admits every
+training subject too (``coefficient_bound``).
+
+Generation starts from a random body whose asked measurements are defined (another draw, then
+bodies toward the mean; ``START_DRAWS``, ``START_SHRINK``), or is refused with the measurement's
+reason: a NaN never enters the closed loop.
 
 Storage: the fitted state lives inside the BodyModel file, as flat arrays under a prefix
 (``to_arrays`` / ``from_arrays``, no pickle), like the measurement mapping. ``load`` still reads
@@ -34,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from bodyspace.data.template import load_template
-from bodyspace.errors import BodyspaceError, ParameterError, SemanticsFileError, TargetError
+from bodyspace.errors import BodyspaceError, MeasurementError, ParameterError, SemanticsFileError, TargetError
+from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import measure
 from bodyspace.semantics.closed_loop import closed_loop
 from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
@@ -42,8 +53,7 @@ from bodyspace.semantics.labels import (
     MEASURED_LABELS,
     SUBJECT_LABELS,
     first_scan_per_subject,
-    labels_from_subjects,
-    measured_labels,
+    label_set,
     measurement_subset,
     measurement_targets,
     read_scans,
@@ -74,6 +84,10 @@ TOLERANCES = {"stature": 0.004, "mass": 0.5}
 LENGTH_TOLERANCE = 0.009
 # a mask's factored Poisson solve is cached; user-supplied weight arrays are keys too
 MAX_CACHED_MASKS = 8
+# Start bodies of generate: random draws tried until the asked measurements are all defined, then
+# the first draw moved toward the mean body by these factors (0: the mean body itself).
+START_DRAWS = 8
+START_SHRINK = (0.5, 0.25, 0.0)
 _REGRESSOR_KINDS = {"FilteredLinearRegressor": FilteredLinearRegressor,
                     "SimpleLinearRegressor": SimpleLinearRegressor, "KernelRegressor": KernelRegressor}
 
@@ -206,25 +220,40 @@ class SemanticModel:
 
     def fit(self, db, measured=MEASURED_LABELS, subject_labels=None, rng=0, template=None) -> "SemanticModel":
         """Labels and regressors from ``db`` (the database the body model was fitted on): one
-        rest scan per subject (the first of the model's fitted scans for that subject)."""
+        rest scan per subject (the first of the model's fitted scans for that subject).
+
+        A measured label's value of a subject is the database's own (its subject column
+        ``stature_cm``, ``mass_kg``, ``<length>_cm``), else what the measurement set reads on the
+        rest scan (``labels.label_set``); a label known on fewer than ``MIN_LABELLED`` subjects
+        is left out with the reason (``skipped_``)."""
         bm = self.body_model
         rows, self.subjects_ = first_scan_per_subject(db.scans["subject"], bm.fitted_scans)
         verts = read_scans(db, rows)
         self.X_ = self.project_mesh(verts).reshape(len(rows), -1)
-        values = self.measure_body(verts)
-        labels = measured_labels(values, measured)
-        labels.update(labels_from_subjects(db.subjects, self.subjects_, subject_labels))
+        found = evaluate_measurements(self.mset, verts, bm.faces, mesh_name="the rest scans")
+        values = {name: np.atleast_1d(m.value) for name, m in found.items()}
+        notes = {name: (m.note if isinstance(m.note, list) else [m.note]) for name, m in found.items()}
+        source = Path(str((db.meta.get("provenance") or {}).get("labels") or "subjects.csv")).name
+        given = label_set(self.mset, db.subjects, self.subjects_, values, notes, measured, subject_labels, source)
+        if not given.values:
+            raise ParameterError("database: no label can be learned: " + "; ".join(
+                f"{name}: {why}" for name, why in given.skipped.items()))
+        labels = given.values
         self.labels_ = list(labels)
-        self.measured_ = list(measured)
+        self.measured_ = list(given.measured)
+        self.provenance_, self.skipped_, self.unused_columns_ = given.provenance, given.skipped, given.unused
         self.Y_ = np.column_stack([labels[n] for n in self.labels_])
         # every other length of the measurement set is a target too: a regressor each (cheap),
         # measured on a body only when asked
-        targets = measurement_targets(self.mset, values, exclude=labels)
+        targets = measurement_targets(self.mset, values, exclude=set(labels) | set(given.skipped))
         self.lengths_ = list(targets)
-        self.regressors_ = {}
+        self.regressors_, self.spans_ = {}, {}
         for name, y in {**labels, **targets}.items():
             ok = np.isfinite(y)
             self.regressors_[name] = self._fit_one(self.X_[ok], y[ok], rng)
+            # every training subject's value, and for a measured label what its rest scan measures
+            seen = np.concatenate([y[ok], values[name][np.isfinite(values[name])] if name in values else []])
+            self.spans_[name] = (float(seen.min()), float(seen.max()))
         if template is None:
             try:
                 template = load_template()
@@ -249,15 +278,32 @@ class SemanticModel:
         return np.asarray(self.body_model.space.explained_variance_, dtype=float)
 
     def reachable_range(self, name: str) -> tuple[float, float]:
-        """(lo, hi) of label ``name`` over coefficients within ``sigma_limit`` SD (linear regressor)."""
+        """(lo, hi) of label ``name``: its linear regressor over coefficients within
+        ``sigma_limit`` SD, widened to the values of the training subjects (``spans_``)."""
         reg = self.regressor(name)
         center = float(reg.predict(np.zeros(self.X_.shape[1])))
         half = self.sigma_limit * float(np.sqrt(np.sum(reg.coef_ ** 2 * self.variances)))
-        return center - half, center + half
+        lo, hi = center - half, center + half
+        span = getattr(self, "spans_", {}).get(name)
+        if span is not None:
+            lo, hi = min(lo, span[0]), max(hi, span[1])
+        return lo, hi
+
+    @property
+    def coefficient_bound(self) -> float:
+        """The largest coefficient, in SD, a request may need (the exact refinement's box):
+        ``sigma_limit``, or more when a training subject lies further out on a component, so
+        that every training subject's body, and its values, can be reached."""
+        z = np.abs(np.asarray(self.X_, dtype=float)) / np.sqrt(np.maximum(self.variances, 1e-300))
+        return max(self.sigma_limit, float(z.max()) if z.size else 0.0)
 
     def regressor(self, name):
-        """The fitted regressor of label or measurement ``name`` (ParameterError naming the accepted names)."""
+        """The fitted regressor of label or measurement ``name`` (ParameterError naming the accepted
+        names, or why the label was not learned)."""
         if name not in getattr(self, "regressors_", {}):
+            skipped = getattr(self, "skipped_", {})
+            if name in skipped:
+                raise ParameterError(f"{name}: not learned from the database: {skipped[name]}")
             labels = list(getattr(self, "labels_", []))
             lengths = list(getattr(self, "lengths_", []))
             meas = ", ".join(lengths) or "(none: these regressors predate measurement targets; refit them)"
@@ -272,7 +318,8 @@ class SemanticModel:
         rng_txt = f"{format_value(name, lo)} to {format_value(name, hi)}"
         if self.on_infeasible == "raise":
             raise TargetError(f"{name}: {format_value(name, value)} is outside what the model can reach "
-                              f"({rng_txt}, within {self.sigma_limit:g} SD); ask within that range or clamp")
+                              f"({rng_txt}: within {self.sigma_limit:g} SD, and every training subject's value); "
+                              "ask within that range or clamp")
         clamped = min(max(value, lo), hi)
         msg = (f"{name}: {format_value(name, value)} is outside the reachable range {rng_txt}; "
                f"clamped to {format_value(name, clamped)}")
@@ -348,15 +395,44 @@ class SemanticModel:
         messages: list = []
         gen = np.random.default_rng(rng)
         reqs = self._requests(targets)
-        c0 = np.asarray(self.body_model.sample_coefficients(1, sigma_range=sigma_range, rng=gen), dtype=float)[0]
         names = list(reqs)
-        x0 = self._decode(c0, timings)
-        vals0, meas0 = self._values(names, x0, c0, timings)
+        c0, vals0, meas0 = self._defined_start(names, gen, sigma_range, timings)
         goal = {}
         for name, v0 in zip(names, vals0):
             goal[name] = self._resolve(reqs[name], v0, messages)
         return self._solve(c0, goal, lambda c: self._decode(c, timings), timings, messages,
                            current=(vals0, meas0), defer_misses=defer_misses)
+
+    def _defined_start(self, names, gen, sigma_range: float, timings) -> tuple:
+        """A start body for ``generate`` whose values of ``names`` are all defined: a random draw
+        (truncated to ``sigma_range`` SD); if one is undefined (a measurement's condition fails,
+        e.g. a body that is not upright has no stature), up to ``START_DRAWS`` draws, then the
+        first draw moved toward the mean (``START_SHRINK``). Returns (c (K,), values (C,),
+        measurements); MeasurementError with the measurement's reason when none is defined."""
+        first = np.asarray(self.body_model.sample_coefficients(1, sigma_range=sigma_range, rng=gen), dtype=float)[0]
+
+        def candidates():
+            yield first
+            for _ in range(START_DRAWS - 1):
+                yield np.asarray(self.body_model.sample_coefficients(1, sigma_range=sigma_range, rng=gen),
+                                 dtype=float)[0]
+            for factor in START_SHRINK:
+                yield first * factor
+        for c in candidates():
+            x = self._decode(c, timings)
+            values, meas = self._values(names, x, c, timings)
+            if np.isfinite(values).all():
+                return c, values, meas
+        undefined = [n for n, v in zip(names, values) if not np.isfinite(v)]
+        raise MeasurementError(f"generate: {', '.join(undefined)} not defined on this model's bodies: "
+                               f"{START_DRAWS} random bodies and the mean body measure no value "
+                               f"({self._why_undefined(x, undefined)}); the measurement set's definition does not "
+                               "hold on the bodies the model makes (its landmarks, or the scans it was built from)")
+
+    def _why_undefined(self, vertices, names) -> str:
+        """The measurement's own note on why ``names`` have no value on ``vertices`` (V, 3)."""
+        found = evaluate_measurements(measurement_subset(self.mset, names), vertices, self.body_model.faces)
+        return "; ".join(f"{n}: {found[n].note or 'no value'}" for n in names if n in found) or "no value"
 
     def _requests(self, targets) -> dict:
         if not isinstance(targets, dict):
@@ -477,6 +553,11 @@ class SemanticModel:
 
         names = list(reqs)
         vals0, meas0 = self._values(names, x0, c0, timings)
+        undefined = [n for n, v in zip(names, vals0) if not np.isfinite(v)]
+        if undefined:
+            raise MeasurementError(f"the body to morph: {', '.join(undefined)} not defined "
+                                   f"({self._why_undefined(x0, undefined)}); changing or keeping a measurement needs "
+                                   "its value on the body")
         goal = {n: (v0 if n in keep else self._resolve(reqs[n], v0, messages)) for n, v0 in zip(names, vals0)}
         return self._solve(c0, goal, body, timings, messages, current=(vals0, meas0), defer_misses=defer_misses)
 
@@ -519,7 +600,10 @@ class SemanticModel:
                 "regressors": [[n, type(self.regressors_[n]).__name__] for n in names],
                 "regions": list(self.regions_), "sigma_limit": self.sigma_limit,
                 "n_components": int(self.X_.shape[1]), "template_id": self.body_model.template_id,
-                "units": {n: kind_of(n) for n in list(self.labels_) + list(self.lengths_)}}
+                "units": {n: kind_of(n) for n in list(self.labels_) + list(self.lengths_)},
+                "provenance": getattr(self, "provenance_", {}), "skipped": getattr(self, "skipped_", {}),
+                "unused_columns": getattr(self, "unused_columns_", []),
+                "spans": {n: list(v) for n, v in getattr(self, "spans_", {}).items()}}
         y = np.asarray(self.Y_, dtype=float)
         out = {prefix + "meta": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8),
                prefix + "X": np.asarray(self.X_, dtype=np.float64),
@@ -641,6 +725,17 @@ class SemanticModel:
                 raise SemanticsFileError(f"{where}: regressor {name!r} takes {reg.n_features_in_} coefficients, "
                                          f"expected {k}; {refit}")
             self.regressors_[name] = reg
+        try:  # where the labels came from (absent in files of earlier versions: unknown, not an error)
+            self.provenance_ = {str(k): dict(v) for k, v in dict(meta.get("provenance") or {}).items()}
+            self.skipped_ = {str(k): str(v) for k, v in dict(meta.get("skipped") or {}).items()}
+            self.unused_columns_ = [str(c) for c in meta.get("unused_columns") or []]
+            self.spans_ = {str(k): (float(v[0]), float(v[1])) for k, v in dict(meta.get("spans") or {}).items()}
+        except (TypeError, ValueError, IndexError) as exc:
+            raise SemanticsFileError(f"{where}: header field provenance/skipped/spans is malformed ({exc}); "
+                                     f"{refit}") from None
+        if not self.spans_:  # earlier files: the training subjects' labels at least
+            self.spans_ = {n: (float(np.nanmin(y)), float(np.nanmax(y))) for n, y in zip(labels, self.Y_.T)
+                           if np.isfinite(y).any()}
         absent = [n for n in labels + lengths if n not in self.regressors_]
         if absent:
             raise SemanticsFileError(f"{where}: no regressor for {absent}; {refit}")
