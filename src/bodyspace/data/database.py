@@ -33,7 +33,7 @@ import numpy as np
 
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
 from bodyspace.errors import BodyspaceError, DatabaseError
-from bodyspace.measure.evaluate import BODY_EXTENT_M
+from bodyspace.measure.conventions import BODY_EXTENT_M
 from bodyspace.mesh.io import load_mesh
 
 FORMAT_VERSION = 1
