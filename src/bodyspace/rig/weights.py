@@ -356,33 +356,63 @@ def _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat):
     return v, f.astype(np.int64), h, t, deform
 
 
+@_kernel
+def _cut_rows(W, k, min_weight, idx, val):
+    """Per row of W (n, K): the k largest entries' columns into ``idx`` (n, k) (-1 padded)
+    and their weights minus the row's threshold, renormalized, into ``val`` (``_top_weights``)."""
+    n, K = W.shape
+    top = np.empty(k + 1, dtype=np.int64)
+    for i in range(n):
+        row = W[i]
+        m = 0                                        # top[:m]: the largest so far, descending
+        for j in range(K):
+            w = row[j]
+            if w <= 0.0 or (m == k + 1 and w <= row[top[k]]):
+                continue
+            p = min(m, k)
+            while p > 0 and row[top[p - 1]] < w:
+                top[p] = top[p - 1]
+                p -= 1
+            top[p] = j
+            m = min(m + 1, k + 1)
+        kept = min(m, k)
+        tau = min_weight
+        if m == k + 1:
+            tau = max(tau, row[top[k]])
+        total = 0.0
+        for q in range(kept):
+            val[i, q] = max(row[top[q]] - tau, 0.0)
+            idx[i, q] = top[q]
+            total += val[i, q]
+        if total <= 0.0:                             # k+1 equal weights, or all below min_weight
+            for q in range(kept):
+                val[i, q] = 1.0 if row[top[q]] >= row[top[0]] else 0.0
+                total += val[i, q]
+        for q in range(kept):
+            val[i, q] /= total
+        for q in range(kept, k):
+            idx[i, q] = -1
+            val[i, q] = 0.0
+
+
 def _top_weights(W: np.ndarray, k: int, min_weight: float) -> sp.csr_matrix:
     """Rows of the dense (V, K) W cut to at most k bones *continuously*: each row's weights
     minus its threshold ``tau = max(w_(k+1), min_weight)`` (w_(k+1) its (k+1)-th largest
     weight), negatives to zero, renormalized to sum to one.
 
     A plain top-k cut jumps where the k-th and (k+1)-th bones swap places between neighbouring
-    vertices, and those jumps fold triangles when posed (measured: 677 folds added over 3
-    bodies x 39 poses with the plain cut, against 239 with no cut at all); subtracting the
-    (k+1)-th weight makes the dropped bone's weight reach zero exactly where it leaves.
+    vertices, and those jumps fold triangles when posed (measured on 3 bodies x 39 poses: 677
+    folds added with the plain cut, 526 with this one, 239 with no cut at all, c = 1);
+    subtracting the (k+1)-th weight makes a dropped bone's weight reach zero where it leaves.
     """
     V, K = W.shape
-    W = np.maximum(W, 0.0)
-    if k < K:
-        part = np.partition(W, K - k - 1, axis=1)
-        tau = np.maximum(part[:, K - k - 1], min_weight)          # the (k+1)-th largest
-        idx = np.argpartition(W, K - k, axis=1)[:, K - k:]       # the k largest
-    else:
-        tau = np.full(V, min_weight)
-        idx = np.broadcast_to(np.arange(K), (V, K))
-    val = np.maximum(np.take_along_axis(W, idx, axis=1) - tau[:, None], 0.0)
-    total = val.sum(axis=1, keepdims=True)
-    lone = total[:, 0] <= 0.0                   # k+1 equal top weights (or all below min_weight)
-    if lone.any():
-        val[lone] = np.take_along_axis(W[lone], idx[lone], axis=1) >= W[lone].max(1, keepdims=True)
-        total[lone] = val[lone].sum(axis=1, keepdims=True)
-    val /= total
-    M = sp.csr_matrix((val.ravel(), np.ascontiguousarray(idx).ravel(), np.arange(0, V * k + 1, k)), shape=(V, K))
+    k = min(k, K)
+    idx = np.empty((V, k), dtype=np.int64)
+    val = np.empty((V, k))
+    _cut_rows(np.ascontiguousarray(W), k, min_weight, idx, val)
+    keep = idx >= 0
+    indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
+    M = sp.csr_matrix((val[keep], idx[keep], indptr), shape=(V, K))
     M.eliminate_zeros()
     M.sort_indices()
     return M
