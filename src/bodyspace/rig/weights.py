@@ -23,10 +23,12 @@ heated vertex, the bones' weights sum to one at every vertex before truncation (
 
 Visibility is our own ray test: a bounding-volume hierarchy of the triangles (median splits,
 compiled) and a segment query per (vertex, candidate bone), candidates taken in increasing
-distance until one is visible, so most vertices cost one query. Afterwards each vertex keeps its
-``max_influences`` largest weights (negative values from obtuse triangles, whose cotangent
-weights are negative, are dropped first), weights under ``MIN_WEIGHT`` are dropped, and the row
-is renormalized.
+distance until one is visible, so most vertices cost two queries (2.2 on the template).
+Afterwards each vertex keeps at most ``max_influences`` bones by a *continuous* cut: negative
+values (obtuse triangles have negative cotangent weights) become zero, the row's
+``(max_influences + 1)``-th largest weight (or ``MIN_WEIGHT`` if larger) is subtracted from the
+kept ones and the row is renormalized, so a bone's weight reaches zero exactly where it drops
+out of a vertex's four (a plain top-4 cut jumps there, and the jumps fold skin when posed).
 
 Any topology: degenerate (zero-area) faces are left out of the operator and the ray test;
 vertices no face uses take their nearest bone with weight 1; a connected component on which no
@@ -54,8 +56,8 @@ _kernel = numba.njit(cache=True, nogil=True)
 # The paper's c in H_jj = c / d(j)^2 ("c = 1 works well"; larger values follow the nearest bone
 # more closely, smaller ones blur the weights more).
 DEFAULT_HEAT = 1.0
-# Weights below this are dropped before renormalizing (the skinning kernels cost per influence;
-# a 1e-3 weight moves a vertex by at most 1e-3 of the bones' relative displacement).
+# The least threshold of the cut (the skinning kernels cost per influence; a 1e-3 weight moves a
+# vertex by at most 1e-3 of the bones' relative displacement).
 MIN_WEIGHT = 1e-3
 # Bones within this relative distance of the nearest visible one share its heat (ties at a
 # joint, where a bone's tail is its child's head, are exact).
@@ -431,7 +433,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     deform: (B,) bool, the bones that receive weights (default all; e.g. leave out a root or
         control bones); the others get zero columns.
     heat: the paper's c in ``H_jj = c / d(j)^2``.
-    min_weight: weights below this fraction of a row's largest are dropped.
+    min_weight: the least threshold of the continuous cut (rows sum to one): smaller weights
+        are dropped.
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
@@ -442,9 +445,14 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
        ``A = L + M H``, factored once.
     3. One solve of ``A w_b = M H p_b`` for each bone that is some vertex's source (the others'
        weights are zero), all columns against the one factor.
-    4. Per vertex: negatives dropped, the largest ``max_influences`` kept, renormalized.
+    4. Per vertex: negatives dropped, the largest ``max_influences`` kept minus the next
+       one's weight (continuous cut, ``_top_weights``), renormalized.
     """
     v, f, h, t, deform = _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat)
+    if not (0.0 <= min_weight < 1.0):
+        raise ParameterError(f"min_weight={min_weight!r}; expected a number in [0, 1) (default {MIN_WEIGHT})")
+    if lanes not in (None, 1, 2):
+        raise ParameterError(f"lanes={lanes!r}; expected 1, 2 or None (automatic)")
     V, B = len(v), len(h)
     scale = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
     # 1. faces with area; vertices that some such face uses
