@@ -187,6 +187,10 @@ def test_bad_inputs_raise_clear_errors():
         bone_heat_weights(v, f, h, t, deform=np.array([False]))
     with pytest.raises(ParameterError, match="heat"):
         bone_heat_weights(v, f, h, t, heat=-1.0)
+    with pytest.raises(ParameterError, match="min_weight=1.5"):
+        bone_heat_weights(v, f, h, t, min_weight=1.5)
+    with pytest.raises(ParameterError, match="lanes=3"):
+        bone_heat_weights(v, f, h, t, lanes=3)
 
 
 # ------------------------------------------------------------------------ template, foreign
