@@ -20,6 +20,7 @@ from bodyspace.rig.kinematics import (
     forward_kinematics,
     linear_blend_skinning,
 )
+from bodyspace.rig.weights import bone_heat_weights
 
 # ------------------------------------------------------------------------------------ posing
 
@@ -148,6 +149,36 @@ def _smoothed_from_disk_or_compute(rig: Rig, faces: np.ndarray, mirror: np.ndarr
     return W
 
 
+_BONE_HEAT: dict[tuple[int, bytes], tuple[object, sp.csr_matrix]] = {}
+
+
+def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: np.ndarray | None = None,
+                          max_influences: int = 4) -> sp.csr_matrix:
+    """Bone-heat weights (``rig.weights.bone_heat_weights``) of a template rig, cached per rig.
+
+    vertices: (V, 3) the rest body the heat is computed on, faces (F, 3); by default the shipped
+    template's mean body. The bones are the rig's bones at that body (its regressors); only
+    the bones MakeHuman's weights use deform (39 of the default rig's 163, the face-control,
+    tongue and root bones, get none), so both weight sets move the same bones.
+    """
+    if vertices is None or faces is None:
+        t = load_template()
+        vertices = t.vertices if vertices is None else vertices
+        faces = t.faces if faces is None else faces
+    v = np.ascontiguousarray(vertices, dtype=float)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    if v.shape != (rig.weights.shape[0], 3):
+        raise MeshError(f"vertices: shape {v.shape}, expected ({rig.weights.shape[0]}, 3) a body of the template topology")
+    key = (id(rig), v.tobytes() + f.tobytes() + bytes([max_influences]))
+    hit = _BONE_HEAT.get(key)
+    if hit is None or hit[0] is not rig:
+        deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
+        hit = (rig, bone_heat_weights(v, f, rig.heads(v), rig.tails(v), max_influences, deform=deform))
+        _BONE_HEAT.clear()                      # one entry: a (V, B) matrix per body is large
+        _BONE_HEAT[key] = hit
+    return hit[1]
+
+
 def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_ground: bool = False,
                 return_joints: bool = False, skinning: str = "lbs", weights: str = "original",
                 faces: np.ndarray | None = None):
@@ -167,7 +198,9 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         removes about 80 % of the folded triangles LBS makes at armpit, groin and knee, but
         drags the chest skin with a raised arm (chest girth +4.9 cm in arms_overhead against
         < 2.5 cm), so the measurement landmarks, fitted on the original weights, are not
-        validated for it. Not yet the default for that reason.
+        validated for it. Not yet the default for that reason. ``"bone_heat"``: bone-heat
+        weights computed on the template's mean body (``bone_heat_rig_weights``, Baran &
+        Popović 2007; docs/skinning.md compares the three).
     faces: (F, 3) template faces for the smoothing; by default the shipped template's.
     FK and skinning are the compiled kernels of ``kinematics`` / ``skinning`` (two lanes for
     large batches).
@@ -204,8 +237,10 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         W = smoothed_weights(rig, faces)
     elif weights == "original":
         W = rig.weights
+    elif weights == "bone_heat":
+        W = bone_heat_rig_weights(rig, faces=faces)
     else:
-        raise ParameterError(f"weights={weights!r}; expected 'smoothed' or 'original'")
+        raise ParameterError(f"weights={weights!r}; expected 'original', 'smoothed' or 'bone_heat'")
     if skinning == "lbs":
         posed = linear_blend_skinning(v, W, G)                     # (N, V, 3)
     elif skinning == "dqs":

@@ -1,0 +1,108 @@
+"""Skin weights compared over the whole pose library: MakeHuman's CC0 weights as shipped, the
+smoothed ones (``weights="smoothed"``) and bone heat (``weights="bone_heat"``, Baran & Popović
+2007), all with linear blend skinning of the default rig on the template topology.
+
+Per pose, summed or worst over a few bodies: folded triangles added to the rest mesh
+(``count_folded_triangles``), the change of the enclosed volume (``capped_volume``), and the
+chest girth change in ``arms_overhead`` (the hm08 measurement set). Prints markdown tables.
+
+Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bodyspace.data.template import load_template
+from bodyspace.measure.definitions import load_measurement_set
+from bodyspace.measure.evaluate import measure
+from bodyspace.mesh.geometry import capped_volume
+from bodyspace.rig.kinematics import forward_kinematics
+from bodyspace.rig.posing import count_folded_triangles, smoothed_weights
+from bodyspace.rig.skinning import linear_blend_skinning
+from bodyspace.rig.weights import bone_heat_weights
+from bodyspace.synth.phenotype import PhenotypeModel
+from bodyspace.synth.poses import load_pose_library
+
+# The three bodies of tests/test_rig.py and docs/poses.md: male average, female average,
+# heavy male with no muscle.
+BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 0.5, 0.0],
+          "height": [0.6, 0.4, 0.5]}
+
+
+def weight_sets(template, rig, influences: int, heat: float) -> dict:
+    """name → (V, B) weights; bone heat on the template's mean body, MakeHuman's deforming bones."""
+    v = template.vertices
+    deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
+    t = time.perf_counter()
+    heat_w = bone_heat_weights(v, template.faces, rig.heads(v), rig.tails(v), influences, deform=deform, heat=heat)
+    print(f"bone heat: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
+          f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
+    return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat": heat_w}
+
+
+def evaluate(template, rig, library, bodies, weights) -> dict:
+    """Per weight set: folds added (P, N), volume change (P, N) and chest change in arms_overhead (N,)."""
+    faces = template.faces
+    R = library.stack(library.names, rig)
+    mset = load_measurement_set()
+    k = library.names.index("arms_overhead")
+    out = {}
+    for name, W in weights.items():
+        folds, volume, chest = [], [], []
+        for body in bodies:
+            G = forward_kinematics(R, rig.heads(body), rig.parents)
+            posed = linear_blend_skinning(body, W, G)
+            folds.append(count_folded_triangles(posed, faces) - count_folded_triangles(body, faces))
+            volume.append(capped_volume(posed, faces) / capped_volume(body, faces) - 1.0)
+            girth = measure(mset, np.stack([body, posed[k]]), faces)["chest_girth"]
+            chest.append(girth[1] - girth[0])
+        out[name] = (np.array(folds).T, np.array(volume).T, np.array(chest))
+    return out
+
+
+def print_tables(names, results) -> None:
+    sets = list(results)
+    print("\n| pose | " + " | ".join(f"folds {s}" for s in sets) + " | " +
+          " | ".join(f"volume {s}" for s in sets) + " |")
+    print("|---" * (1 + 2 * len(sets)) + "|")
+    for p, pose in enumerate(names):
+        folds = [f"{int(np.clip(results[s][0][p], 0, None).sum())}" for s in sets]
+        vols = []
+        for s in sets:
+            v = results[s][1][p]
+            vols.append(f"{100 * v[np.argmax(np.abs(v))]:+.1f} %")
+        print(f"| `{pose}` | " + " | ".join(folds) + " | " + " | ".join(vols) + " |")
+    print("\n| weights | folds added (all poses, all bodies) | fold-free poses | worst volume change | "
+          "poses within 2 % volume | chest girth change in arms_overhead (per body) |")
+    print("|---|---|---|---|---|---|")
+    for s in sets:
+        folds, vol, chest = results[s]
+        worst = np.abs(vol).max(axis=1)
+        print(f"| {s} | {int(np.clip(folds, 0, None).sum())} | {int((folds.max(axis=1) <= 0).sum())} / {len(names)} | "
+              f"{100 * vol.flat[np.argmax(np.abs(vol))]:+.1f} % ({names[int(np.argmax(worst))]}) | "
+              f"{int((worst <= 0.02).sum())} / {len(names)} | "
+              + ", ".join(f"{100 * c:+.1f} cm" for c in chest) + " |")
+
+
+def main(influences: int = 4, heat: float = 1.0) -> None:
+    template = load_template()
+    rig = template.rigs["default"]
+    library = load_pose_library()
+    bodies = PhenotypeModel(template).vertices(BODIES)
+    print(f"{len(bodies)} bodies x {len(library.names)} poses, LBS, default rig; bone heat with at most "
+          f"{influences} influences, c = {heat}")
+    results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat))
+    print_tables(library.names, results)
+    print(f"\nmeasured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--influences", type=int, default=4)
+    parser.add_argument("--heat", type=float, default=1.0)
+    a = parser.parse_args()
+    main(a.influences, a.heat)

@@ -1,0 +1,274 @@
+"""Tests for bodyspace.rig.weights: bone-heat skin weights (Baran & Popović 2007) and their
+visibility test, on synthetic meshes with known answers, the template and foreign bodies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import trimesh
+
+from bodyspace.errors import MeshError, ParameterError
+from bodyspace.mesh.operators import cotangent_laplacian
+from bodyspace.rig.kinematics import forward_kinematics
+from bodyspace.rig.posing import bone_heat_rig_weights, count_folded_triangles, pose_bodies
+from bodyspace.rig.skinning import linear_blend_skinning
+from bodyspace.rig.weights import bone_heat_weights, nearest_visible_bones, segments_blocked
+from bodyspace.synth.foreign import punch_holes, remesh, shuffle_vertices, to_frame, transfer
+
+from _meshes import open_tube
+
+
+def capsule(length=2.0, radius=0.3, rings=41, around=16):
+    """A closed tube along +y from 0 to ``length`` (``rings`` rings of vertices) with a pole
+    vertex ``radius`` beyond each end: (V, 3), (F, 3)."""
+    v, f = open_tube(rings, around, length, radius)
+    poles = np.array([[0.0, -radius, 0.0], [0.0, length + radius, 0.0]])
+    n = len(v)
+    a = np.arange(around)
+    bottom = np.stack([np.full(around, n), (a + 1) % around, a], 1)
+    top = np.stack([np.full(around, n + 1), (rings - 1) * around + a, (rings - 1) * around + (a + 1) % around], 1)
+    return np.vstack([v, poles]), np.vstack([f, bottom, top])
+
+
+def brute_force_blocked(v, f, p, i):
+    """Segment p -> v[i] crosses a triangle without vertex i (every triangle tested)."""
+    keep = ~(f == i).any(axis=1)
+    a, b, c = v[f[keep, 0]], v[f[keep, 1]], v[f[keep, 2]]
+    d = v[i] - p
+    e1, e2 = b - a, c - a
+    h = np.cross(d, e2)
+    det = (e1 * h).sum(1)
+    ok = det != 0
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = p - a
+    u = (s * h).sum(1) * inv
+    q = np.cross(s, e1)
+    w = (q @ d) * inv
+    t = (q * e2).sum(1) * inv
+    return bool((ok & (u >= 0) & (u <= 1) & (w >= 0) & (u + w <= 1) & (t >= 0) & (t < 1 - 1e-7)).any())
+
+
+# ----------------------------------------------------------------------------- visibility
+
+def test_visibility_matches_brute_force_on_a_bent_mesh():
+    """Our BVH segment test against testing every triangle, for segments from random points
+    inside and outside a non-convex mesh (a torus) to its vertices."""
+    m = trimesh.creation.torus(major_radius=1.0, minor_radius=0.35, major_sections=24, minor_sections=12)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    rng = np.random.default_rng(0)
+    ids = rng.integers(0, len(v), 300)
+    starts = rng.uniform(-1.5, 1.5, (300, 3)) * [1, 1, 0.3]
+    got = segments_blocked(v, f, starts, ids)
+    want = np.array([brute_force_blocked(v, f, p, i) for p, i in zip(starts, ids)])
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < got.mean() < 0.8                 # both answers occur
+
+
+def test_nearest_visible_bone_skips_an_occluded_closer_bone():
+    """A sphere with one bone at its centre and one just outside it: vertices on the far
+    side are nearer the outside bone's line, but the sphere hides it from them."""
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    heads = np.array([[0.0, -0.2, 0.0], [1.1, -0.5, 0.0]])
+    tails = np.array([[0.0, 0.2, 0.0], [1.1, 0.5, 0.0]])
+    source, count, nearest, dist, tests = nearest_visible_bones(v, f, heads, tails)
+    assert (count >= 1).all()
+    near_side = v[:, 0] > 0.6
+    # where the outside bone is nearest but hidden (the segment re-enters the sphere), the
+    # centre bone is chosen; where it is seen, it is chosen
+    hidden = (nearest == 1) & (source[:, 0] == 0)
+    assert hidden.sum() > 10
+    for i in np.flatnonzero(hidden)[:20]:
+        p = np.array([1.1, np.clip(v[i, 1], -0.5, 0.5), 0.0])
+        assert brute_force_blocked(v, f, p, i)
+    assert (source[near_side & (v[:, 0] > 0.95), 0] == 1).all()
+    assert tests[hidden].min() >= 2
+
+
+# ------------------------------------------------------------------------------- the heat
+
+def test_heat_equilibrium_equals_a_dense_solve():
+    """Before the cut, the weights are the paper's (L + M H) w_b = M H p_b solved exactly:
+    checked against a dense numpy solve built from the same visibility answer."""
+    v, f = capsule()
+    heads = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    tails = np.array([[0.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
+    W = bone_heat_weights(v, f, heads, tails, max_influences=2, min_weight=0.0).toarray()
+    source, count, _, dist, _ = nearest_visible_bones(v, f, heads, tails)
+    L = cotangent_laplacian(v, f).toarray()
+    dbl = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    mass = np.bincount(f.ravel(), np.repeat(dbl / 6, 3), minlength=len(v))
+    H = np.where(count > 0, 1.0 / dist ** 2, 0.0)
+    P = np.zeros((len(v), 2))
+    for k in range(4):
+        ok = source[:, k] >= 0
+        P[np.flatnonzero(ok), source[ok, k]] += 1.0 / count[ok]
+    ref = np.linalg.solve(L + np.diag(mass * H), (mass * H)[:, None] * P)
+    assert np.abs(ref.sum(1) - 1).max() < 1e-9             # L 1 = 0: the weights sum to one
+    ref = np.maximum(ref, 0) / np.maximum(ref, 0).sum(1, keepdims=True)
+    np.testing.assert_allclose(W, ref, atol=1e-8)
+    # and what they look like along the capsule: bone 0 below, bone 1 above, a smooth monotone
+    # blend around the joint at y = 1, mirror-symmetric about it
+    y = v[:, 1]
+    assert (W[y < 0.2, 0] > 0.95).all() and (W[y > 1.8, 1] > 0.95).all()
+    np.testing.assert_allclose(W[np.abs(y - 1.0) < 1e-9], 0.5, atol=1e-3)
+    mirror = np.array([np.argmin(np.linalg.norm(v - [p[0], 2.0 - p[1], p[2]], axis=1)) for p in v])
+    np.testing.assert_allclose(W[mirror, ::-1], W, atol=1e-3)
+    order = np.argsort(y)
+    assert (np.diff(W[order, 1]) > -1e-3).all()
+
+
+def test_at_most_max_influences_cut_continuously():
+    """A chain of 8 short bones: every vertex keeps at most k bones, rows sum to one, and the
+    cut is continuous: neighbouring vertices' weights differ little (a plain top-k cut jumps
+    where the k-th and (k+1)-th bones swap)."""
+    v, f = capsule(length=2.0, radius=0.5, rings=81, around=24)
+    y = np.linspace(0, 2, 9)
+    heads = np.stack([np.zeros(8), y[:-1], np.zeros(8)], 1)
+    tails = np.stack([np.zeros(8), y[1:], np.zeros(8)], 1)
+    full = bone_heat_weights(v, f, heads, tails, max_influences=8, min_weight=0.0).toarray()
+    assert (np.count_nonzero(full > 0.01, axis=1) > 2).sum() > 100      # the cut has work to do
+    for k in (1, 2, 4):
+        W = bone_heat_weights(v, f, heads, tails, max_influences=k)
+        assert np.diff(W.indptr).max() <= k
+        np.testing.assert_allclose(np.asarray(W.sum(1)).ravel(), 1.0, atol=1e-12)
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        if k == 1:                                   # rigid: each vertex on its heaviest bone
+            np.testing.assert_array_equal(W.indices, full.argmax(axis=1))
+            continue
+        jump = np.abs(W[e[:, 0]] - W[e[:, 1]]).max(axis=1).toarray().ravel()
+        full_jump = np.abs(full[e[:, 0]] - full[e[:, 1]]).max(axis=1)
+        # a plain top-k cut of the same weights, for comparison
+        plain = np.zeros_like(full)
+        top = np.argsort(-full, axis=1)[:, :k]
+        np.put_along_axis(plain, top, np.take_along_axis(full, top, axis=1), axis=1)
+        plain /= plain.sum(1, keepdims=True)
+        plain_jump = np.abs(plain[e[:, 0]] - plain[e[:, 1]]).max(axis=1)
+        assert jump.max() < plain_jump.max()
+        assert jump.max() < 3 * full_jump.max(), (k, jump.max(), full_jump.max())
+
+
+def test_deform_mask_loose_parts_and_unused_vertices():
+    """Only deforming bones get weights; a loose part that sees no bone takes its nearest;
+    a vertex no face uses takes its nearest bone with weight 1."""
+    v, f = capsule()
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    bv = np.asarray(box.vertices) + [3.0, 1.8, 0.0]                # far right, near bone 1's height
+    v2 = np.vstack([v, bv, [[0.0, 2.4, 0.0]]])                     # + one unused vertex above
+    f2 = np.vstack([f, np.asarray(box.faces) + len(v)])
+    heads = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    tails = np.array([[0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0.5, 1.0, 0.0]])
+    W = bone_heat_weights(v2, f2, heads, tails, deform=np.array([True, True, False]))
+    assert W.shape == (len(v2), 3) and W[:, 2].nnz == 0
+    np.testing.assert_allclose(np.asarray(W.sum(1)).ravel(), 1.0, atol=1e-12)
+    assert (W[len(v):len(v) + len(bv), 1].toarray() > 0.99).all()
+    assert W[len(v2) - 1, 1] == 1.0
+
+
+def test_bad_inputs_raise_clear_errors():
+    v, f = capsule()
+    h, t = np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]])
+    with pytest.raises(MeshError, match=r"vertices: shape \(10, 2\)"):
+        bone_heat_weights(v[:10, :2], f, h, t)
+    bad = v.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(MeshError, match="vertex 7 holds NaN"):
+        bone_heat_weights(bad, f, h, t)
+    with pytest.raises(MeshError, match=r"faces: indices 0\.\.\d+, expected 0\.\.9"):
+        bone_heat_weights(v[:10], f, h, t)
+    with pytest.raises(MeshError, match="all 3 faces have zero area"):
+        bone_heat_weights(np.zeros((4, 3)), np.array([[0, 1, 2], [1, 2, 3], [0, 2, 3]]), h, t)
+    with pytest.raises(ParameterError, match="heads, tails: shapes"):
+        bone_heat_weights(v, f, h, t[:, :2])
+    with pytest.raises(ParameterError, match="max_influences=0"):
+        bone_heat_weights(v, f, h, t, 0)
+    with pytest.raises(ParameterError, match="deform"):
+        bone_heat_weights(v, f, h, t, deform=np.array([False]))
+    with pytest.raises(ParameterError, match="heat"):
+        bone_heat_weights(v, f, h, t, heat=-1.0)
+    with pytest.raises(ParameterError, match="min_weight=1.5"):
+        bone_heat_weights(v, f, h, t, min_weight=1.5)
+    with pytest.raises(ParameterError, match="lanes=3"):
+        bone_heat_weights(v, f, h, t, lanes=3)
+
+
+# ------------------------------------------------------------------------ template, foreign
+
+@pytest.fixture(scope="module")
+def rig(template):
+    return template.rigs["default"]
+
+
+@pytest.fixture(scope="module")
+def heat_weights(rig):
+    return bone_heat_rig_weights(rig)
+
+
+def test_template_weights_agree_with_makehuman_on_the_limbs(template, rig, heat_weights):
+    W = heat_weights
+    assert W.shape == (template.n_vertices, rig.n_bones)
+    assert np.diff(W.indptr).max() <= 4
+    np.testing.assert_allclose(np.asarray(W.sum(1)).ravel(), 1.0, atol=1e-12)
+    mh = rig.weights.tocsr()
+    unused = np.asarray(abs(mh).sum(0)).ravel() == 0
+    assert abs(W[:, np.flatnonzero(unused)]).sum() == 0
+    # where MakeHuman gives a vertex to one bone (> 0.9) outside the face, bone heat agrees
+    dm = np.asarray(mh.argmax(1)).ravel()
+    dh = np.asarray(W.argmax(1)).ravel()
+    face = np.array([rig.bone_names[b] in ("head", "jaw") for b in dm])
+    strong = (np.asarray(mh.max(1).toarray()).ravel() > 0.9) & ~face
+    assert (dm == dh)[strong].mean() > 0.9
+    # mirror symmetric up to the triangulation (not exactly mirror-symmetric): vertex i on
+    # bone b <-> mirror[i] on bone b's mirror
+    from bodyspace.rig.posing import mirror_bones
+    asym = abs(W[template.mirror][:, mirror_bones(rig)] - W).max(axis=1).toarray().ravel()
+    assert asym.max() < 0.1 and np.percentile(asym, 99) < 0.02, (asym.max(), np.percentile(asym, 99))
+
+
+def test_pose_bodies_with_bone_heat_weights(template, rig, heat_weights, phenotype_model):
+    from bodyspace.synth.poses import load_pose_library
+    library = load_pose_library()
+    body = phenotype_model.vertices({"gender": [1.0]})[0]
+    names = ["rest", "arms_overhead", "squat", "t_pose"]
+    R = library.stack(names, rig)
+    posed = pose_bodies(np.broadcast_to(body, (4,) + body.shape), rig, R, weights="bone_heat")
+    np.testing.assert_array_equal(posed[0], body)
+    G = forward_kinematics(R, rig.heads(body), rig.parents)
+    np.testing.assert_allclose(posed, linear_blend_skinning(body, heat_weights, G), atol=1e-12)
+    rest = count_folded_triangles(body, template.faces)
+    heat = count_folded_triangles(posed, template.faces) - rest
+    original = count_folded_triangles(pose_bodies(np.broadcast_to(body, (4,) + body.shape), rig, R),
+                                      template.faces) - rest
+    assert heat.sum() < original.sum(), (heat, original)
+    with pytest.raises(ParameterError, match="'original', 'smoothed' or 'bone_heat'"):
+        pose_bodies(body, rig, R[0], weights="heat")
+
+
+def test_foreign_bodies_get_the_same_weights(template, rig, heat_weights):
+    """Remeshed (6,000 vertices), shuffled, in millimetres with Z up, with holes: the weights
+    follow the surface, not the vertex order, units or axes."""
+    rng = np.random.default_rng(3)
+    v, f = template.vertices, template.faces
+    heads, tails = rig.heads(v), rig.tails(v)
+    deform = np.asarray(abs(rig.weights).sum(0)).ravel() > 0
+    v2, f2, corr = remesh(v, f, 6000, rng)
+    v2, f2, perm = shuffle_vertices(v2, f2, rng)
+    corr = corr.permuted(perm)
+    W2 = bone_heat_weights(v2, f2, heads, tails, deform=deform)
+    # against the template's bone heat carried over exactly (barycentric transfer)
+    carried = transfer(corr, f, heat_weights.toarray())
+    diff = np.abs(W2.toarray() - carried).sum(1) / 2               # total variation per vertex
+    assert np.median(diff) < 0.05 and np.mean(diff) < 0.1, (np.median(diff), diff.mean())
+    # millimetres, Z up, turned: the same weights (visibility and heat are similarity-invariant)
+    frame = dict(up="z", scale=1000.0, translation=(0.4, -0.2, 0.9), yaw_degrees=25.0)
+    W3 = bone_heat_weights(to_frame(v2, **frame), f2, to_frame(heads, **frame), to_frame(tails, **frame),
+                           deform=deform)
+    assert np.abs(W3 - W2).max() < 1e-3
+    # holes (faces removed near the armpit): still a weight for every vertex, rows sum to one
+    centre = v2[np.argmax(v2[:, 0] - np.abs(v2[:, 1] - 1.35) * 3)]
+    f4 = punch_holes(v2, f2, centre[None], 0.05)
+    assert len(f4) < len(f2)
+    W4 = bone_heat_weights(v2, f4, heads, tails, deform=deform)
+    np.testing.assert_allclose(np.asarray(W4.sum(1)).ravel(), 1.0, atol=1e-12)
+    assert np.median(np.abs(W4 - W2).max(axis=1).toarray()) < 1e-3
