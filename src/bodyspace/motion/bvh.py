@@ -56,9 +56,10 @@ import numpy as np
 from bodyspace.atomic import atomic_path
 from bodyspace.errors import MotionError
 from bodyspace.rig.kinematics import matrix_to_quaternion
+from bodyspace.rig.skeleton import Skeleton
 
 __all__ = ["CHANNEL_NAMES", "CMU_UNIT", "UNITS", "Motion", "MotionSkeleton", "euler_to_matrix", "format_bvh",
-           "matrix_to_euler", "parse_bvh", "read_bvh", "resolve_unit", "write_bvh"]
+           "matrix_to_euler", "parse_bvh", "read_bvh", "resolve_unit", "skeleton_from_rig", "write_bvh"]
 
 CHANNEL_NAMES = ("Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation")
 _CHANNEL_LOOKUP = {c.lower(): c for c in CHANNEL_NAMES}
@@ -620,7 +621,8 @@ def _parse_hierarchy(lines: _Lines) -> MotionSkeleton:
                 if len(tokens) < 2 or tokens[1].upper() != "SITE":
                     raise lines.fail(number, f"found {' '.join(tokens[:2])!r}; expected 'End Site'")
                 if not stack or stack[-1][0] != "joint":
-                    raise lines.fail(number, "End Site outside a joint; expected it inside a ROOT or JOINT block")
+                    where = f"inside {_describe(stack[-1], names)}" if stack else "outside any joint"
+                    raise lines.fail(number, f"End Site {where}; expected it inside a ROOT or JOINT block")
                 end_sites.append(None)
                 end_parents.append(stack[-1][1])
                 pending = ("end", len(end_sites) - 1)
@@ -887,3 +889,39 @@ def write_bvh(path: str | Path, motion: Motion, precision: int = 6) -> Path:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
     return path
+
+
+def skeleton_from_rig(skeleton: Skeleton, frames: int = 1, frame_time: float = 1 / 30,
+                      order: str = "ZXY") -> Motion:
+    """A rig's skeleton as a BVH motion held at rest (metres, our axes: +Y up, +Z front).
+
+    Joints are the bones in depth-first order (each at its head, OFFSET = head - parent's head),
+    the root with position and rotation channels, the others with rotations in ``order``; an
+    end bone gets an End Site at its tail. ``frames`` frames of the rest pose.
+    """
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise MotionError(f"order {order!r}: expected three distinct axes such as 'ZXY'")
+    children = [[] for _ in range(skeleton.n_bones)]
+    for b, p in enumerate(skeleton.parents):
+        if p >= 0:
+            children[p].append(b)
+    seq, todo = [], [int(r) for r in np.flatnonzero(skeleton.parents < 0)][::-1]
+    while todo:
+        b = todo.pop()
+        seq.append(b)
+        todo.extend(children[b][::-1])
+    where = {b: i for i, b in enumerate(seq)}
+    parents = np.array([where[skeleton.parents[b]] if skeleton.parents[b] >= 0 else -1 for b in seq])
+    heads = skeleton.heads[seq]
+    offsets = heads - np.where(parents[:, None] >= 0, heads[np.maximum(parents, 0)], 0.0)
+    rot = tuple(f"{a}rotation" for a in order)
+    channels = tuple((("Xposition", "Yposition", "Zposition") + rot) if p < 0 else rot for p in parents)
+    leaves = [i for i, b in enumerate(seq) if not children[b]]
+    ends = skeleton.tails[[seq[i] for i in leaves]] - heads[leaves]
+    sk = MotionSkeleton(tuple(skeleton.bone_names[b] for b in seq), parents, offsets, channels, ends,
+                        np.array(leaves, dtype=np.int64))
+    values = np.zeros((int(frames), sk.n_channels))
+    for j in np.flatnonzero(parents < 0):
+        s0 = sk.channel_starts[j]
+        values[:, s0:s0 + 3] = offsets[j]
+    return Motion(sk, values, frame_time, 1.0, "given: metres (a rig's skeleton)", "replace", skeleton.name)
