@@ -326,7 +326,7 @@ class Motion:
                 Rg[:, j], pos[:, j] = L[:, j], t[:, j]
             else:
                 Rg[:, j] = Rg[:, p] @ L[:, j]
-                pos[:, j] = pos[:, p] + np.einsum("fij,fj->fi", Rg[:, p], t[:, j])
+                pos[:, j] = pos[:, p] + (Rg[:, p] @ t[:, j, :, None])[..., 0]
         return Rg, pos
 
     def global_positions(self) -> np.ndarray:
