@@ -293,3 +293,34 @@ def test_report_says_what_and_why(clips, rigs):
     assert "LHipJoint:" in text and "Root: a root with no counterpart in the source" in text
     data = json.loads(json.dumps(result.to_dict()))
     assert data["landmarks"]["target"]["wrist.L"] == "hand_l" and data["axes"]["source"]["up"] == [0, 1, 0]
+
+
+# ----------------------------------------------------------------------------- command line
+
+def test_cli_info_and_match(tmp_path):
+    from typer.testing import CliRunner
+
+    from bodyspace.cli import app
+    runner = CliRunner()
+    clip = str(CLIPS[0])
+    res = runner.invoke(app, ["motion", "info", clip])
+    assert res.exit_code == 0 and "rotation orders:      ZYX x19, ZXY x12" in res.output
+    assert "120 per second" in res.output and "cmu" in res.output
+    out = tmp_path / "match.json"
+    res = runner.invoke(app, ["motion", "match", clip, "--rig", "game_engine", "--json", str(out)])
+    assert res.exit_code == 0 and "LeftKnee      -> calf_l [knee.L]" in res.output
+    data = json.loads(out.read_text())
+    assert data["written_by"] == "bodyspace" and {"pairs", "unmatched_source", "segments"} <= set(data)
+    res = runner.invoke(app, ["motion", "match", clip, "--target", clip, "--json", str(out), "--force"])
+    assert res.exit_code == 0 and "31 pairs, 0 source joints" in res.output
+    mapfile = tmp_path / "map.json"
+    mapfile.write_text(json.dumps({"Head": "nothing"}))
+    bad = {("motion", "match", clip): "give one target: --rig NAME",
+           ("motion", "match", clip, "--rig", "robot"): "--rig 'robot': not a CC0 rig",
+           ("motion", "match", clip, "--rig", "mixamo", "--json", str(out)): "already exists; pass --force",
+           ("motion", "match", clip, "--rig", "mixamo", "--map", str(mapfile)): "maps to 'nothing', not a bone",
+           ("motion", "info", str(tmp_path / "none.bvh")): "no such file",
+           ("motion", "info", clip, "--bvh-unit", "furlong"): "unit 'furlong': expected auto, one of m, dm"}
+    for args, message in bad.items():
+        res = runner.invoke(app, list(args))
+        assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output, (args, res.output)
