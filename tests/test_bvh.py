@@ -378,3 +378,15 @@ def test_fuzz_mutated_files_never_traceback_or_hang():
                 outcomes["ok"] += 1
         slowest = max(slowest, time.perf_counter() - t)
     assert outcomes["refused"] > 600 and outcomes["ok"] > 50, outcomes
+
+
+def test_byte_order_mark_and_many_long_numbers(monkeypatch):
+    assert parse_bvh(b"\xef\xbb\xbf" + SMALL.encode()).n_frames == 3
+    import bodyspace.motion.bvh as bvh
+    monkeypatch.setattr(bvh, "_SLOW_TOKENS", 2)  # more long numbers than the scanner's buffer holds
+    rng = np.random.default_rng(5)
+    numbers = [repr(float(x)) + "1234" for x in rng.normal(0, 100, 45)]  # 17+ significant digits
+    text = HEADER + "MOTION\nFrames: 3\nFrame Time: 0.04\n" + "\n".join(
+        " ".join(numbers[15 * f:15 * f + 15]) for f in range(3)) + "\n"
+    m = parse_bvh(text)
+    assert m.values.ravel().tolist() == [float(t) for t in numbers]

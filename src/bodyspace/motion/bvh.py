@@ -69,6 +69,9 @@ UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.304
 # "auto" picks the unit of UNITS that makes the rest skeleton's extent closest to this (metres).
 _TYPICAL_EXTENT_M = 1.7
 _TRANSLATION_MODES = ("auto", "replace", "add")
+# Room for numbers the compiled scanner hands to float() (more than 15 digits ...) before it
+# retries with room for every token.
+_SLOW_TOKENS = 65_536
 # Below this, |cos(middle angle)| means gimbal lock in matrix_to_euler.
 _GIMBAL_EPS = 1e-9
 
@@ -425,7 +428,8 @@ def _scan_numbers(buf, out, line_counts, slow):
 
     Counts the numbers of each line (``line_counts``, lines split at b"\\n"). Returns
     (numbers read, numbers needing Python's float (their indices in ``slow[:, 0]`` and byte
-    ranges in ``slow[:, 1:]``), byte offset of the first bad token or -1).
+    ranges in ``slow[:, 1:]``), byte offset of the first bad token, or -1, or -2 when ``slow``
+    is full).
     Fast path: up to 15 significant digits and a power of ten within 10^±22, which a double
     holds exactly, so ``m * 10^e`` / ``m / 10^-e`` is correctly rounded (Clinger's fast path).
     """
@@ -503,6 +507,8 @@ def _scan_numbers(buf, out, line_counts, slow):
                 v = float(mant) / 10.0 ** (-e10)
         else:
             v = 0.0
+            if n_slow == slow.shape[0]:
+                return n, n_slow, -2  # too many slow tokens for the buffer: the caller falls back
             slow[n_slow, 0] = n
             slow[n_slow, 1] = start
             slow[n_slow, 2] = i
@@ -736,8 +742,12 @@ def _parse_frames(data: bytes, first_line: int, n_channels: int, declared: int, 
     n_lines = int(np.count_nonzero(buf == 10)) + 1
     counts = np.zeros(n_lines, dtype=np.int64)
     out = np.empty(len(buf) // 2 + 1)
-    slow = np.empty((len(buf) // 2 + 1, 3), dtype=np.int64)
+    slow = np.empty((min(len(buf) // 2 + 1, _SLOW_TOKENS), 3), dtype=np.int64)
     n, n_slow, bad = _scan_numbers(buf, out, counts, slow)
+    if bad == -2:  # many long or extreme numbers: every token through float(), same values
+        counts[:] = 0
+        slow = np.empty((len(buf) // 2 + 1, 3), dtype=np.int64)
+        n, n_slow, bad = _scan_numbers(buf, out, counts, slow)
     if bad >= 0:
         line = first_line + int(np.count_nonzero(buf[:bad] == 10))
         end = bad
@@ -802,6 +812,8 @@ def parse_bvh(data: bytes | str, name: str = "<bvh>", unit="auto", translation: 
     "replace" or "add" (module docstring).
     """
     raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    if raw.startswith(b"\xef\xbb\xbf"):  # a UTF-8 byte order mark, as some Windows tools write
+        raw = raw[3:]
     lines = _Lines(raw, name)
     skeleton = _parse_hierarchy(lines)
     declared, frame_time = _motion_header(lines)

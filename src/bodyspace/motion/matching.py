@@ -223,6 +223,12 @@ class _Tree:
                 self.children[p].append(j)
         self.leaves = [j for j in range(g.n_joints) if not self.children[j]]
         self.tip = np.where(np.isfinite(g.tips).all(axis=1)[:, None], g.tips, g.pivots)
+        # length along the bones from each joint's pivot up to its root's
+        self.to_root = np.zeros(g.n_joints)
+        for j in np.argsort(self.depth, kind="stable"):
+            p = g.parents[j]
+            if p >= 0:
+                self.to_root[j] = self.to_root[p] + float(np.linalg.norm(g.pivots[j] - g.pivots[p]))
 
     def up_path(self, j: int) -> list[int]:
         """j, its parent, ... the root."""
@@ -252,15 +258,20 @@ class _Tree:
         """Tree distance between the tips of terminals a and b along the bones; a common
         ancestor's own pivot is skipped when the path only passes by it (two children attached
         at a bone's tail are next to each other, not a bone's length apart)."""
-        c = self.lca(a, b)
-        if c < 0:
-            return np.inf
-        P = self.g.pivots
-        pts = []
-        up_a, up_b = self.up_path(a), self.up_path(b)
-        side_a, side_b = up_a[:up_a.index(c)], up_b[:up_b.index(c)]
-        pts = [P[j] for j in side_a] + ([P[c]] if not side_a or not side_b else []) + [P[j] for j in reversed(side_b)]
-        d = sum(float(np.linalg.norm(pts[i + 1] - pts[i])) for i in range(len(pts) - 1))
+        x, y, ca, cb = a, b, -1, -1  # walk up to the common ancestor, remembering its children
+        while x != y:
+            if self.depth[x] >= self.depth[y]:
+                ca, x = x, int(self.parents[x])
+            else:
+                cb, y = y, int(self.parents[y])
+            if x < 0 or y < 0:
+                return np.inf
+        c, P = x, self.g.pivots
+        if ca < 0 or cb < 0:  # one is an ancestor of the other
+            d = abs(self.to_root[a] - self.to_root[b])
+        else:
+            d = (self.to_root[a] - self.to_root[ca]) + float(np.linalg.norm(P[ca] - P[cb])) \
+                + (self.to_root[b] - self.to_root[cb])
         if tips:
             d += float(np.linalg.norm(self.tip[a] - P[a])) + float(np.linalg.norm(self.tip[b] - P[b]))
         return d
