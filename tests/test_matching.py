@@ -324,3 +324,25 @@ def test_cli_info_and_match(tmp_path):
     for args, message in bad.items():
         res = runner.invoke(app, list(args))
         assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output, (args, res.output)
+
+
+def test_other_bodies_turned_and_moved(clips, phenotype_model, template):
+    """The rigs regressed on a tall heavy body and on a small light one, and a target skeleton
+    turned to face +X and moved: the same landmark bones."""
+    from bodyspace.motion.matching import JointGraph
+    from bodyspace.synth.phenotype import PARAMETERS
+    source = graph_from_motion(next(iter(clips.values())))
+    params = np.full((2, len(PARAMETERS)), 0.5)
+    params[0] = 0.95
+    params[1] = 0.05
+    bodies = phenotype_model.vertices(params)
+    turn = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # +Z front becomes +X front
+    for body in bodies:
+        for rig in ("default", "mixamo"):
+            g = rig_graph(rig, body)
+            check_landmarks(match_skeletons(source, g), rig)
+            moved = JointGraph(g.name, g.names, g.parents, g.pivots @ turn.T + [3.0, -1.0, 2.0],
+                               g.tips @ turn.T + [3.0, -1.0, 2.0])
+            result = match_skeletons(source, moved)
+            check_landmarks(result, rig)
+            assert [tuple(a) for a in result.target_axes] == [(0, 1, 0), (0, 0, -1), (1, 0, 0)]

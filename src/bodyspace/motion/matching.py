@@ -63,7 +63,7 @@ _FOOT_TURN_DEG = 50.0         # the foot's bone points this far from straight do
 _HAND_START = 0.6             # fingers branch past this fraction of the arm's arc
 _BEND_DEG = 20.0              # an arm chain turning more than this at a joint starts a new straight piece
 _STRAIGHT_ARM = 1.6           # a last straight piece this much longer than the one before holds the elbow too
-_UPPER_TO_FOREARM = 1.2       # typical upper arm / forearm length
+_UPPER_TO_FOREARM = 1.1       # upper arm / forearm, joint to joint: 1.0 in MakeHuman rigs, 1.3 in CMU
 _SKIP_COST = 0.15             # a joint between landmarks stays unmatched rather than move this far on the arc
 _MAX_CHILD_ANGLE_DEG = 60.0   # children off the chains pair up to this angle apart
 _SNAP_DEG = 30.0              # body axes within this of a coordinate axis are snapped to it
@@ -501,7 +501,12 @@ def _arm_landmarks(t: _Tree, arm, side, left, mid, scale) -> dict[str, int]:
     length = [arc[b] - arc[a] for a, b in pieces]
     last = pieces[-1]
     if len(pieces) >= 2 and length[-1] <= _STRAIGHT_ARM * length[-2]:
-        shoulder_k, elbow_k = pieces[-2][0], last[0]
+        elbow_k = last[0]
+        fore = arc[wrist_k] - arc[elbow_k]
+        # the upper arm starts at the joint of its piece that gives it an upper arm's length (a
+        # clavicle bent less than _BEND_DEG from the upper arm shares its piece)
+        shoulder_k = min(range(*pieces[-2]),
+                         key=lambda k: abs(np.log(max(arc[elbow_k] - arc[k], 1e-12) / fore / _UPPER_TO_FOREARM)))
     elif last[1] - last[0] >= 2:  # upper arm and forearm in one straight line: split it
         inner = range(last[0] + 1, last[1])
         target = _UPPER_TO_FOREARM / (1 + _UPPER_TO_FOREARM)
