@@ -33,7 +33,8 @@ def motion_info(clip: Path = typer.Argument(..., help="A BVH motion capture file
     rest = np.vstack([motion.rest_positions(), sk.rest_end_sites() * motion.unit])
     root = motion.local_translations()[:, 0]
     path = float(np.linalg.norm(np.diff(root, axis=0), axis=1).sum()) if motion.n_frames > 1 else 0.0
-    rows = [("file", str(clip)), ("joints", f"{sk.n_joints} ({', '.join(sk.names[:6])}{', ...' if sk.n_joints > 6 else ''})"),
+    more = ", ..." if sk.n_joints > 6 else ""
+    rows = [("file", str(clip)), ("joints", f"{sk.n_joints} ({', '.join(sk.names[:6])}{more})"),
             ("end sites", str(len(sk.end_sites))), ("channels", f"{sk.n_channels} per frame"),
             ("rotation orders", ", ".join(f"{o} x{c}" for o, c in orders.most_common())),
             ("translation channels", f"{', '.join(moving) or 'none'} ({motion.translation} the offset)"),

@@ -15,14 +15,16 @@ only**, in the order Rupprecht gives (``body_anatomy``):
    hip = first leg joint off the mid-plane; ankle = first joint whose bone turns forward (the
    foot), else the leg's end; knee = the joint nearest the middle of hip→ankle; wrist = the
    first branching joint in the hand's part of the arm (fingers), else the arm's last joint;
-   shoulder and elbow = the pair that splits shoulder→wrist into two straight pieces in the
-   proportion of an upper arm to a forearm; head = the neck's first branching joint past
-   mid-neck, else its last. Landmarks match landmarks; the joints between two landmarks match by
-   their position along the arc (a monotone dynamic programme that may leave joints unmatched:
-   twist bones, extra spine joints). A chain's first joints (clavicles, pelvis bones) match.
+   elbow and shoulder = the starts of the last two straight pieces before the wrist (cut where
+   the arm bends more than 20°; the upper arm's start is the joint of its piece that gives it an
+   upper arm's length; one straight upper arm + forearm is split in that proportion); head = the
+   common parent of every end joint above the neck. Landmarks match landmarks; the joints
+   between two landmarks match by their position along the arc (a monotone dynamic programme
+   that may leave joints unmatched: twist bones, extra spine joints). A chain's first joints
+   (clavicles, pelvis bones) match.
 4. Whatever hangs off a matched pair and is not on a chain (fingers, toes, face, breasts, helper
-   bones) is matched child to child by bone direction, after turning the source's incoming
-   bone onto the target's (Hungarian assignment, up to 60°), recursively.
+   bones) is matched child to child by bone direction, after turning the source's frame
+   (incoming bone, body front) onto the target's (Hungarian assignment, up to 60°), recursively.
 
 Left and right come from geometry: left = up × front, front from the feet (toes point forward),
 else from name hints (``joint_names.json``: Left/L/.L/_l ...), else the skeleton is assumed to
@@ -583,10 +585,8 @@ class SkeletonMatch:
             "segments": [{"parent": list(s.parent) if s.parent else None, "child": list(s.child),
                           "source_between": list(s.source), "target_between": list(s.target)} for s in self.segments],
             "landmarks": {"source": self.source_landmarks, "target": self.target_landmarks},
-            "axes": {"source": {"up": self.source_axes[0].round(6).tolist(), "left": self.source_axes[1].round(6).tolist(),
-                                "front": self.source_axes[2].round(6).tolist()},
-                     "target": {"up": self.target_axes[0].round(6).tolist(), "left": self.target_axes[1].round(6).tolist(),
-                                "front": self.target_axes[2].round(6).tolist()}},
+            "axes": {side: {k: a[i].round(6).tolist() for i, k in enumerate(("up", "left", "front"))}
+                     for side, a in (("source", self.source_axes), ("target", self.target_axes))},
             "notes": list(self.notes), "warnings": list(self.warnings),
         }
 
