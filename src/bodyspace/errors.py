@@ -48,3 +48,7 @@ class OutputError(BodyspaceError):
 class SemanticsFileError(BodyspaceError):
     """Stored semantic regressors (in a model file, or a legacy MODEL.semantics.npz) are damaged,
     incomplete, or were fitted on another model."""
+
+
+class MotionError(BodyspaceError):
+    """A motion file (BVH) is malformed, or a skeleton match or its map file cannot be made or read."""

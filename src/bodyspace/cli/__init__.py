@@ -1,7 +1,7 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
 One module per command group (assets, population, examples (example-scans), data (import), model, measure,
-semantics, mapping, demo, export (rig));
+semantics, mapping, demo, export (rig), motion);
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 """
@@ -20,6 +20,7 @@ from bodyspace.cli.export import rig
 from bodyspace.cli.mapping import mapping_evaluate, mapping_fit, mapping_shape
 from bodyspace.cli.measure import measure
 from bodyspace.cli.model import build, sample
+from bodyspace.cli.motion import motion_info, motion_match
 from bodyspace.cli.population import population
 from bodyspace.cli.semantics import crowd, evaluate, generate, morph
 
@@ -49,6 +50,10 @@ mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: fo
 for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):
     mapping_app.command(_name)(guarded(_command))
 app.add_typer(mapping_app, name="mapping")
+motion_app = typer.Typer(no_args_is_help=True, help="Motion capture (BVH): inspect a clip, match its skeleton to a rig.")
+for _name, _command in (("info", motion_info), ("match", motion_match)):
+    motion_app.command(_name)(guarded(_command))
+app.add_typer(motion_app, name="motion")
 
 
 def main() -> None:  # pragma: no cover - console entry point
