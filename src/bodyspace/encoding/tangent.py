@@ -231,9 +231,11 @@ def _adjoint_relative(lam, row, q, rel, jl, nbr, valid, gcode):
                     for c in range(3):
                         v = 0.0
                         if pi >= 0:
-                            v += lam[pi, a, c0] * qj[c, 0] + lam[pi, a, c0 + 1] * qj[c, 1] + lam[pi, a, c0 + 2] * qj[c, 2]
+                            v += (lam[pi, a, c0] * qj[c, 0] + lam[pi, a, c0 + 1] * qj[c, 1]
+                                  + lam[pi, a, c0 + 2] * qj[c, 2])
                         if pj >= 0:
-                            v += qi[a, 0] * lam[pj, c, c0] + qi[a, 1] * lam[pj, c, c0 + 1] + qi[a, 2] * lam[pj, c, c0 + 2]
+                            v += (qi[a, 0] * lam[pj, c, c0] + qi[a, 1] * lam[pj, c, c0 + 1]
+                                  + qi[a, 2] * lam[pj, c, c0 + 2])
                         gm[a, c] = v
                 g = rel[i, k]
                 # M = G Q_ik^T
@@ -325,7 +327,8 @@ class PoissonAdjoint:
         g = np.asarray(cotangent, dtype=float)
         n = len(g)
         lam = np.zeros((self.n_vertices, 3 * n))
-        lam[self.free] = self.solver.solve(np.ascontiguousarray(g.transpose(1, 0, 2)).reshape(self.n_vertices, 3 * n)[self.free])
+        rhs = np.ascontiguousarray(g.transpose(1, 0, 2)).reshape(self.n_vertices, 3 * n)
+        lam[self.free] = self.solver.solve(rhs[self.free])
         gu = self.divergence_t @ lam                                 # rows (f, d), columns (n, c)
         nf = gu.shape[0] // 3
         return np.ascontiguousarray(gu.reshape(nf, 3, n, 3).transpose(2, 0, 3, 1))  # (n, F, c, d)

@@ -12,5 +12,5 @@ from bodyspace.shape.compare import (
 from bodyspace.shape.pca import PROJECTIONS, ShapeSpace
 from bodyspace.shape.vertex_fit import VertexFit, fit_coefficients
 
-__all__ = ["PROJECTIONS", "ShapeSpace", "VertexFit", "fit_coefficients", "edge_lengths", "interpolate", "interpolation_distortion",
-           "mean_relative_edge_change", "relative_volume_change"]
+__all__ = ["PROJECTIONS", "ShapeSpace", "VertexFit", "fit_coefficients", "edge_lengths", "interpolate",
+           "interpolation_distortion", "mean_relative_edge_change", "relative_volume_change"]

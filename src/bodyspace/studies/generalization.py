@@ -56,7 +56,7 @@ def model_names(encoders: dict, projections=PROJECTIONS) -> dict[str, tuple[str,
         if getattr(enc, "is_linear", False):
             out[name] = (name, "code")
         else:
-            for p in projections:
+            for p in sorted(projections, key=list(PROJECTIONS)[::-1].index):  # code projection first
                 out[f"{name} {p}"] = (name, p)
     return out
 
