@@ -46,6 +46,12 @@ def test_demo_command_writes_pictures_and_summary(template, tmp_path):
     assert np.isfinite(female["bmi_kg_m2"]["mean"])
     mapping = summary["mapping"]
     assert set(mapping["within_1mm"]) == {"linear", "forest", "forest + refinement"}
+    # Leave-one-subject-out, shape-only and pose+shape, RRE with both projections and vertex PCA.
+    general = summary["generalization"]
+    for study in ("shape_only", "pose_and_shape"):
+        assert set(general[study]["error_mm"]) == {"rre code", "rre vertex", "vertex"}
+        assert all(np.isfinite(general[study]["error_mm"][m]).all() for m in general[study]["error_mm"])
+    assert "rre PCA, vertex fit" in (out / general["table"]).read_text()
     assert (out / mapping["files"]["tables"]).read_text().count("|") > 20
 
 

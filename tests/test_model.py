@@ -74,7 +74,8 @@ def test_save_load_round_trip_is_bit_exact(model, db, tmp_path):
     assert back.encoder.on_flipped == "ignore"
     x = np.asarray(db.vertices[:3], dtype=float)
     np.testing.assert_array_equal(back.encode(x), model.encode(x))
-    np.testing.assert_array_equal(back.project(x), model.project(x))
+    np.testing.assert_array_equal(back.project(x, method="code"), model.project(x, method="code"))
+    np.testing.assert_array_equal(back.project(x[:1]), model.project(x[:1]))  # the vertex fit: one mesh
     z = model.sample_coefficients(2, n_components=3, rng=1)
     np.testing.assert_allclose(back.reconstruct(z), model.reconstruct(z), atol=1e-9)
 
@@ -275,18 +276,26 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
     files = write_interpolation_report(res, db.faces, tmp_path)
     assert all((tmp_path / f).stat().st_size > 0 for f in files.values())
     gen = generalization_study(db, {"rre": model.encoder, "vertex": vertex}, selection="all", n_folds=2,
-                               components=(1, 2))
-    assert gen["components"][0] == 1 and gen["components"][-1] == 12 - 3 - 1
-    for name in ("rre", "vertex"):
+                               components=(1,), max_iter=3, max_jacobians=1)
+    assert gen["components"] == [1, 12 - 3 - 1]
+    # RRE with both projections, vertex PCA once (its two projections are one).
+    assert set(gen["error_m"]) == {"rre code", "rre vertex", "vertex"}
+    assert gen["models"]["rre vertex"] == {"encoder": "rre", "projection": "vertex"}
+    for name in gen["error_m"]:
         e = np.asarray(gen["error_m"][name])
         assert e.shape == (len(gen["components"]),) and np.isfinite(e).all() and (e > 0).all()
         # Aligning each region rigidly first leaves only the local shape error: never much larger.
         local = np.asarray(gen["local_error_m"][name])
         assert local.shape == e.shape and np.isfinite(local).all() and (local <= 1.05 * e + 1e-9).all()
+        assert (np.asarray(gen["max_error_m"][name]) >= e).all() and len(gen["fit_s"][name]) == len(e)
+    # The vertex fit starts from the code projection and only takes steps that lower the error.
+    assert (np.asarray(gen["error_m"]["rre vertex"]) <= 1.02 * np.asarray(gen["error_m"]["rre code"])).all()
     assert gen["local_regions"] == 12
-    files = write_generalization_report(gen, tmp_path)
-    written = json.loads((tmp_path / files["json"]).read_text())
+    files = write_generalization_report([gen, gen], tmp_path)
+    written = json.loads((tmp_path / files["json"]).read_text())["studies"][0]
     assert written["units"]["error"] == "mm"
     # The study is in metres, the report in mm (a body's error is millimetres, never metres).
     assert np.allclose(written["error_mm"]["vertex"], 1000.0 * np.asarray(gen["error_m"]["vertex"]))
-    assert (np.asarray(gen["error_m"]["rre"]) < 0.2).all()
+    assert (np.asarray(gen["error_m"]["rre code"]) < 0.2).all()
+    table = (tmp_path / files["table"]).read_text()
+    assert "rre PCA, vertex fit" in table and "rre PCA, code projection" in table and "vertex PCA" in table

@@ -357,9 +357,11 @@ class BodyModel:
         """Bodies (N, V, 3) of codes (N, D) or (D,), placed on the mean model."""
         return self.encoder.decode(codes, constraints=constraints)
 
-    def project(self, vertices) -> np.ndarray:
-        """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3)."""
-        return self.space.project(vertices)
+    def project(self, vertices, method: str = "vertex") -> np.ndarray:
+        """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3): fitted to the mesh in
+        vertex space (``method="vertex"``) or the code projection (``"code"``), see
+        ``ShapeSpace.project``."""
+        return self.space.project(vertices, method=method)
 
     def reconstruct(self, coefficients, constraints=None) -> np.ndarray:
         """Bodies (N, V, 3) of coefficients (N, k) or (k,), k <= K (the rest are 0)."""

@@ -7,13 +7,16 @@
   (Rupprecht Equation 1).
 
 Shared parts: ``deformation`` (per-triangle deformation gradients and their closed-form polar
-decomposition) and ``rotations`` (quaternions, rotation vectors, polar factors, batched).
+decomposition), ``rotations`` (quaternions, rotation vectors, polar factors, batched) and
+``tangent`` (exact derivatives of a decode).
 
 Both: ``Encoder(template_vertices, faces).fit(scans)``, ``encode(vertices) -> (N, D)``,
 ``decode(codes, constraints=None) -> (N, V, 3)``, ``n_features_``, ``mean_vertices_``;
 ``to_arrays(prefix)`` / ``from_arrays(arrays, prefix, template_vertices, faces, **params)``
 (their state; ``PARAMS`` names the constructor keywords a file keeps); ``linearize(space, k)``
 (a ``DecoderLinearization``: exact for the vertex encoding, the tangent at the mean for RRE);
+``tangent(code)`` (the decoder at one code with its exact Jacobian: ``jvp``/``vjp``,
+``encoding.tangent``);
 ``is_linear`` (decoding is affine, so measuring needs no decode); ``last_flipped_`` (folded
 triangles per mesh of the last ``encode``, or None when not looked for); ``kind``, the name
 ``ENCODERS`` knows it by. Nothing above this package asks which encoder it has.

@@ -73,6 +73,7 @@ from scipy.sparse.csgraph import breadth_first_order, reverse_cuthill_mckee
 
 from bodyspace.encoding.deformation import polar_from_corners, rest_triangles
 from bodyspace.encoding.linearize import DecoderLinearization
+from bodyspace.encoding.tangent import DecodeTangent, PoissonAdjoint, left_jacobians
 from bodyspace.encoding.rotations import (
     components_first,
     project_to_rotations,
@@ -403,24 +404,28 @@ class FixedPatternRotationSolver:
         self._pool: list = []
         self._lock = threading.Lock()
 
-    def solve(self, rel: np.ndarray, lanes: int = 1) -> np.ndarray:
+    def solve(self, rel: np.ndarray, lanes: int = 1, chol: BlockCholesky | None = None) -> np.ndarray:
         """Least-squares ``Q_i`` (F, 3, 3), not projected, of one body's relative rotations
-        (F, 3, 3, 3), both in the graph's face order. ``lanes=2``: on two threads."""
+        (F, 3, 3, 3), both in the graph's face order. ``lanes=2``: on two threads. ``chol``: a
+        ``BlockCholesky`` of the caller's to factor into and keep (default: one of the pool)."""
         g = self.graph
         off = np.empty((self.pattern.n_pairs, 3, 3))
         _lanes(lanes, g.n_faces, lambda lo, hi: _system_kernel(rel, g.nbr, g.bk, self.pair_of_slot, off, lo, hi))
         b = np.zeros((g.n_faces, 3, 3))
         i, k = self.to_root
         np.add.at(b, i, rel[i, k] + np.swapaxes(rel[g.nbr[i, k], g.bk[i, k]], -1, -2))
-        with self._lock:
-            chol = self._pool.pop() if self._pool else None
-        if chol is None:
-            chol = BlockCholesky(self.pattern)
-        try:
+        if chol is not None:
             x = chol.factor_solve(self.diag, off, b[self.free], lanes)
-        finally:
+        else:
             with self._lock:
-                self._pool.append(chol)
+                chol = self._pool.pop() if self._pool else None
+            if chol is None:
+                chol = BlockCholesky(self.pattern)
+            try:
+                x = chol.factor_solve(self.diag, off, b[self.free], lanes)
+            finally:
+                with self._lock:
+                    self._pool.append(chol)
         q = np.empty((g.n_faces, 3, 3))
         q[g.roots] = np.eye(3)
         q[self.free] = x
@@ -754,6 +759,65 @@ class RelativeRotationEncoder:
         A least-squares fit over sampled bodies (``DecoderLinearization.partial_fit``) is better
         over a whole box; mapping makes one on its training set since ``is_linear`` is False."""
         return DecoderLinearization.at_mean(space, LINEARIZED_COEFFICIENTS if k is None else k)
+
+    def tangent(self, code: np.ndarray) -> DecodeTangent:
+        """The decoder at one code (D,) with its exact derivatives (``encoding.tangent``):
+        ``.vertices`` (V, 3) is ``decode(code)`` (to ~1e-9 m: the Hasler Equation 9 system is
+        always factored here, the factor kept for the tangents), ``.jvp(dcodes)`` and
+        ``.vjp(cotangents)`` its Jacobian and transpose. Costs one decode."""
+        self._require_fit()
+        c = self._check_codes(code)
+        if len(c) != 1:
+            raise ParameterError(f"code: {len(c)} codes, expected one (D,) code")
+        c = np.ascontiguousarray(c[0], dtype=float)
+        nf = self.n_faces
+        lanes = 2 if (self.n_jobs or os.cpu_count() or 1) > 1 else 1
+        g = self._graph
+        mean_q, mean_stretch = self._graph_order_means()
+        code_g = np.ascontiguousarray(c.reshape(nf, FEATURES_PER_FACE)[g.order])
+        rel = np.empty((nf, 3, 3, 3))
+        _lanes(lanes, nf, lambda lo, hi: _relative_kernel(code_g, mean_q, rel, lo, hi))
+        chol = BlockCholesky(self._exact.pattern)
+        q = self._exact.solve(rel, lanes, chol=chol)
+        identity = np.tile([1.0, 0.0, 0.0, 1.0, 0.0, 1.0], (nf, 1))
+        rot = self._gradients(q, np.zeros((nf, 6)), identity, lanes)[g.rank]        # R_i, mesh order
+        q, rel = q[g.rank], rel[g.rank]
+        stretch = unpack_stretch(c.reshape(nf, FEATURES_PER_FACE)[:, 9:] + self.mean_stretch_)
+        x = self._poisson.solve((rot @ stretch)[None])
+        placed, part_rot = self._place(x, self.mean_vertices_)
+        # Polar factor's tangent: (tr(P) I - P) w = vee(W^T dQ - dQ^T W), P = W^T Q = R Q.
+        p = rot @ q
+        p = 0.5 * (p + np.swapaxes(p, -1, -2))
+        k = np.trace(p, axis1=-2, axis2=-1)[:, None, None] * np.eye(3) - p
+        det = np.linalg.det(k)
+        ok = np.abs(det) > 1e-12 * np.maximum(np.abs(np.trace(k, axis1=-2, axis2=-1)), 1e-300) ** 3
+        kinv = np.zeros_like(k)
+        kinv[ok] = np.linalg.inv(k[ok])  # a face whose Q has det <= 0 (wild codes only): no rotation tangent
+        jl = np.empty((nf, 3, 3, 3))
+        left_jacobians(c.reshape(nf, FEATURES_PER_FACE), self.slot_mask_, jl)
+        row = self._tangent_rows()
+        if getattr(self, "_poisson_adjoint", None) is None:
+            self._poisson_adjoint = PoissonAdjoint(self._poisson)
+        valid = self.slot_mask_
+        nbr = np.where(valid, self.neighbors, np.arange(nf)[:, None]).astype(np.int64)
+        bk = np.where(valid, self.back, 0).astype(np.int64)
+        return DecodeTangent(c, placed[0], jl=jl, rel=np.ascontiguousarray(rel), q=np.ascontiguousarray(q),
+                             rot=np.ascontiguousarray(rot), stretch=stretch, kinv=kinv, row=row, nbr=nbr, bk=bk,
+                             valid=np.ascontiguousarray(valid), chol=chol, poisson=self._poisson,
+                             adjoint=self._poisson_adjoint, part_vertices=self._part_vertices,
+                             part_rotations=part_rot[0], lanes=lanes)
+
+    def _tangent_rows(self) -> np.ndarray:
+        """Row of each face (mesh order) in the factor's permuted order (-1: an anchor)."""
+        row = getattr(self, "_rows_cache", None)
+        if row is None:
+            ex, g = self._exact, self._graph
+            position = np.empty(ex.pattern.n, dtype=np.int64)
+            position[ex.pattern.order] = np.arange(ex.pattern.n)
+            of_graph = np.full(self.n_faces, -1, dtype=np.int64)
+            of_graph[ex.free] = position
+            row = self._rows_cache = of_graph[g.rank]
+        return row
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
         """Meshes (N, V, 3) from codes (N, 15 F) or (15 F,), placed on the mean model.

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from bodyspace.encoding.linearize import DecoderLinearization
+from bodyspace.encoding.tangent import AffineDecodeTangent
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.geometry import check_mesh
@@ -136,6 +137,15 @@ class VertexEncoder:
         k = space.n_components_ if k is None else min(int(k), space.n_components_)
         base = self.mean_vertices_ + space.mean_.reshape(self.n_vertices, 3)
         return DecoderLinearization.exact(base, space.components_[:k].reshape(k, self.n_vertices, 3))
+
+    def tangent(self, code: np.ndarray) -> AffineDecodeTangent:
+        """The decoder at one code (3V,): ``.vertices`` its body, ``.jvp``/``.vjp`` the code
+        directions themselves (the decoder is affine), as ``RelativeRotationEncoder.tangent``."""
+        self._require_fit()
+        c = self._check_codes(code)
+        if len(c) != 1:
+            raise ParameterError(f"code: {len(c)} codes, expected one (D,) code")
+        return AffineDecodeTangent(c[0], self.decode(c)[0])
 
     def decode(self, codes: np.ndarray, constraints: PositionConstraints | None = None) -> np.ndarray:
         """Meshes (N, V, 3) from codes (N, 3V) or (3V,), in the mean mesh's frame.

@@ -62,8 +62,10 @@ def write_interpolation_report(result: dict, faces: np.ndarray, out, stem: str =
 
 def generalization_in_mm(result: dict) -> dict:
     """``generalization_study``'s result with its errors in mm: ``error_mm``, ``local_error_mm``,
-    ``error_mm_per_fold`` in place of the ``*_m`` fields (metres); everything else as it is."""
-    keys = {"error_m": "error_mm", "local_error_m": "local_error_mm", "error_m_per_fold": "error_mm_per_fold"}
+    ``max_error_mm``, ``error_mm_per_fold`` in place of the ``*_m`` fields (metres); everything
+    else as it is."""
+    keys = {"error_m": "error_mm", "local_error_m": "local_error_mm", "max_error_m": "max_error_mm",
+            "error_m_per_fold": "error_mm_per_fold"}
     out = {}
     for k, v in result.items():
         if k in keys:
@@ -73,36 +75,89 @@ def generalization_in_mm(result: dict) -> dict:
     return out
 
 
-def write_generalization_report(result: dict, out, stem: str = "generalization") -> dict:
-    """Write ``{stem}.md``, ``{stem}.json`` (errors in mm) and a ``{stem}.png`` plot into ``out``."""
-    out = Path(out)
-    result = generalization_in_mm(result)
+# Column titles of the models a study measures: "<encoder> <projection>" or "<encoder>".
+_PROJECTION_TITLES = {"code": "code projection", "vertex": "vertex fit"}
+_SELECTION_TITLES = {"rest": "shape-only model (rest scans)", "all": "pose+shape model (all scans)"}
+
+
+def _model_title(key: str, result: dict) -> str:
+    """"vertex PCA", "rre PCA, vertex fit", ... for a result key (``studies.generalization.model_names``)."""
+    info = result.get("models", {}).get(key)
+    if info is None:
+        return key
+    if key == info["encoder"]:
+        return f"{key} PCA"
+    return f"{info['encoder']} PCA, {_PROJECTION_TITLES.get(info['projection'], info['projection'])}"
+
+
+def _generalization_section(result: dict) -> list[str]:
     names = list(result["error_mm"])
-    lines = [f"# Leave-one-subject-out reconstruction error ({result['selection']} scans, "
-             f"{len(result['folds'])} held-out subjects)", "",
-             "Mean vertex distance (mm) between a held-out scan and its reconstruction from the first k "
-             "components, both rigidly aligned to the encoder's mean model; \"local\": the same after "
-             f"aligning each of {result.get('local_regions', '?')} body regions rigidly (turned or shifted limbs "
-             "removed, docs/encoding.md, \"Generalization\").", "",
-             "| k | " + " | ".join(f"{n} (mm)" for n in names) + " | "
-             + " | ".join(f"{n} local (mm)" for n in names) + " |", "|---|" + "---|" * (2 * len(names))]
+    titles = [_model_title(n, result) for n in names]
     local = result.get("local_error_mm", {})
+    worst = result.get("max_error_mm", {})
+    fit_s = result.get("fit_s", {})
+    sel = result["selection"]
+    lines = [f"## {_SELECTION_TITLES.get(sel, sel)}: {len(result['folds'])} held-out subjects, "
+             f"{result.get('held_out_scans', '?')} held-out scans, {result.get('training_subjects', '?')} training "
+             "subjects", "",
+             "Mean vertex distance (mm) between a held-out scan and its reconstruction from the first k components, "
+             "the scan aligned rigidly onto the reconstruction.", "",
+             "| k | " + " | ".join(titles) + " |", "|---|" + "---|" * len(names)]
     for j, k in enumerate(result["components"]):
-        lines.append(f"| {k} | " + " | ".join(f"{result['error_mm'][n][j]:.2f}" for n in names) + " | "
-                     + " | ".join(f"{local[n][j]:.2f}" if n in local else "-" for n in names) + " |")
+        best = min(result["error_mm"][n][j] for n in names)
+        cells = [f"{result['error_mm'][n][j]:.1f}" for n in names]
+        cells = [f"**{c}**" if result["error_mm"][n][j] == best else c for c, n in zip(cells, names)]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    if worst:
+        lines += ["", "Largest vertex distance (mm) over all held-out scans:", "",
+                  "| k | " + " | ".join(titles) + " |", "|---|" + "---|" * len(names)]
+        for j, k in enumerate(result["components"]):
+            lines.append(f"| {k} | " + " | ".join(f"{worst[n][j]:.0f}" for n in names) + " |")
+    if local:
+        lines += ["", f"\"Local\": the same after aligning each of {result.get('local_regions', '?')} body regions "
+                  "rigidly (turned or shifted limbs removed, docs/encoding.md, \"Generalization\"):", "",
+                  "| k | " + " | ".join(titles) + " |", "|---|" + "---|" * len(names)]
+        for j, k in enumerate(result["components"]):
+            lines.append(f"| {k} | " + " | ".join(f"{local[n][j]:.1f}" for n in names) + " |")
+    if fit_s:
+        lines += ["", "Seconds per mesh (projection and decode, this run's machine):", "",
+                  "| k | " + " | ".join(titles) + " |", "|---|" + "---|" * len(names)]
+        for j, k in enumerate(result["components"]):
+            lines.append(f"| {k} | " + " | ".join(f"{fit_s[n][j]:.2f}" for n in names) + " |")
+    return lines
+
+
+def write_generalization_report(results, out, stem: str = "generalization") -> dict:
+    """Write ``{stem}.md``, ``{stem}.json`` (errors in mm) and a ``{stem}.png`` plot into ``out``
+    for one ``generalization_study`` result or a list of them (e.g. the shape-only and the
+    pose+shape study): a table and a panel each."""
+    out = Path(out)
+    results = [results] if isinstance(results, dict) else list(results)
+    results = [generalization_in_mm(r) for r in results]
+    lines = ["# Leave-one-subject-out reconstruction error", "",
+             "RRE is measured with both ways of projecting a mesh on its shape space (`ShapeSpace.project`): the "
+             "code projection (encode, project the code) and the vertex fit (fit the coefficients to the mesh "
+             "through the decoder, docs/encoding.md); for vertex PCA the two are one. Best per row in bold.", ""]
+    for r in results:
+        lines += _generalization_section(r) + [""]
     with atomic_path(out / f"{stem}.md") as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    write_json(out / f"{stem}.json", {**result, "units": {"error": "mm"}})
-    fig = Figure(figsize=(6, 4), dpi=110)
+        tmp.write_text("\n".join(lines))
+    payload = {"studies": [{**r, "units": {"error": "mm", "fit_s": "s"}} for r in results]}
+    write_json(out / f"{stem}.json", payload)
+    fig = Figure(figsize=(6 * len(results), 4.2), dpi=110)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    for n in names:
-        ax.plot(result["components"], result["error_mm"][n], marker="o", label=n)
-    ax.set_xlabel("number of components")
-    ax.set_ylabel("mean vertex error (mm)")
-    ax.set_title(f"Leave-one-subject-out, {result['selection']} scans")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    for i, r in enumerate(results):
+        ax = fig.add_subplot(1, len(results), i + 1)
+        for n in r["error_mm"]:
+            ax.plot(r["components"], r["error_mm"][n], marker="o", label=_model_title(n, r))
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xticks(r["components"], [str(k) for k in r["components"]])
+        ax.set_xlabel("number of components")
+        ax.set_ylabel("mean vertex error (mm)")
+        ax.set_title(f"Leave-one-subject-out, {_SELECTION_TITLES.get(r['selection'], r['selection'])}", fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
     fig.tight_layout()
     with atomic_path(out / f"{stem}.png") as tmp:
         fig.savefig(tmp, format="png", facecolor="white", metadata=PNG_METADATA)

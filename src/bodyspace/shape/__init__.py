@@ -1,5 +1,6 @@
 """Shape spaces over encoded bodies: PCA (``pca``), its solvers for large code matrices
-(``solvers``) and measures of how intact a body is (``compare``)."""
+(``solvers``), coefficients fitted to a mesh in vertex space through the decoder
+(``vertex_fit``) and measures of how intact a body is (``compare``)."""
 
 from bodyspace.shape.compare import (
                                      edge_lengths,
@@ -8,7 +9,8 @@ from bodyspace.shape.compare import (
                                      mean_relative_edge_change,
                                      relative_volume_change,
 )
-from bodyspace.shape.pca import ShapeSpace
+from bodyspace.shape.pca import PROJECTIONS, ShapeSpace
+from bodyspace.shape.vertex_fit import VertexFit, fit_coefficients
 
-__all__ = ["ShapeSpace", "edge_lengths", "interpolate", "interpolation_distortion",
-           "mean_relative_edge_change", "relative_volume_change"]
+__all__ = ["PROJECTIONS", "ShapeSpace", "VertexFit", "fit_coefficients", "edge_lengths", "interpolate",
+           "interpolation_distortion", "mean_relative_edge_change", "relative_volume_change"]

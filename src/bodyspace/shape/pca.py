@@ -25,9 +25,12 @@ from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
 from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full
+from bodyspace.shape.vertex_fit import fit_coefficients
 from bodyspace.validation import as_generator
 
 SOLVERS = ("auto", "full", "krylov")
+# How ``project`` finds a mesh's coefficients (see ``ShapeSpace.project``).
+PROJECTIONS = ("vertex", "code")
 # solver="auto": up to this many bytes of float64 codes the PCA is exact (Gram matrix, float64);
 # beyond, the leading components are found by the randomized block Krylov method on codes that
 # may be held in float32 (half the memory).
@@ -305,11 +308,29 @@ class ShapeSpace:
         self._require_encoder("sample")
         return self.reconstruct(self.sample_coefficients(n, n_components, sigma_range, rng))
 
-    def project(self, vertices, faces=None) -> np.ndarray:
-        """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3)."""
+    def project(self, vertices, faces=None, *, method: str = "vertex", n_components: int | None = None) -> np.ndarray:
+        """Coefficients (N, K) of registered meshes (V, 3) or (N, V, 3), in any rigid placement.
+
+        ``method``: "vertex" (default) fits the coefficients to the mesh in vertex space through
+        the decoder (``shape.vertex_fit``: the body ``reconstruct`` gives is as close to the mesh
+        as the model allows, after a rigid alignment); "code" projects the mesh's code
+        orthogonally on the components (``transform(encode(vertices))``: ~one encode, but with
+        the relative rotation encoding it minimizes the code's error, and the decoded body can
+        stand in another pose than the mesh, docs/encoding.md). For the vertex encoding the two
+        are the same. ``n_components``: fit only the first k (the rest 0; default all).
+        """
         self._require_encoder("project")
         self._require_fit()
-        return self.transform(self.encoder.encode(vertices, faces))
+        if method not in PROJECTIONS:
+            raise ParameterError(f"method={method!r}, expected one of {', '.join(PROJECTIONS)}")
+        k = self.n_components_ if n_components is None else n_components
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 1 <= k <= self.n_components_:
+            raise ParameterError(f"n_components={n_components!r}, expected an int in 1..{self.n_components_}")
+        z = self.transform(self.encoder.encode(vertices, faces))
+        z[:, int(k):] = 0.0
+        if method == "code":
+            return z
+        return fit_coefficients(self, vertices, int(k), start=z).coefficients
 
     def reconstruct(self, coefficients, constraints=None) -> np.ndarray:
         """Bodies (N, V, 3) from coefficients (N, k) or (k,), k <= K, decoded by the encoder

@@ -1,23 +1,28 @@
 """Generalization study: leave-one-subject-out reconstruction error against the number of
-PCA components, RRE against vertex PCA.
+PCA components, for each encoder and each way of projecting a mesh on its shape space.
 
 For each held-out subject the PCA is fitted on every other subject's scans and the held-out
-scans are projected and reconstructed; the error is the mean vertex distance (mm) between the
-reconstruction and the scan, both in the documented placement (rigidly aligned to the encoder's
-mean model, docs/encoding.md). A second error, ``local_error_m``, first aligns each of
-``LOCAL_REGIONS`` body regions (k-means clusters of the mean scan's vertices, the same for
-every encoder) rigidly onto the scan: it separates the error of the local shape from limbs and
-regions that are merely turned or shifted. RRE's excess global error is almost all of the
-second kind. The code-space projection favours local triangle detail, and the decode (rotation
-solve, Poisson) integrates what is left into whole regions that sit in the wrong place (wrong
-stature, for example). This synthetic population is also linear in vertex space (MakeHuman
-targets), which favours vertex PCA. Measurements: docs/encoding.md, "Generalization".
+scans are projected and reconstructed. Encoders whose decoder is not affine (RRE) are measured
+with both projections of ``ShapeSpace.project``: the code projection (``"code"``: encode,
+project the code on the components) and the vertex-space fit through the decoder (``"vertex"``,
+``shape.vertex_fit``, warm-started from the code projection); for the vertex encoding the two
+are one. The error is the mean vertex distance (mm) between the reconstruction and the scan
+after aligning the scan rigidly onto the reconstruction (each connected part; the same for every
+model). A second error, ``local_error_m``, first aligns each of ``LOCAL_REGIONS`` body regions
+(k-means clusters of the mean scan's vertices, the same for every encoder) rigidly onto the
+scan: it separates the error of the local shape from limbs and regions that are merely turned
+or shifted. The code projection of RRE codes favours local triangle detail, and the decode
+(rotation solve, Poisson) integrates what is left into whole regions that sit in the wrong
+place (wrong stature, limbs in another pose); the vertex fit removes most of that.
+Measurements: docs/encoding.md, "Generalization".
 
 Cost, and the shortcut taken: each encoder (its reference mean model, which only fixes the
 coordinates codes are taken in) is fitted once on all selected scans; only the PCA is refitted
 per fold. Refitting the RRE reference per fold costs ~2 s a fold (an encoding pass and a
-decode) and changes the codes' origin, not the model's variability. The remaining cost is one
-RRE decode (~0.2-0.4 s on 2 cores) per (held-out scan, component count).
+decode) and changes the codes' origin, not the model's variability. The code projection costs
+one RRE decode (~0.05-0.3 s on 2 cores) per (held-out scan, component count); the vertex fit
+up to ``max_iter`` decodes and ``max_jacobians`` Jacobians of k tangent directions each
+(``fit_s`` in the result: mean seconds per mesh and component count).
 ``report.shape_report.write_generalization_report`` writes the table and the plot.
 """
 
@@ -31,88 +36,128 @@ from scipy.cluster.vq import kmeans2
 
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
-from bodyspace.shape.solvers import pca_full
+from bodyspace.mesh.topology import vertex_components
+from bodyspace.shape import PROJECTIONS, ShapeSpace
+from bodyspace.shape.vertex_fit import MAX_ITER, MAX_JACOBIANS, align_parts, fit_coefficients
 from bodyspace.studies.scans import rows_by_subject
 
-__all__ = ["DEFAULT_COMPONENTS", "LOCAL_REGIONS", "generalization_study"]
+__all__ = ["DEFAULT_COMPONENTS", "LOCAL_REGIONS", "generalization_study", "model_names"]
 
-DEFAULT_COMPONENTS = (1, 2, 4, 8, 16)
+DEFAULT_COMPONENTS = (1, 4, 8, 16, 32)
 # Regions of the local error (k-means clusters of the mean scan's vertices).
 LOCAL_REGIONS = 12
 
 
+def model_names(encoders: dict, projections=PROJECTIONS) -> dict[str, tuple[str, str]]:
+    """{result key: (encoder name, projection)}: ``"<name>"`` for an affine decoder (one
+    projection), ``"<name> <projection>"`` for each asked projection otherwise."""
+    out = {}
+    for name, enc in encoders.items():
+        if getattr(enc, "is_linear", False):
+            out[name] = (name, "code")
+        else:
+            for p in sorted(projections, key=list(PROJECTIONS)[::-1].index):  # code projection first
+                out[f"{name} {p}"] = (name, p)
+    return out
+
+
 def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: int = 6,
-                         components: Sequence[int] = DEFAULT_COMPONENTS,
+                         components: Sequence[int] = DEFAULT_COMPONENTS, projections: Sequence[str] = PROJECTIONS,
+                         max_iter: int = MAX_ITER, max_jacobians: int = MAX_JACOBIANS,
                          progress: Callable[[str, float], None] | None = None) -> dict:
     """Leave-one-subject-out reconstruction error (metres) against the number of components.
 
     Args:
         db: a ``ScanDatabase``.
         encoders: {name: fitted encoder}; each is fitted once (see the module docstring).
-        selection: "rest" (shape-only model) or "all" scans.
+        selection: "rest" (the database's rest-pose scans: a shape-only model) or "all" scans.
         n_folds: held-out subjects (the first ``n_folds``; at most 8 is the intended use).
         components: component counts; each is capped at the training set's rank, and the
             largest possible count (all components) is always added.
+        projections: for encoders that are not affine, the projections to measure ("code",
+            "vertex"); max_iter, max_jacobians: the vertex fit's budget per mesh
+            (``shape.vertex_fit.fit_coefficients``).
     Returns:
-        dict with ``components`` (the counts), ``error_m`` {name: (n_counts,) mean over folds
-        and held-out scans of the mean vertex distance, metres}, ``local_error_m`` (the same
-        after a rigid alignment of each of ``LOCAL_REGIONS`` regions, see the module docstring),
-        ``error_m_per_fold`` {name: (n_folds, n_counts)}, ``folds`` (held-out subjects),
-        ``cost_s``. ``report.shape_report.generalization_in_mm`` gives the same in mm.
+        dict with ``components`` (the counts), ``models`` {key: {"encoder", "projection"}}
+        (``model_names``), ``error_m`` {key: (n_counts,) mean over folds and held-out scans of
+        the mean vertex distance, metres}, ``local_error_m`` (the same after a rigid alignment
+        of each of ``LOCAL_REGIONS`` regions, see the module docstring), ``max_error_m`` {key:
+        (n_counts,) the largest vertex distance over all held-out scans}, ``error_m_per_fold``
+        {key: (n_folds, n_counts)}, ``fit_s`` {key: (n_counts,) seconds per mesh of the
+        projection and decode}, ``folds`` (held-out subjects), ``cost_s``.
+        ``report.shape_report.generalization_in_mm`` gives the same in mm.
     """
     report = progress or (lambda m, f: None)
     t0 = time.perf_counter()
     if selection == "rest":
-        rows = np.flatnonzero(np.asarray(db.scans["pose"]) == "rest")
+        rows = np.asarray(db.rest_rows(), dtype=np.int64)
     elif selection == "all":
         rows = np.arange(db.n_scans)
     else:
         raise ParameterError(f"selection={selection!r}, expected 'rest' or 'all'")
+    unknown = [p for p in projections if p not in PROJECTIONS]
+    if unknown or not projections:
+        raise ParameterError(f"projections={list(projections)!r}, expected some of {', '.join(PROJECTIONS)}")
     groups = rows_by_subject(db, rows)
     if len(groups) < 3:
         raise ParameterError(f"generalization_study: {len(groups)} subjects in selection {selection!r}, "
                              "expected at least 3")
     held_subjects = list(groups)[:max(1, min(n_folds, len(groups)))]
     subj = np.asarray(db.scans["subject"])[rows]
-    scans = db.read(rows)
+    scans = np.asarray(db.read(rows), dtype=float)
     max_k = min(len(rows) - len(groups[s]) - 1 for s in held_subjects)
     ks = sorted({int(k) for k in components if 1 <= k <= max_k} | {max_k})
-    errors, per_fold, local = {}, {}, {}
+    models = model_names(encoders, projections)
+    errors, per_fold, local, worst, fit_s = {}, {}, {}, {}, {}
     mean_scan = scans.mean(axis=0)
     _, labels = kmeans2(mean_scan, min(LOCAL_REGIONS, len(mean_scan)), seed=0, minit="++")
     regions = [np.flatnonzero(labels == c) for c in np.unique(labels)]
-    for e_idx, (name, enc) in enumerate(encoders.items()):
-        report(f"leave-one-subject-out ({name})", e_idx / len(encoders))
+    n_work = len(held_subjects) * len(models)
+    done = 0
+    for name, enc in encoders.items():
+        keys = [key for key, (e, _) in models.items() if e == name]
         codes = enc.encode(scans)
-        targets = rigid_procrustes(scans, enc.mean_vertices_)[0]
-        recon_codes, where = [], []
+        n_parts, part_of = vertex_components(enc.faces, enc.n_vertices)
+        parts = [np.flatnonzero(part_of == c) for c in range(n_parts)]
+        err = {key: np.zeros((len(held_subjects), len(ks))) for key in keys}
+        err_local = {key: np.zeros_like(err[key]) for key in keys}
+        err_max = {key: np.zeros_like(err[key]) for key in keys}
+        seconds = {key: np.zeros_like(err[key]) for key in keys}
         for f, s in enumerate(held_subjects):
             test = subj == s
-            train = codes[~test]
-            mean = train.mean(axis=0)
-            _, comps = pca_full(train.copy(), mean)
-            z = (codes[test] - mean) @ comps.T
-            for j, k in enumerate(ks):
-                kk = min(k, len(comps))
-                recon_codes.append(mean + z[:, :kk] @ comps[:kk])
-                where.append((f, j, np.flatnonzero(test)))
-        decoded = enc.decode(np.concatenate(recon_codes))
-        err = np.zeros((len(held_subjects), len(ks)))
-        err_local = np.zeros_like(err)
-        start = 0
-        for f, j, idx in where:
-            dec, tgt = decoded[start:start + len(idx)], targets[idx]
-            err[f, j] = np.linalg.norm(dec - tgt, axis=-1).mean()
-            aligned = np.empty_like(dec)
-            for r in regions:
-                aligned[:, r] = rigid_procrustes(dec[:, r], tgt[:, r])[0]
-            err_local[f, j] = np.linalg.norm(aligned - tgt, axis=-1).mean()
-            start += len(idx)
-        errors[name] = err.mean(axis=0).tolist()
-        local[name] = err_local.mean(axis=0).tolist()
-        per_fold[name] = err.tolist()
+            space = ShapeSpace(enc, n_components=max_k, solver="full").fit(codes[~test])
+            z_code = space.transform(codes[test])
+            for key in keys:
+                report(f"leave-one-subject-out ({key}, subject {s})", done / n_work)
+                done += 1
+                for j, k in enumerate(ks):
+                    t = time.perf_counter()
+                    z = z_code.copy()
+                    z[:, k:] = 0.0
+                    if models[key][1] == "vertex":
+                        z = fit_coefficients(space, scans[test], k, start=z, max_iter=max_iter,
+                                             max_jacobians=max_jacobians).coefficients
+                    decoded = space.reconstruct(z)
+                    seconds[key][f, j] = (time.perf_counter() - t) / int(test.sum())
+                    tgt = np.array([align_parts(y, x, parts) for y, x in zip(scans[test], decoded)])
+                    dist = np.linalg.norm(decoded - tgt, axis=-1)
+                    err[key][f, j] = dist.mean()
+                    err_max[key][f, j] = dist.max()
+                    aligned = np.empty_like(decoded)
+                    for r in regions:
+                        aligned[:, r] = rigid_procrustes(decoded[:, r], tgt[:, r])[0]
+                    err_local[key][f, j] = np.linalg.norm(aligned - tgt, axis=-1).mean()
+        for key in keys:
+            errors[key] = err[key].mean(axis=0).tolist()
+            local[key] = err_local[key].mean(axis=0).tolist()
+            worst[key] = err_max[key].max(axis=0).tolist()
+            per_fold[key] = err[key].tolist()
+            fit_s[key] = seconds[key].mean(axis=0).tolist()
     report("generalization done", 1.0)
-    return {"selection": selection, "components": ks, "folds": held_subjects, "error_m": errors,
-            "local_error_m": local, "local_regions": len(regions),
-            "error_m_per_fold": per_fold, "training_subjects": len(groups) - 1,
+    return {"selection": selection, "components": ks, "folds": held_subjects,
+            "models": {key: {"encoder": e, "projection": p} for key, (e, p) in models.items()},
+            "error_m": errors, "local_error_m": local, "max_error_m": worst, "local_regions": len(regions),
+            "error_m_per_fold": per_fold, "fit_s": fit_s, "training_subjects": len(groups) - 1,
+            "held_out_scans": int(sum(len(groups[s]) for s in held_subjects)),
+            "vertex_fit": {"max_iter": int(max_iter), "max_jacobians": int(max_jacobians)},
             "cost_s": round(time.perf_counter() - t0, 2)}
