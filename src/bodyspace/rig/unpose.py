@@ -86,11 +86,11 @@ GAUGE_WEIGHT = 0.01
 POSE_WEIGHT = 1e-3
 # Levenberg-Marquardt: the starting damping (relative to the normal matrix's diagonal) and the
 # most rejected steps in a row before a body is taken as converged.
-LM_START = 1e-5
+LM_START = 1e-6
 LM_MAX_TRIES = 10
 MAX_ITERATIONS = 25
 # A step that moves no bone by more than this (radians / metres) ends the fit.
-STEP_TOLERANCE = 1e-7
+STEP_TOLERANCE = 1e-6
 # Bones whose dominant skin has fewer vertices start at their parent's rotation.
 MIN_DOMINANT_VERTICES = 4
 # A vertex whose blended 3x3 transform has a determinant below this is folded (the blend of two
@@ -531,6 +531,7 @@ def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_
     D = 6 * P
     nc = len(ji)
     rows = np.zeros((3, D))
+    Dq = np.empty((3, 3))
     touched = np.zeros(P, dtype=np.bool_)
     plist = np.empty(P, dtype=np.int64)
     for n in range(N):
@@ -557,9 +558,9 @@ def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_
                 for e2 in range(e1, indptr[v + 1]):
                     o2 = 6 * param[e2]
                     for a in range(6):
+                        x0, x1, x2 = Bk[n, e1, 0, a], Bk[n, e1, 1, a], Bk[n, e1, 2, a]
                         for b in range(6):
-                            normal[n, o1 + a, o2 + b] += (Bk[n, e1, 0, a] * Bk[n, e2, 0, b] + Bk[n, e1, 1, a] * Bk[n, e2, 1, b]
-                                                          + Bk[n, e1, 2, a] * Bk[n, e2, 2, b])
+                            normal[n, o1 + a, o2 + b] += x0 * Bk[n, e2, 0, b] + x1 * Bk[n, e2, 1, b] + x2 * Bk[n, e2, 2, b]
         # Joint rows: d/dparams of (Q_i - Q_p) h + t_i - t_p, h regressed from the unposed body.
         for c in range(nc):
             i, p = ji[c], jp[c]
@@ -578,17 +579,18 @@ def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_
                     plist[count] = q
                     count += 1
             # rows = (Q_i - Q_p) dh, dh = sum_v coef_v sum_e B_e
+            for r in range(3):
+                for s in range(3):
+                    Dq[r, s] = Q[n, i, r, s] - Q[n, p, r, s]
             for k in range(jr_indptr[c], jr_indptr[c + 1]):
                 v = jr_vertex[k]
                 h = jr_coef[k]
                 for e in range(indptr[v], indptr[v + 1]):
                     o = 6 * param[e]
-                    for r in range(3):
-                        for a in range(6):
-                            acc = 0.0
-                            for s in range(3):
-                                acc += (Q[n, i, r, s] - Q[n, p, r, s]) * Bk[n, e, s, a]
-                            rows[r, o + a] += h * acc
+                    for a in range(6):
+                        b0, b1, b2 = h * Bk[n, e, 0, a], h * Bk[n, e, 1, a], h * Bk[n, e, 2, a]
+                        for r in range(3):
+                            rows[r, o + a] += Dq[r, 0] * b0 + Dq[r, 1] * b1 + Dq[r, 2] * b2
             hi0 = Q[n, i, 0, 0] * heads[n, c, 0] + Q[n, i, 0, 1] * heads[n, c, 1] + Q[n, i, 0, 2] * heads[n, c, 2]
             hi1 = Q[n, i, 1, 0] * heads[n, c, 0] + Q[n, i, 1, 1] * heads[n, c, 1] + Q[n, i, 1, 2] * heads[n, c, 2]
             hi2 = Q[n, i, 2, 0] * heads[n, c, 0] + Q[n, i, 2, 1] * heads[n, c, 1] + Q[n, i, 2, 2] * heads[n, c, 2]
@@ -616,17 +618,15 @@ def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_
             for a_ in range(count):
                 oa = 6 * plist[a_]
                 for a in range(6):
-                    gacc = 0.0
-                    for r in range(3):
-                        gacc += rows[r, oa + a] * C[n, c, r]
-                    grad[n, oa + a] += joint_weight * gacc
+                    r0, r1, r2 = rows[0, oa + a], rows[1, oa + a], rows[2, oa + a]
+                    grad[n, oa + a] += joint_weight * (r0 * C[n, c, 0] + r1 * C[n, c, 1] + r2 * C[n, c, 2])
+                    r0, r1, r2 = w2 * r0, w2 * r1, w2 * r2
                     for b_ in range(count):
                         if plist[b_] < plist[a_]:
                             continue   # lower triangle: not read
                         ob = 6 * plist[b_]
                         for b in range(6):
-                            normal[n, oa + a, ob + b] += w2 * (rows[0, oa + a] * rows[0, ob + b] + rows[1, oa + a] * rows[1, ob + b]
-                                                               + rows[2, oa + a] * rows[2, ob + b])
+                            normal[n, oa + a, ob + b] += r0 * rows[0, ob + b] + r1 * rows[1, ob + b] + r2 * rows[2, ob + b]
             for a_ in range(count):
                 oa = 6 * plist[a_]
                 touched[plist[a_]] = False
@@ -694,6 +694,36 @@ def _gauge(plan: _Plan, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rho, GAUGE_WEIGHT ** 2 * np.einsum("ni,ni->n", rho, rho)
 
 
+def _add_priors(plan: _Plan, Q: np.ndarray, normal: np.ndarray, grad: np.ndarray) -> None:
+    """Add the Gauss-Newton terms of the pose prior and the root's gauge to ``normal`` (N, 6P, 6P)
+    and ``grad`` (N, 6P), in place."""
+    # The weak pose prior (see _pose_prior): d phi = J_l^-1 w_bone - J_l^-1^T w_parent.
+    phi, _ = _pose_prior(plan, Q)
+    A = _left_jacobian_inverse(phi)                                     # (N, nc, 3, 3)
+    w2 = POSE_WEIGHT ** 2
+    for c, (i, p) in enumerate(plan.joints):
+        a, b = A[:, c], -np.swapaxes(A[:, c], -1, -2)
+        si, sp_ = slice(6 * i, 6 * i + 3), slice(6 * p, 6 * p + 3)
+        normal[:, si, si] += w2 * np.swapaxes(a, -1, -2) @ a
+        normal[:, sp_, sp_] += w2 * np.swapaxes(b, -1, -2) @ b
+        normal[:, sp_, si] += w2 * np.swapaxes(b, -1, -2) @ a
+        normal[:, si, sp_] += w2 * np.swapaxes(a, -1, -2) @ b
+        grad[:, si] += w2 * np.einsum("nji,nj->ni", a, phi[:, c])
+        grad[:, sp_] += w2 * np.einsum("nji,nj->ni", b, phi[:, c])
+    # The root's orientation: held to its children's mean (see _gauge).
+    rho, _ = _gauge(plan, Q)
+    kids = plan.root_children
+    if not len(kids):
+        return
+    cols = [slice(0, 3)] + [slice(6 * k, 6 * k + 3) for k in kids]
+    coef = [1.0] + [-1.0 / len(kids)] * len(kids)
+    w2 = GAUGE_WEIGHT ** 2
+    for ca, sa in zip(coef, cols):
+        grad[:, sa] += w2 * ca * rho
+        for cb, sb in zip(coef, cols):
+            normal[:, sa, sb] += w2 * ca * cb * np.eye(3)
+
+
 class _State:
     """Residuals (and the Gauss-Newton normal equations) of the fit for a batch of posed bodies."""
 
@@ -741,34 +771,14 @@ class _State:
         # The part of J^T J inside the prior, (U J)^T (U J): U J gathered bone by bone, then a
         # symmetric rank-r update of the upper triangle (the solver reads only that triangle).
         r = plan.basis.shape[0]
-        UJ = np.empty((N, r, 6 * P))
+        UJ = np.zeros((N, r, 6 * P))
         for p, (ent, cols) in enumerate(plan.per_param):
-            UJ[:, :, 6 * p:6 * p + 6] = np.matmul(cols, Bk[:, ent].reshape(N, 3 * len(ent), 6)) if len(ent) else 0.0
+            if len(ent):   # one gemm for the whole batch: the bone's blocks laid out (3k, N * 6)
+                block = np.ascontiguousarray(Bk[:, ent].transpose(1, 2, 0, 3)).reshape(3 * len(ent), N * 6)
+                UJ[:, :, 6 * p:6 * p + 6] = (cols @ block).reshape(r, N, 6).transpose(1, 0, 2)
         for n in range(N):
             dsyrk(-1.0, UJ[n].T, beta=1.0, c=normal[n].T, trans=0, lower=1, overwrite_c=1)
-        # The weak pose prior (see _pose_prior): d phi = J_l^-1 w_bone - J_l^-1^T w_parent.
-        phi, _ = _pose_prior(plan, Q)
-        A = _left_jacobian_inverse(phi)                                     # (N, nc, 3, 3)
-        w2 = POSE_WEIGHT ** 2
-        for c, (i, p) in enumerate(plan.joints):
-            a, b = A[:, c], -np.swapaxes(A[:, c], -1, -2)
-            si, sp_ = slice(6 * i, 6 * i + 3), slice(6 * p, 6 * p + 3)
-            normal[:, si, si] += w2 * np.swapaxes(a, -1, -2) @ a
-            normal[:, sp_, sp_] += w2 * np.swapaxes(b, -1, -2) @ b
-            normal[:, sp_, si] += w2 * np.swapaxes(b, -1, -2) @ a
-            normal[:, si, sp_] += w2 * np.swapaxes(a, -1, -2) @ b
-            grad[:, si] += w2 * np.einsum("nji,nj->ni", a, phi[:, c])
-            grad[:, sp_] += w2 * np.einsum("nji,nj->ni", b, phi[:, c])
-        # The root's orientation: held to its children's mean (see _gauge).
-        rho, _ = _gauge(plan, Q)
-        kids = plan.root_children
-        cols = [slice(0, 3)] + [slice(6 * k, 6 * k + 3) for k in kids]
-        coef = [1.0] + [-1.0 / len(kids)] * len(kids)
-        w2 = GAUGE_WEIGHT ** 2
-        for ca, sa in zip(coef, cols):
-            grad[:, sa] += w2 * ca * rho
-            for cb, sb in zip(coef, cols):
-                normal[:, sa, sb] += w2 * ca * cb * np.eye(3)
+        _add_priors(plan, Q, normal, grad)
         return cost, normal, grad
 
 
@@ -787,7 +797,8 @@ def _solve_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     return x
 
 
-def _fit(plan: _Plan, y: np.ndarray, max_iterations: int, start=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _fit(plan: _Plan, y: np.ndarray, max_iterations: int, start=None,
+         state_type=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt over every body of the batch: (Q, t, iterations, converged).
 
     The damping follows Nielsen's rule (Madsen, Nielsen & Tingleff, "Methods for non-linear
@@ -798,7 +809,7 @@ def _fit(plan: _Plan, y: np.ndarray, max_iterations: int, start=None) -> tuple[n
     N = len(y)
     P = len(plan.solved)
     Q, t = _initial_pose(plan, y) if start is None else (start[0].copy(), start[1].copy())
-    state = _State(plan, y[:, plan.work])
+    state = (state_type or _State)(plan, y[:, plan.work])
     lam = np.full(N, LM_START)
     nu = np.full(N, 2.0)
     active = np.ones(N, dtype=bool)
