@@ -61,7 +61,7 @@ from bodyspace.parallel import halves, run_both
 from bodyspace.rig.kinematics import matrix_to_rotvec, rotvec_to_matrix, topological_order
 from bodyspace.rig.posing import smoothed_weights
 
-__all__ = ["RestShapePrior", "UnposeInfo", "solved_bones", "unpose"]
+__all__ = ["RestShapePrior", "UnposeInfo", "fits_template", "solved_bones", "unpose"]
 
 # A bone is solved when its subtree's skin reaches at least this share of the body's height from
 # its head (fingers, toes, eyes and lips reach a few centimetres and follow their parents; so do
@@ -857,6 +857,25 @@ def _fit(plan: _Plan, y: np.ndarray, max_iterations: int, start=None,
             active[idx[j]] = False
             converged[idx[j]] = True
     return Q, t, iterations, converged
+
+
+def fits_template(vertices: np.ndarray, faces: np.ndarray, template: Template) -> bool:
+    """Whether a mesh (V, 3), (F, 3) is of the template's topology in its vertex order: the
+    template's vertex count, and every face one of the template's (a mesh with holes punched in
+    it still fits; a remeshed or reordered one does not)."""
+    f = np.asarray(faces, dtype=np.int64)
+    if np.shape(vertices)[-2] != template.n_vertices or f.ndim != 2 or f.shape[1] != 3 or len(f) > len(template.faces):
+        return False
+    if f.shape == template.faces.shape and np.array_equal(f, template.faces):
+        return True
+    V = template.n_vertices
+
+    def keys(tri):   # a triangle whatever its starting corner: the rotation with the smallest index first
+        r = np.argmin(tri, axis=1)
+        t = np.stack([tri[np.arange(len(tri)), (r + k) % 3] for k in range(3)], axis=1)
+        return (t[:, 0] * V + t[:, 1]) * V + t[:, 2]
+
+    return bool(np.isin(keys(f), keys(np.asarray(template.faces, dtype=np.int64))).all())
 
 
 def _check_scale(y: np.ndarray, mesh_name: str) -> None:
