@@ -1,7 +1,7 @@
 """Unposing posed bodies of the template: speed against a plain numpy baseline, and accuracy.
 
 Speed: ``unpose`` (compiled residual/Jacobian kernels, the prior's part of the normal matrix as
-one gemm per bone and a symmetric rank-r update, Cholesky solves, two lanes) against the same
+one gemm per bone and a symmetric rank-r update, Cholesky solves) against the same
 Levenberg-Marquardt fit whose Gauss-Newton system is assembled the plain way in numpy (dense
 Jacobian built with ``np.add.at``, dense projection ``(I - U^T U) J``, ``J^T J`` by matmul,
 LU solves), in the same run; both must give the same bodies. Target: at most 20 ms a body on
@@ -119,14 +119,14 @@ def speed(rig, bodies) -> None:
     # Same fit: same transforms to the LM's precision (both stop at the same tolerance).
     assert np.abs(Qf - Qd).max() < 1e-5 and np.abs(tf - td).max() < 1e-6, (np.abs(Qf - Qd).max(), np.abs(tf - td).max())
     n = len(bodies)
-    print(f"unpose {n} bodies: {1000 * t_fast / n:.1f} ms a body wall on 2 lanes, {1000 * c_fast / n:.1f} ms CPU "
+    print(f"unpose {n} bodies: {1000 * t_fast / n:.1f} ms a body wall, {1000 * c_fast / n:.1f} ms CPU "
           f"(iterations {info.iterations.mean():.1f} mean, {info.iterations.max()} max); one body alone "
           f"{1000 * t_one:.1f} ms; target <= 20 ms a body: {'PASS' if t_fast / n <= 0.020 else 'FAIL'} (wall), "
           f"{'PASS' if c_fast / n <= 0.020 else 'FAIL'} (CPU)")
-    print(f"fit only, one lane, {N_BASELINE} bodies: compiled {1000 * t_fit1 / N_BASELINE:.1f} ms a body "
+    print(f"fit only, {N_BASELINE} bodies: compiled {1000 * t_fit1 / N_BASELINE:.1f} ms a body "
           f"({1000 * c_fit1 / N_BASELINE:.1f} CPU), dense numpy {1000 * t_dense / N_BASELINE:.1f} ms "
           f"({1000 * c_dense / N_BASELINE:.1f} CPU)")
-    report("unpose fit, one lane", t_fit1, t_dense, N_BASELINE, "bodies")
+    report("unpose fit", t_fit1, t_dense, N_BASELINE, "bodies")
 
 
 def accuracy(rig, rest, library) -> None:

@@ -57,7 +57,6 @@ from scipy.linalg.lapack import dposv
 from bodyspace.data.template import Rig, Template, load_template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.parallel import halves, run_both
 from bodyspace.rig.kinematics import matrix_to_rotvec, rotvec_to_matrix, topological_order
 from bodyspace.rig.posing import smoothed_weights
 
@@ -230,6 +229,8 @@ class _Plan:
     basis: np.ndarray             # (r, 3 n_sample) orthonormal rows: the prior on the samples (+ translation)
     basis_mean: np.ndarray        # (3 n_sample,)
     per_param: list               # (entries, basis columns (r, 3k)) of each bone on the samples
+    sample_slot: np.ndarray       # (E,) row of each sample entry in the bone-major layout, -1 off the sample
+    param_ptr: np.ndarray         # (P + 1,) each bone's rows in that layout
     joints: np.ndarray            # (nc, 2) (bone, parent) positions connected by a joint residual
     jr_indptr: np.ndarray         # the rest heads of the connected bones from work vertices (CSR)
     jr_vertex: np.ndarray
@@ -318,6 +319,10 @@ def _build_plan(rig: Rig, weights: sp.spmatrix, prior: RestShapePrior) -> _Plan:
         cols = (3 * e_vertex[ent][:, None] + np.arange(3)).ravel()
         per_param.append((ent, np.ascontiguousarray(basis[:, cols])))
     indptr = np.searchsorted(e_vertex, np.arange(len(work) + 1)).astype(np.int64)
+    sample_slot = -np.ones(len(e_vertex), dtype=np.int64)
+    ordered = np.concatenate([ent for ent, _ in per_param])
+    sample_slot[ordered] = np.arange(len(ordered))
+    param_ptr = np.concatenate([[0], np.cumsum([len(ent) for ent, _ in per_param])]).astype(np.int64)
 
     joints = np.array([(i, parent[i]) for i in range(P) if parent[i] >= 0], dtype=np.int64).reshape(-1, 2)
     local = -np.ones(V, dtype=np.int64)
@@ -326,7 +331,7 @@ def _build_plan(rig: Rig, weights: sp.spmatrix, prior: RestShapePrior) -> _Plan:
     H.sort_indices()
     return _Plan(rig, solved, follow, parent, collapsed, dominant, dominant_weight, mean, rig.heads(mean),
                  work, n_s, sp.csr_matrix(collapsed[work]), e_vertex, e_param, e_weight, basis, basis_mean,
-                 per_param, np.ascontiguousarray(joints), H.indptr.astype(np.int64),
+                 per_param, sample_slot, param_ptr, np.ascontiguousarray(joints), H.indptr.astype(np.int64),
                  local[H.indices].astype(np.int64), H.data.astype(float), indptr, np.flatnonzero(parent == 0),
                  *np.unique(dominant[dominant_weight >= 0.5], return_counts=True))
 
@@ -523,8 +528,9 @@ def _residuals_kernel(Q, t, y, indptr, param, weight, n_sample, mean_s, ji, jp, 
 
 @_kernel
 def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_indptr, jr_vertex, jr_coef,
-                     joint_weight, C, heads, Bk, normal, grad):
-    """Per body n: the Jacobian blocks Bk (N, E, 3, 6) of every work entry, the sparse part of
+                     joint_weight, C, heads, slot, Bk, Bs, normal, grad):
+    """Per body n: the Jacobian blocks Bk (N, E, 3, 6) of every work entry (the sample entries
+    also into Bs (E_s, 3, N, 6), bone by bone at ``slot[e]``), the sparse part of
     the normal matrix (J^T J on the sample, the joint rows' J^T J; upper triangle) and the joint
     rows' gradient."""
     N, P = Q.shape[0], Q.shape[1]
@@ -550,6 +556,10 @@ def _jacobian_kernel(Q, t, x, Minv, indptr, param, weight, n_sample, ji, jp, jr_
                     Bk[n, e, r, 3] = -m0
                     Bk[n, e, r, 4] = -m1
                     Bk[n, e, r, 5] = -m2
+                    k = slot[e]
+                    if k >= 0:   # a sample entry: also in the layout of the prior's gemm (bone-major)
+                        for a in range(6):
+                            Bs[k, r, n, a] = Bk[n, e, r, a]
         # J^T J of the sample residual: pairs of entries on one vertex, upper triangle only (the
         # entries of a vertex are sorted by bone, so e2 >= e1 is a block on or above the diagonal).
         for v in range(n_sample):
@@ -762,19 +772,20 @@ class _State:
         F, C, heads, x, Minv, cost = self._residuals(Q, t, y)
         E = len(plan.e_param)
         Bk = np.empty((N, E, 3, 6))
+        Bs = np.empty((plan.param_ptr[-1], 3, N, 6))
         normal = np.zeros((N, 6 * P, 6 * P))
         grad = np.zeros((N, 6 * P))
         _jacobian_kernel(Q, t, x, Minv, plan.indptr, plan.e_param, plan.e_weight, plan.n_sample,
                          plan.joints[:, 0], plan.joints[:, 1], plan.jr_indptr, plan.jr_vertex, plan.jr_coef,
-                         JOINT_WEIGHT, C, heads, Bk, normal, grad)
+                         JOINT_WEIGHT, C, heads, plan.sample_slot, Bk, Bs, normal, grad)
         _gradient_kernel(Bk, F, plan.indptr, plan.e_param, plan.n_sample, grad)
         # The part of J^T J inside the prior, (U J)^T (U J): U J gathered bone by bone, then a
         # symmetric rank-r update of the upper triangle (the solver reads only that triangle).
         r = plan.basis.shape[0]
         UJ = np.zeros((N, r, 6 * P))
         for p, (ent, cols) in enumerate(plan.per_param):
-            if len(ent):   # one gemm for the whole batch: the bone's blocks laid out (3k, N * 6)
-                block = np.ascontiguousarray(Bk[:, ent].transpose(1, 2, 0, 3)).reshape(3 * len(ent), N * 6)
+            if len(ent):   # one gemm for the whole batch: the bone's blocks, (3k, N * 6), a view
+                block = Bs[plan.param_ptr[p]:plan.param_ptr[p + 1]].reshape(3 * len(ent), N * 6)
                 UJ[:, :, 6 * p:6 * p + 6] = (cols @ block).reshape(r, N, 6).transpose(1, 0, 2)
         for n in range(N):
             dsyrk(-1.0, UJ[n].T, beta=1.0, c=normal[n].T, trans=0, lower=1, overwrite_c=1)
@@ -942,15 +953,11 @@ def unpose(vertices: np.ndarray, rig: Rig, *, prior: RestShapePrior | None = Non
     W, wkey = _resolve_weights(rig, weights, faces)
     with single_threaded_blas():
         plan = _plan(rig, W, wkey, prior)
+    # One lane, BLAS on one thread: the matrices are small (a few hundred rows), and half of each
+    # step is Python-level numpy work; two lanes (parallel.run_both, one half of the bodies each)
+    # measured 1.5x the CPU and more wall time on the shared 2-core machine (GIL hand-offs).
     with single_threaded_blas():
-        if len(y) >= 2:
-            # Two lanes, one half of the bodies each (numba kernels and BLAS release the GIL).
-            (a, b), (c, d) = halves(len(y))
-            first, second = run_both(lambda: _fit(plan, y[a:b], max_iterations),
-                                     lambda: _fit(plan, y[c:d], max_iterations))
-            Q, t, iterations, converged = (np.concatenate(pair) for pair in zip(first, second))
-        else:
-            Q, t, iterations, converged = _fit(plan, y, max_iterations)
+        Q, t, iterations, converged = _fit(plan, y, max_iterations)
 
     # Every vertex unposed by its inverted blend; folded ones by their heaviest bone alone.
     rest = np.empty_like(y)
