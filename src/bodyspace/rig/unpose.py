@@ -88,8 +88,10 @@ POSE_WEIGHT = 1e-3
 LM_START = 1e-6
 LM_MAX_TRIES = 10
 MAX_ITERATIONS = 25
-# A step that moves no bone by more than this (radians / metres) ends the fit.
+# A step that moves no bone by more than this (radians + metres), or lowers the cost by less than
+# this share, ends the fit (under noise the cost stops falling long before the steps vanish).
 STEP_TOLERANCE = 1e-6
+COST_TOLERANCE = 1e-5
 # Bones whose dominant skin has fewer vertices start at their parent's rotation.
 MIN_DOMINANT_VERTICES = 4
 # A vertex whose blended 3x3 transform has a determinant below this is folded (the blend of two
@@ -856,7 +858,7 @@ def _fit(plan: _Plan, y: np.ndarray, max_iterations: int, start=None,
                 iterations[b] += 1
                 # Done when no vertex within a metre of its joint moves by STEP_TOLERANCE.
                 moved = np.abs(step[j, :, :3]).max() + np.abs(step[j, :, 3:]).max()
-                if moved < STEP_TOLERANCE or cost[k[j]] - new[j] <= 1e-12 * cost[k[j]]:
+                if moved < STEP_TOLERANCE or cost[k[j]] - new[j] <= COST_TOLERANCE * cost[k[j]]:
                     active[b] = False
                     converged[b] = True
             bad = idx[k[~ok]]
