@@ -106,6 +106,8 @@ def _standing(vertices: np.ndarray, faces: np.ndarray, path: Path, as_posed: boo
     try:
         rest, _, info = unpose(vertices, template.rigs["default"], mesh_name=str(path))
     except MeshError as exc:
+        if "cannot be unposed" not in str(exc):
+            raise
         raise MeshError(f"{exc} (--as-posed measures the mesh as it is, without unposing)") from None
     return rest, {"value": round(float(info.largest_rotation_deg), 1), "unit": "deg",
                   "note": f"measured standing: the body was brought back to the rest pose first ({info.describe()}); "

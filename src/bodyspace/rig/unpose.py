@@ -10,10 +10,11 @@ true pose is that the body it gives back is one a person has *at rest*. Fitting 
 template as rest estimate and iterating "unpose, use the result as the next rest estimate" (the
 obvious route) stops at its first step: the unposed body is by construction consistent with the
 fitted pose, so the next fit returns the same rotations, which still hold the person's shape
-against the template (on a library body in the rest pose this left 31 mm median, 95 mm worst
-vertex error, docs/unposing.md). Here the rest estimate is constrained instead: the unposed body
-must lie in a linear *rest-shape space* (``RestShapePrior``, by default the span of MakeHuman's
-macro targets around the template, which holds every phenotype body exactly).
+against the template (on two library bodies the median vertex error was 11-123 mm after one
+round and 21-238 mm after three, docs/unposing.md). Here the rest estimate is constrained
+instead: the unposed body must lie in a linear *rest-shape space* (``RestShapePrior``, by default
+the span of MakeHuman's macro targets around the template, which holds every phenotype body
+exactly).
 
 The fit (one Levenberg-Marquardt problem per body, batched over bodies):
 
@@ -27,10 +28,11 @@ The fit (one Levenberg-Marquardt problem per body, batched over bodies):
   ``SAMPLES_PER_BONE``, plus ``SPREAD_SAMPLES`` spread over the body), and (b) the joints stay
   connected: ``JOINT_WEIGHT * (G_p - G_parent(p)) h_p``, with ``h_p`` the bone's rest head
   regressed from the unposed body itself (``Rig.head_regressor``), so the joints are the
-  person's own;
-- exact Jacobians of both (the head term through the regressor rows), Gauss-Newton steps
-  damped by Levenberg-Marquardt, started from a weighted Kabsch fit of each bone's dominant
-  vertices against the prior's mean body.
+  person's own; and two weak ones, each bone's rotation against its parent's (``_pose_prior``)
+  and the skinless root's orientation against its children's (``_gauge``);
+- exact Jacobians (the head term through the regressor rows), Gauss-Newton steps damped by
+  Levenberg-Marquardt, started from a weighted Kabsch fit of each bone's dominant vertices
+  against the prior's mean body.
 
 Free per-bone translations tied by the joint residual (rather than forward kinematics, where
 each joint depends on the rest heads, which depend on the unknown body) keep every Jacobian row
@@ -74,8 +76,9 @@ MIN_LEAF_WEIGHT = 0.8
 SAMPLES_PER_BONE = 10
 SPREAD_SAMPLES = 100
 # Directions of the rest-shape space kept on the sample: singular values above this share of the
-# largest. Measured on 39 poses: 1e-4 keeps ~130 directions and recovers library bodies to
-# < 0.3 mm in ~5 steps; 1e-5 (~230) recovers them exactly but takes ~8 steps.
+# largest (181 directions on the default rig's sample). Measured on 8 library poses of 2 bodies:
+# worst vertex 0.1 mm at 1e-5, 0.5 mm at 1e-4, 3 mm at 3e-4, 6 mm at 1e-3 (the span's small
+# directions hold the phenotypes' differences in posture, which a pose would otherwise absorb).
 PRIOR_RANK_TOLERANCE = 1e-5
 # Weight of the joint residual against the shape residual (both in metres).
 JOINT_WEIGHT = 1.0
@@ -99,11 +102,14 @@ MIN_DOMINANT_VERTICES = 4
 MIN_BLEND_DETERMINANT = 0.05
 # The unposed body must come within this RMS distance (metres) of the rest-shape space on the
 # sample vertices, or the mesh is refused: it is not a posed body of this topology in its vertex
-# order (a shuffled mesh measured ~10 cm; noisy scans with 5 mm noise ~5 mm).
+# order (a library body: < 0.001 mm; with 3 mm noise per coordinate: 2.5 mm; a shuffled vertex
+# order: hundreds of mm).
 MAX_SHAPE_DISTANCE = 0.03
 # Largest side of a posed body's bounding box, metres (a child curled up .. a tall adult in a star
-# jump or reaching overhead).
+# jump or reaching overhead), and the unit mistakes named when a mesh is outside it (their factor
+# to metres; as ``measure`` names them).
 POSED_EXTENT_M = (0.3, 3.5)
+_UNIT_FACTORS = {"mm": 1000.0, "cm": 100.0, "inches": 1 / 0.0254, "km": 1e-3, "μm": 1e6}
 
 
 # ------------------------------------------------------------------------------ the prior
@@ -893,19 +899,27 @@ def fits_template(vertices: np.ndarray, faces: np.ndarray, template: Template) -
 
 def _check_scale(y: np.ndarray, mesh_name: str) -> None:
     """Refuse bodies (N, V, 3) that are not human-sized in metres in any pose (a person reaching
-    up and out spans more than standing: the limits are wider than ``measure``'s)."""
+    up and out spans more than standing: the limits are wider than ``measure``'s), naming the
+    unit the mesh is probably in."""
     extent = (y.max(axis=1) - y.min(axis=1)).max(axis=1)
     lo, hi = POSED_EXTENT_M
     bad = np.flatnonzero(~((extent >= lo) & (extent <= hi)))
-    if len(bad):
-        i = int(bad[0])
-        which = mesh_name if len(y) == 1 else f"body {i} of {mesh_name}"
-        factor = extent[i] / 1.7
-        hint = next((f"; is it in {u}? scale it to metres (multiply by {1 / f:g})" for u, f in
-                     (("mm", 1000.0), ("cm", 100.0), ("inches", 1 / 0.0254)) if 0.5 < factor / f < 2.0),
-                    "; expected a body in metres")
-        raise MeshError(f"{which}: its bounding box is {extent[i]:.3g} m across, a posed human body's is "
-                        f"{lo:g}-{hi:g} m{hint}")
+    if not len(bad):
+        return
+    i, size = int(bad[0]), float(extent[bad[0]])
+    which = mesh_name if len(y) == 1 else f"body {i} of {mesh_name}"
+    if not np.isfinite(size) or size == 0:
+        raise MeshError(f"{which}: its bounding box is {size:g} m across; expected a posed human body in metres "
+                        f"({lo:g}-{hi:g} m)")
+    factor = size / 1.7   # against a body of average height
+    unit = min(_UNIT_FACTORS, key=lambda u: abs(np.log(factor / _UNIT_FACTORS[u])))
+    near = abs(np.log(factor / _UNIT_FACTORS[unit])) < np.log(2.0)
+    shown = _UNIT_FACTORS[unit] if near else factor
+    guess = (f"the mesh is {max(shown, 1 / shown):.4g}x too {'large' if factor > 1 else 'small'}"
+             + (f": is it in {unit}? scale it to metres (multiply by {1 / _UNIT_FACTORS[unit]:g})" if near else
+                "; scale it to metres"))
+    raise MeshError(f"{which}: its bounding box is {size:.3g} m across, a posed human body's is {lo:g}-{hi:g} m; "
+                    f"{guess}")
 
 
 def _resolve_weights(rig: Rig, weights: str, faces) -> tuple[sp.csr_matrix, str]:
