@@ -76,9 +76,10 @@ MIN_LEAF_WEIGHT = 0.8
 SAMPLES_PER_BONE = 10
 SPREAD_SAMPLES = 100
 # Directions of the rest-shape space kept on the sample: singular values above this share of the
-# largest (178 directions on the default rig's sample, plus the three translations). Measured on 8 library poses of 2 bodies:
-# worst vertex 0.1 mm at 1e-5, 0.5 mm at 1e-4, 3 mm at 3e-4, 6 mm at 1e-3 (the span's small
-# directions hold the phenotypes' differences in posture, which a pose would otherwise absorb).
+# largest (178 directions on the default rig's sample, plus the three translations). Measured on 8
+# library poses of 2 bodies: worst vertex 0.1 mm at 1e-5, 0.5 mm at 1e-4, 3 mm at 3e-4, 6 mm at
+# 1e-3 (the span's small directions hold the phenotypes' differences in posture, which a pose
+# would otherwise absorb).
 PRIOR_RANK_TOLERANCE = 1e-5
 # Weight of the joint residual against the shape residual (both in metres).
 JOINT_WEIGHT = 1.0
