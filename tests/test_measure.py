@@ -635,21 +635,22 @@ def test_cli_measure_refuses_json_with_csv(body_files):
 
 
 def test_cli_measure_nan_reasons_in_every_format(body_files):
+    # --as-posed: the tape on the squat as it is (by default it is unposed first, test_unpose.py).
     squat = str(body_files / "squat.obj")
-    js = runner.invoke(app, ["measure", squat, "--json"])
+    js = runner.invoke(app, ["measure", squat, "--json", "--as-posed"])
     assert js.exit_code == 0, js.output
     data = json.loads(js.stdout, parse_constant=_no_nan_constants)
     assert data["stature"]["value"] is None and "not upright" in data["stature"]["note"]
     assert data["mass"]["value"] is None and "needs 'stature'" in data["mass"]["note"]
-    two = json.loads(runner.invoke(app, ["measure", squat, str(body_files / "a.obj"), "--json"]).stdout,
+    two = json.loads(runner.invoke(app, ["measure", squat, str(body_files / "a.obj"), "--json", "--as-posed"]).stdout,
                      parse_constant=_no_nan_constants)
     assert two[squat]["hip_girth"]["value"] is None and "not hips_extended" in two[squat]["hip_girth"]["note"]
-    rows = list(csv.reader(runner.invoke(app, ["measure", squat, "--csv"]).stdout.splitlines()))
+    rows = list(csv.reader(runner.invoke(app, ["measure", squat, "--csv", "--as-posed"]).stdout.splitlines()))
     assert rows[0] == ["mesh", "name", "value", "unit", "note"]
     stature = next(r for r in rows if r[1] == "stature")
     assert stature[2] == "" and "not upright" in stature[4]
     assert next(r for r in rows if r[1] == "chest_girth")[4] == ""
-    table = runner.invoke(app, ["measure", squat]).stdout
+    table = runner.invoke(app, ["measure", squat, "--as-posed"]).stdout
     line = next(x for x in table.splitlines() if " stature " in x)
     k = line.split("n/a [")[1].split("]")[0]
     assert any(x.startswith(f"[{k}] not upright") for x in table.splitlines()), table

@@ -16,7 +16,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from bodyspace.cli.common import ForceOption, check_file_output
-from bodyspace.errors import BodyspaceError, MeasurementError
+from bodyspace.data.template import load_template
+from bodyspace.errors import BodyspaceError, MeasurementError, MeshError
 from bodyspace.measure import (
     check_compatible,
     evaluate,
@@ -29,6 +30,7 @@ from bodyspace.measure import conventions
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet
+from bodyspace.rig.unpose import fits_template, unpose
 
 
 def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/GLB), metres, +Y up (else say so with "
@@ -54,6 +56,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
                                              "along another axis is refused with the --up to give."),
             flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for meshes whose "
                                               "faces are wound inwards (negative volume; refused without it)."),
+            as_posed: bool = typer.Option(False, "--as-posed", help="Measure the mesh as it is, the tape on the posed "
+                                          "body. By default a mesh of the template's topology is first brought back "
+                                          "to the rest pose (docs/unposing.md) and measured standing."),
             force: bool = ForceOption):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
     try:
@@ -68,7 +73,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             lms, nv = load_landmarks(landmarks)
             mset = with_landmarks(mset, lms, nv, str(landmarks))
         labels = _labels([str(p) for p in meshes])
-        results, bodies = {}, []
+        results, bodies, postures = {}, [], {}
         for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
             _check_vertex_count(path, len(v), mset, landmarks, model)
@@ -77,6 +82,7 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             # the flag that fixes it, or brought into metres, +Y up as the flags say.
             v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
                                        words=words)
+            v, postures[label] = _standing(v, f, path, as_posed)
             results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
@@ -92,6 +98,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2)
     rows = {label: to_json(r) for label, r in results.items()}
+    for label, posture in postures.items():
+        if posture is not None:
+            rows[label]["unposed"] = posture
     if csv_out:
         buf = io.StringIO()
         w = csv.writer(buf)
@@ -105,6 +114,36 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         typer.echo(json.dumps(rows[labels[0]] if len(meshes) == 1 else rows, indent=2, allow_nan=False))
     else:
         _print_table(rows, _column_names(meshes))
+        for name, posture in zip(_column_names(meshes), postures.values()):
+            if posture is not None and posture["value"] is not None:
+                Console().print(f"[unposed] {name}: {posture['note']}", markup=False, highlight=False)
+
+
+def _standing(vertices: np.ndarray, faces: np.ndarray, path: Path, as_posed: bool) -> tuple[np.ndarray, dict | None]:
+    """The body to measure and what the output says about its pose (an entry {value, unit, note}).
+
+    A mesh of the template's topology (its vertex count, its faces or a subset of them: holes are
+    fine) is unposed with the template's default rig and measured standing; ``--as-posed``
+    measures the mesh as it is (no entry). Any other mesh is measured as posed, with a note.
+    """
+    if as_posed:
+        return vertices, None
+    template = load_template()
+    if not fits_template(vertices, faces, template):
+        return vertices, {"value": None, "unit": "deg",
+                          "note": f"not unposed: only meshes of the template's topology ({template.n_vertices} "
+                                  f"vertices in its order) have a rig, this one has {len(vertices)} vertices"
+                                  f"{'' if len(vertices) != template.n_vertices else ' and other faces'}; "
+                                  "measured as posed"}
+    try:
+        rest, _, info = unpose(vertices, template.rigs["default"], mesh_name=str(path))
+    except MeshError as exc:
+        if "cannot be unposed" not in str(exc):
+            raise
+        raise MeshError(f"{exc} (--as-posed measures the mesh as it is, without unposing)") from None
+    return rest, {"value": round(float(info.largest_rotation_deg), 1), "unit": "deg",
+                  "note": f"measured standing: the body was brought back to the rest pose first ({info.describe()}); "
+                          "--as-posed measures the mesh as it is"}
 
 
 def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool, meshes: list[Path]) -> None:
