@@ -64,6 +64,7 @@ def model_names(encoders: dict, projections=PROJECTIONS) -> dict[str, tuple[str,
 def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: int = 6,
                          components: Sequence[int] = DEFAULT_COMPONENTS, projections: Sequence[str] = PROJECTIONS,
                          max_iter: int = MAX_ITER, max_jacobians: int = MAX_JACOBIANS,
+                         with_all_components: bool = True,
                          progress: Callable[[str, float], None] | None = None) -> dict:
     """Leave-one-subject-out reconstruction error (metres) against the number of components.
 
@@ -72,8 +73,10 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
         encoders: {name: fitted encoder}; each is fitted once (see the module docstring).
         selection: "rest" (the database's rest-pose scans: a shape-only model) or "all" scans.
         n_folds: held-out subjects (the first ``n_folds``; at most 8 is the intended use).
-        components: component counts; each is capped at the training set's rank, and the
-            largest possible count (all components) is always added.
+        components: component counts; each is capped at the training set's rank.
+        with_all_components: also measure the largest possible count (all components). The
+            vertex fit's cost grows with the count (one tangent direction per component in
+            each Jacobian): at ~140 components of a posed study it is most of the study's time.
         projections: for encoders that are not affine, the projections to measure ("code",
             "vertex"); max_iter, max_jacobians: the vertex fit's budget per mesh
             (``shape.vertex_fit.fit_coefficients``).
@@ -106,7 +109,10 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
     subj = np.asarray(db.scans["subject"])[rows]
     scans = np.asarray(db.read(rows), dtype=float)
     max_k = min(len(rows) - len(groups[s]) - 1 for s in held_subjects)
-    ks = sorted({int(k) for k in components if 1 <= k <= max_k} | {max_k})
+    ks = sorted({int(k) for k in components if 1 <= k <= max_k} | ({max_k} if with_all_components else set()))
+    if not ks:
+        raise ParameterError(f"components={list(components)!r}: none between 1 and the training set's rank "
+                             f"{max_k}, and with_all_components=False")
     models = model_names(encoders, projections)
     errors, per_fold, local, worst, fit_s = {}, {}, {}, {}, {}
     mean_scan = scans.mean(axis=0)
