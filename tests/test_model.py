@@ -291,6 +291,13 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
     # The vertex fit starts from the code projection and only takes steps that lower the error.
     assert (np.asarray(gen["error_m"]["rre vertex"]) <= 1.02 * np.asarray(gen["error_m"]["rre code"])).all()
     assert gen["local_regions"] == 12
+    # The demo's posed study leaves out the costly count of all components.
+    short = generalization_study(db, {"vertex": vertex}, selection="all", n_folds=1, components=(1, 2),
+                                 with_all_components=False)
+    assert short["components"] == [1, 2]
+    with pytest.raises(ParameterError, match="none between 1 and"):
+        generalization_study(db, {"vertex": vertex}, selection="all", n_folds=1, components=(500,),
+                             with_all_components=False)
     files = write_generalization_report([gen, gen], tmp_path)
     written = json.loads((tmp_path / files["json"]).read_text())["studies"][0]
     assert written["units"]["error"] == "mm"
