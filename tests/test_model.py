@@ -276,11 +276,14 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
     files = write_interpolation_report(res, db.faces, tmp_path)
     assert all((tmp_path / f).stat().st_size > 0 for f in files.values())
     gen = generalization_study(db, {"rre": model.encoder, "vertex": vertex}, selection="all", n_folds=2,
-                               components=(1,), max_iter=3, max_jacobians=1)
+                               components=(1,), max_iter=3, max_jacobians=1, bases=("code", "vertex"))
     assert gen["components"] == [1, 12 - 3 - 1]
-    # RRE with both projections, vertex PCA once (its two projections are one).
-    assert set(gen["error_m"]) == {"rre code", "rre vertex", "vertex"}
-    assert gen["models"]["rre vertex"] == {"encoder": "rre", "projection": "vertex"}
+    # RRE with both projections in both component orders, vertex PCA once (its two projections
+    # and orders are one).
+    assert set(gen["error_m"]) == {"rre code", "rre vertex", "rre vertex-basis code", "rre vertex-basis vertex",
+                                   "vertex"}
+    assert gen["models"]["rre vertex"] == {"encoder": "rre", "projection": "vertex", "basis": "code"}
+    assert gen["models"]["rre vertex-basis vertex"] == {"encoder": "rre", "projection": "vertex", "basis": "vertex"}
     for name in gen["error_m"]:
         e = np.asarray(gen["error_m"][name])
         assert e.shape == (len(gen["components"]),) and np.isfinite(e).all() and (e > 0).all()
@@ -289,7 +292,9 @@ def test_shape_reports_on_a_tiny_database(db, model, template, tmp_path):
         assert local.shape == e.shape and np.isfinite(local).all() and (local <= 1.05 * e + 1e-9).all()
         assert (np.asarray(gen["max_error_m"][name]) >= e).all() and len(gen["fit_s"][name]) == len(e)
     # The vertex fit starts from the code projection and only takes steps that lower the error.
-    assert (np.asarray(gen["error_m"]["rre vertex"]) <= 1.02 * np.asarray(gen["error_m"]["rre code"])).all()
+    for basis in ("", " vertex-basis"):
+        assert (np.asarray(gen["error_m"][f"rre{basis} vertex"])
+                <= 1.02 * np.asarray(gen["error_m"][f"rre{basis} code"])).all()
     assert gen["local_regions"] == 12
     # The demo's posed study leaves out the costly count of all components.
     short = generalization_study(db, {"vertex": vertex}, selection="all", n_folds=1, components=(1, 2),

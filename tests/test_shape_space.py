@@ -181,3 +181,53 @@ def test_metrics_on_known_deformations():
     r = Rotation.random(random_state=0).as_matrix()
     np.testing.assert_allclose(mean_relative_edge_change(v, v @ r.T + 2, f), 0, atol=1e-12)
     assert mean_relative_edge_change(v, np.stack([v, 2 * v]), f).shape == (2,)
+
+
+def test_vertex_ordered_basis(rre, population):
+    """basis="vertex": orthonormal code directions whose first k span the training codes that
+    make vertex PCA's first k components; the same from the scans or from decoding the codes."""
+    enc, codes = rre
+    _, _, scans = population
+    space = ShapeSpace(enc, basis="vertex").fit(codes, vertices=scans)
+    k = space.n_components_
+    assert space.basis_ == "vertex" and k == len(codes) - 1 and space.vertex_variance_.shape == (k,)
+    assert np.all(np.diff(space.vertex_variance_) <= 1e-12)      # ordered by vertex variance
+    np.testing.assert_allclose(space.components_ @ space.components_.T, np.eye(k), atol=1e-10)
+    # The first k span C^T U_k: U from the vertex PCA of the rigidly aligned scans.
+    aligned = VertexEncoder(scans.mean(0), enc.faces).fit(scans).encode(scans)
+    u = np.linalg.svd(aligned - aligned.mean(0), full_matrices=False)[0]
+    b = (codes - codes.mean(0)).T @ u
+    for j in (1, 3, 6):
+        q = space.components_[:j]
+        residual = b[:, :j] - q.T @ (q @ b[:, :j])
+        assert np.linalg.norm(residual) < 1e-8 * np.linalg.norm(b[:, :j])
+        if j < k:   # not the code PCA's order: its first j directions span another space
+            code_pca = ShapeSpace(enc, n_components=j).fit(codes).components_
+            assert np.linalg.norm(b[:, :j] - code_pca.T @ (code_pca @ b[:, :j])) > 1e-3 * np.linalg.norm(b[:, :j])
+    # Without the scans the codes are decoded: the same basis (decoding is exact up to a rigid motion).
+    decoded = ShapeSpace(enc, basis="vertex").fit(codes)
+    np.testing.assert_allclose(np.abs(decoded.components_ @ space.components_.T), np.eye(k), atol=1e-5)
+    # Coefficients still reconstruct the training codes exactly (the same span, all components).
+    np.testing.assert_allclose(space.inverse_transform(space.transform(codes)), codes, atol=1e-9)
+    back = ShapeSpace.from_arrays(space.to_arrays(), encoder=enc)
+    assert back.basis_ == "vertex"
+    np.testing.assert_allclose(back.vertex_variance_, space.vertex_variance_)
+    assert ShapeSpace.from_arrays(ShapeSpace(enc).fit(codes).to_arrays(), encoder=enc).basis_ == "code"
+    # A float fraction counts vertex variance; the Krylov solver cannot order by it.
+    frac = ShapeSpace(enc, 0.9, basis="vertex").fit(codes, vertices=scans)
+    share = np.cumsum(space.vertex_variance_) / space.vertex_variance_.sum()
+    assert frac.n_components_ == int(np.searchsorted(share, 0.9) + 1)
+    with pytest.raises(ParameterError, match="basis='vertex' needs the exact PCA"):
+        ShapeSpace(enc, 3, basis="vertex", solver="krylov").fit(codes)
+    with pytest.raises(ParameterError, match="basis='banana'"):
+        ShapeSpace(enc, basis="banana").fit(codes)
+    with pytest.raises(ParameterError, match="vertices: shape"):
+        ShapeSpace(enc, basis="vertex").fit(codes, vertices=scans[:3])
+
+
+def test_vertex_basis_of_the_vertex_encoding_is_vertex_pca(population):
+    v, f, scans = population
+    enc = VertexEncoder(v, f).fit(scans)
+    codes = enc.encode(scans)
+    a, b = ShapeSpace(enc, basis="vertex").fit(codes), ShapeSpace(enc).fit(codes)
+    np.testing.assert_allclose(a.components_, b.components_)

@@ -223,7 +223,7 @@ class BodyModel:
     def fit(cls, db, encoding: str = "rre", selection="rest", n_components: int | float | None = None, *,
             template=None, on_flipped: str = "accept", pca_solver: str = "auto", rng=0,
             n_jobs: int | None = None, template_id: str | None = None, landmarks=None,
-            progress: Callable[[str, float], None] | None = None) -> "BodyModel":
+            basis: str = "code", progress: Callable[[str, float], None] | None = None) -> "BodyModel":
         """Encode the selected scans of ``db`` (a ``ScanDatabase``) and fit the shape space.
 
         Args:
@@ -254,6 +254,10 @@ class BodyModel:
                 scans are of the template's topology, else none. Checked on the rest scans
                 (``measure.landmark_check.check_set_on_bodies``): ids on the mesh, every
                 measurement defined and of a human size.
+            basis: ``ShapeSpace``'s component order: "code" (Hasler's PCA of the codes) or
+                "vertex" (code directions ordered by the vertex variance they carry: with RRE
+                the first components move whole limbs; exact solver only; the scans are read
+                once more for it).
             progress: ``progress(message, fraction)``.
         """
         report = progress or (lambda msg, frac: None)
@@ -295,7 +299,8 @@ class BodyModel:
 
         # 2. codes of every selected scan, in float64 (exact PCA) or float32 (Krylov)
         d = encoder.n_features_
-        space = ShapeSpace(encoder, n_components, solver=pca_solver, copy=False, rng=rng, n_jobs=n_jobs)
+        space = ShapeSpace(encoder, n_components, solver=pca_solver, copy=False, rng=rng, n_jobs=n_jobs,
+                           basis=basis)
         solver = resolve_solver(pca_solver, n, d, n_components)
         codes = np.empty((n, d), dtype=np.float64 if solver == "full" else np.float32)
         flipped = np.zeros(n, dtype=np.int64)
@@ -310,7 +315,7 @@ class BodyModel:
         # 3. PCA
         t = time.perf_counter()
         report(f"PCA of {n} codes of length {d}", 0.82)
-        space.fit(codes)
+        space.fit(codes, vertices=db.read(rows) if basis == "vertex" and not encoder.is_linear else None)
         del codes
         # float32-exact components: what the file keeps, so a saved model loads bit-exactly.
         space.components_ = _float32_exact(space.components_)

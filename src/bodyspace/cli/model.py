@@ -28,6 +28,7 @@ from bodyspace.measure import load_measurement_set
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import ON_FLIPPED, BodyModel
 from bodyspace.report.render import contact_sheet
+from bodyspace.shape import BASES
 
 SAMPLES_KIND = "samples"
 # Bodies decoded at once by `sample` (bounds memory: 64 bodies of 19k vertices are 30 MB), and
@@ -60,10 +61,15 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                                         "measurement set it gives. Default: DATABASE/landmarks.json "
                                                         "if present, else the built-in set for the template's "
                                                         "topology."),
+          basis: str = typer.Option("code", "--basis",
+                                    help="Order of the PCA components: code (by code variance, Hasler) or vertex "
+                                         "(by the vertex-space variance they carry: an RRE model's first components "
+                                         "then move whole limbs; docs/encoding.md)."),
           force: bool = ForceOption):
     """Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
     on_flipped = check_choice(on_flipped, "--on-flipped", ON_FLIPPED)
+    basis = check_choice(basis, "--basis", BASES)
     _check_not_mesh_folder(database)
     if landmarks is not None and not landmarks.is_file():
         raise ParameterError(f"--landmarks {landmarks}: no such file; expected a landmark file (JSON, "
@@ -71,7 +77,7 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     db = ScanDatabase.load(database)
     with progress("build") as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
-                              progress=cb)
+                              basis=basis, progress=cb)
     model.save(out)
     folded = model.provenance.get("flipped_scans")
     if folded:

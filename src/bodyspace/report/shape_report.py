@@ -87,7 +87,8 @@ def _model_title(key: str, result: dict) -> str:
         return key
     if key == info["encoder"]:
         return f"{key} PCA"
-    return f"{info['encoder']} PCA, {_PROJECTION_TITLES.get(info['projection'], info['projection'])}"
+    order = " (vertex-ordered)" if info.get("basis", "code") == "vertex" else ""
+    return f"{info['encoder']} PCA{order}, {_PROJECTION_TITLES.get(info['projection'], info['projection'])}"
 
 
 def _generalization_section(result: dict) -> list[str]:

@@ -9,8 +9,8 @@ from bodyspace.shape.compare import (
                                      mean_relative_edge_change,
                                      relative_volume_change,
 )
-from bodyspace.shape.pca import PROJECTIONS, ShapeSpace
+from bodyspace.shape.pca import BASES, PROJECTIONS, ShapeSpace
 from bodyspace.shape.vertex_fit import VertexFit, fit_coefficients
 
-__all__ = ["PROJECTIONS", "ShapeSpace", "VertexFit", "fit_coefficients", "edge_lengths", "interpolate",
+__all__ = ["BASES", "PROJECTIONS", "ShapeSpace", "VertexFit", "fit_coefficients", "edge_lengths", "interpolate",
            "interpolation_distortion", "mean_relative_edge_change", "relative_volume_change"]

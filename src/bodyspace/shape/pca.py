@@ -24,11 +24,17 @@ import numpy as np
 from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
-from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full
+from bodyspace.encoding.vertex import VertexEncoder
+from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full, vertex_ordered_basis
 from bodyspace.shape.vertex_fit import fit_coefficients
 from bodyspace.validation import as_generator
 
 SOLVERS = ("auto", "full", "krylov")
+# How the components are chosen (see ``ShapeSpace``): by code variance, or by the vertex-space
+# variance they carry.
+BASES = ("code", "vertex")
+# basis="vertex" decodes the training codes in batches of this many bodies.
+DECODE_BATCH = 16
 # How ``project`` finds a mesh's coefficients (see ``ShapeSpace.project``).
 PROJECTIONS = ("vertex", "code")
 # solver="auto": up to this many bytes of float64 codes the PCA is exact (Gram matrix, float64);
@@ -68,6 +74,13 @@ class ShapeSpace:
             ``BodyModel.fit`` does with the matrix it made); True (default) leaves X untouched.
         rng: the Krylov start block's seed (Generator, seed or None).
         n_jobs: threads of the Krylov products (default: all cores).
+        basis: "code" (default: the principal directions of the codes, Hasler §4) or "vertex":
+            code-space directions ordered by the vertex-space variance of the training bodies
+            (``solvers.vertex_ordered_basis``: the first k span the codes of vertex PCA's first
+            k components; exact solver only). For a non-linear decoder (RRE) the first few
+            "vertex" components move whole limbs, which the code PCA puts late; the fitted
+            coefficients are then correlated (``sample`` draws them independently, with each
+            one's variance). For the vertex encoding both are vertex PCA.
 
     Attributes (after ``fit``):
         mean_: (D,) mean code.
@@ -77,12 +90,15 @@ class ShapeSpace:
         singular_values_: (K,).
         total_variance_: float, the variance of the codes summed over all D features.
         solver_: "full" or "krylov", the solver used.
+        basis_: "code" or "vertex"; vertex_variance_ (K,): with basis "vertex", the vertex-space
+            variance (m^2) of each vertex component (None with "code").
         n_components_, n_samples_, n_features_in_: ints.
     """
 
     def __init__(self, encoder=None, n_components: int | float | None = None, *, solver: str = "auto",
-                 copy: bool = True, rng=0, n_jobs: int | None = None):
+                 copy: bool = True, rng=0, n_jobs: int | None = None, basis: str = "code"):
         self.encoder = encoder
+        self.basis = basis
         self.n_components = n_components
         self.solver = solver
         self.copy = copy
@@ -127,18 +143,29 @@ class ShapeSpace:
             raise ParameterError(f"ShapeSpace.{what} needs an encoder; construct ShapeSpace(encoder, ...)")
 
     # ------------------------------------------------------------------ estimator API
-    def fit(self, X, y=None, *, select=None) -> "ShapeSpace":
+    def fit(self, X, y=None, *, select=None, vertices=None) -> "ShapeSpace":
         """Fit on codes (N, D) (float64 or float32, e.g. a memmap) or meshes (N, V, 3).
 
         ``select`` (boolean mask or indices) restricts the fit to some rows, e.g. the rest-pose
         scans for a shape-only space. Steps (as ``sklearn.decomposition.PCA._fit``): validate X
-        and ``n_components`` once, resolve the solver, then ``_fit_full`` or ``_fit_truncated``.
+        and ``n_components`` once, resolve the solver, then ``_fit_full``, ``_fit_truncated``
+        or, with ``basis="vertex"``, ``_fit_vertex_basis``: ``vertices`` (N, V, 3), the bodies of
+        the rows of X (before ``select``) when at hand, saves decoding them (meshes as X are used
+        as they are).
         """
         for name in [n for n in ("components_", "n_features_in_") if hasattr(self, n)]:
             delattr(self, name)  # a refit may change the code length
+        if vertices is None and np.ndim(X) == 3:
+            vertices = X
         x = self._code_matrix(X, "X")
+        if vertices is not None:
+            vertices = np.asarray(vertices)
+            if vertices.ndim != 3 or len(vertices) != len(x) or vertices.shape[2] != 3:
+                raise ParameterError(f"vertices: shape {vertices.shape}, expected ({len(x)}, V, 3): the bodies of "
+                                     "the rows of X")
         if select is not None:
             x = x[np.asarray(select)]
+            vertices = None if vertices is None else vertices[np.asarray(select)]
         n, d = x.shape
         if n < 2:
             raise ParameterError(f"X: {n} sample(s) selected, expected at least 2 to fit a PCA")
@@ -146,16 +173,27 @@ class ShapeSpace:
         if not (nc is None or (isinstance(nc, numbers.Integral) and not isinstance(nc, bool) and nc >= 1)
                 or (isinstance(nc, numbers.Real) and not isinstance(nc, numbers.Integral) and 0 < nc < 1)):
             raise ParameterError(f"n_components={nc!r}, expected None, an int >= 1 or a float in (0, 1)")
+        if self.basis not in BASES:
+            raise ParameterError(f"basis={self.basis!r}, expected one of {', '.join(BASES)}")
+        vertex_basis = self.basis == "vertex" and not getattr(self.encoder, "is_linear", True)
         solver = resolve_solver(self.solver, n, d, nc)
+        if vertex_basis and solver != "full":
+            raise ParameterError(f"basis='vertex' needs the exact PCA (solver='full'); got solver={self.solver!r} "
+                                 f"for {n} x {d} codes")
         if solver == "krylov" and not (nc is None or isinstance(nc, numbers.Integral)):
             raise ParameterError(f"n_components={nc!r}: a variance fraction needs the exact PCA (solver='full'); "
                                  f"the Krylov solver (chosen for {n} x {d} codes, > {FULL_PCA_MAX_BYTES / 1e9:.0f} GB "
                                  "in float64) needs an int")
-        if solver == "full":
+        if vertex_basis:
+            self._fit_vertex_basis(x, n, d, vertices)
+        elif solver == "full":
             self._fit_full(x, n, d)
         else:
             self._fit_truncated(x, n, d)
         self.solver_ = solver
+        self.basis_ = "vertex" if vertex_basis or self.basis == "vertex" else "code"
+        if not vertex_basis:
+            self.vertex_variance_ = None
         return self
 
     def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
@@ -186,6 +224,36 @@ class ShapeSpace:
         s, vt = pca_block_krylov(x, mean, k, rng=self.rng, n_jobs=self.n_jobs)
         self._set(mean, s, vt, s ** 2 / (n - 1), scatter / (n - 1), n, d, k)
 
+    def _fit_vertex_basis(self, x: np.ndarray, n: int, d: int, vertices=None) -> None:
+        """Components ordered by vertex variance (``solvers.vertex_ordered_basis``): the bodies
+        (``vertices``, or the codes decoded: N decodes) aligned rigidly by generalized
+        Procrustes (``VertexEncoder``), as vertex PCA sees them. Holds (N, 3V) float64
+        vertices in memory beside the codes."""
+        x = np.array(x, dtype=np.float64)                  # centred in place below
+        if not np.isfinite(x).all():
+            raise ParameterError("X: contains NaN or infinity")
+        mean = x.mean(axis=0)
+        enc = self.encoder
+        if vertices is not None:
+            bodies = np.asarray(vertices, dtype=np.float64)
+            if bodies.shape[1] != enc.n_vertices:
+                raise ParameterError(f"vertices: {bodies.shape[1]} vertices a body, the encoder's meshes have "
+                                     f"{enc.n_vertices}")
+        else:
+            bodies = np.empty((n, enc.n_vertices, 3))
+            for s in range(0, n, DECODE_BATCH):
+                bodies[s:s + DECODE_BATCH] = enc.decode(x[s:s + DECODE_BATCH])
+        aligned = VertexEncoder(bodies.mean(axis=0), enc.faces).fit(bodies).encode(bodies)
+        del bodies
+        comps, vertex_var = vertex_ordered_basis(x, mean, aligned)    # centres x
+        total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
+        var = np.einsum("ij,ij->j", x @ comps.T, x @ comps.T) / (n - 1)    # code variance along each
+        # n_components as a count, or a fraction of the vertex variance (the order's measure).
+        k = self._n_keep(vertex_var, float(np.einsum("ij,ij->", aligned - aligned.mean(axis=0),
+                                                     aligned - aligned.mean(axis=0))) / (n - 1), n, d)
+        self._set(mean, np.sqrt(var * (n - 1)), comps, var, total, n, d, k)
+        self.vertex_variance_ = vertex_var[:k]
+
     def _set(self, mean, s, vt, var, total, n, d, k) -> None:
         self.mean_ = np.asarray(mean, dtype=np.float64)
         self.components_ = vt[:k]
@@ -214,9 +282,12 @@ class ShapeSpace:
         """The learned state as flat arrays for an npz file: ``mean`` (D,) float64, ``components``
         (K, D) float32 (half the file; a model keeps its components float32-exact, so it loads
         bit-exactly), ``explained_variance``, ``explained_variance_ratio``, ``singular_values``
-        (K,) float64 and ``n_samples`` () int64."""
+        (K,) float64, ``n_samples`` () int64, and with ``basis_ == "vertex"`` its
+        ``vertex_variance`` (K,) float64 (its presence says the basis)."""
         self._require_fit()
-        return {prefix + "mean": np.asarray(self.mean_, dtype=np.float64),
+        extra = ({} if getattr(self, "basis_", "code") == "code" else
+                 {prefix + "vertex_variance": np.asarray(self.vertex_variance_, dtype=np.float64)})
+        return {**extra, prefix + "mean": np.asarray(self.mean_, dtype=np.float64),
                 prefix + "components": np.asarray(self.components_, dtype=np.float32),
                 prefix + "explained_variance": np.asarray(self.explained_variance_, dtype=np.float64),
                 prefix + "explained_variance_ratio": np.asarray(self.explained_variance_ratio_, dtype=np.float64),
@@ -248,10 +319,18 @@ class ShapeSpace:
         if encoder is not None and mean.shape[0] != encoder.n_features_:
             raise ParameterError(f"shape space: codes of length {mean.shape[0]}, the encoder makes "
                                  f"{encoder.n_features_}")
-        space = cls(encoder, n_components=len(comps))
+        basis, vertex_var = "code", None
+        if prefix + "vertex_variance" in arrays:
+            basis = "vertex"
+            vertex_var = np.asarray(arrays[prefix + "vertex_variance"], dtype=np.float64)
+            if vertex_var.shape != (len(comps),) or not np.isfinite(vertex_var).all():
+                raise ParameterError(f"shape space: '{prefix}vertex_variance' has shape {vertex_var.shape}, "
+                                     f"expected ({len(comps)},) finite values")
+        space = cls(encoder, n_components=len(comps), basis=basis)
         total = float(var[0] / ratio[0]) if len(var) and ratio[0] > 0 else float(var.sum())
         space._set(mean, sv, comps, var, total, int(n_samples), mean.shape[0], len(comps))
         space.explained_variance_ratio_ = ratio
+        space.basis_, space.vertex_variance_ = basis, vertex_var
         return space
 
     def transform(self, X) -> np.ndarray:

@@ -7,6 +7,8 @@ out, the centring applied inside the products so a float32 (N, D) matrix is neve
 - ``pca_randomized``: randomized subspace iteration (Halko, Martinsson and Tropp 2011, Alg.
   4.4), the previous solver, kept as the benchmark's baseline.
 - ``mean_and_scatter``: column means and total scatter accumulated in float64.
+- ``vertex_ordered_basis``: code-space directions ordered by the vertex-space variance they
+  carry (``ShapeSpace(basis="vertex")``).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.validation import as_generator
 
-__all__ = ["pca_full", "pca_randomized", "pca_block_krylov", "mean_and_scatter"]
+__all__ = ["pca_full", "pca_randomized", "pca_block_krylov", "mean_and_scatter", "vertex_ordered_basis"]
 
 # The previous solver, randomized subspace iteration (Halko, Martinsson and Tropp 2011,
 # Alg. 4.4; pca_randomized, kept as the benchmark's baseline): extra columns and power
@@ -50,6 +52,44 @@ def _svd_wide(a: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, np.nda
     lam, u = lam[keep], u[:, keep]
     s = np.sqrt(lam)
     return u, s, (u.T @ a) / s[:, None]
+
+
+def vertex_ordered_basis(codes: np.ndarray, code_mean: np.ndarray, vertices: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal code-space directions whose leading k span the codes that make vertex PCA's
+    leading k components, for every k.
+
+    codes (N, D) float64, centred in place around ``code_mean`` (D,); vertices (N, M): the same
+    bodies in vertex space (flattened, rigidly aligned), any centring. With the vertex PCA of the
+    bodies ``Y = U diag(s) W^T`` (centred), the combination of the training codes with the
+    weights ``U_k`` is the code of "vertex component k" in the training set's code span:
+    ``b_k = C^T U_k``. A non-linear decoder (RRE) gives a body near ``mean + sum z_k W_k``
+    for small ``z``; the code PCA instead orders its directions by code variance, which puts
+    directions that move whole limbs (a few rotations at a joint) late. The ``b_k`` are
+    orthonormalized in their order (QR; the span of the first k is kept) and sign-fixed. Code
+    variance the vertices do not see (bodies equal up to a rigid motion, or codes of a lower
+    rank in vertex space) follows as the code PCA of what is left, vertex variance 0, so the
+    basis spans the codes as the code PCA does.
+    Returns ``(components (K, D), vertex_variance (K,))``: K = the codes' numerical rank, and
+    the vertex variance of vertex component k (``s_k^2 / (N - 1)``).
+    """
+    n = len(codes)
+    codes -= code_mean
+    y = np.asarray(vertices, dtype=np.float64)
+    y = y - y.mean(axis=0)
+    u, s, _ = _svd_wide(y)
+    b = codes.T @ u                                        # (D, K): the codes of the components
+    q, r = np.linalg.qr(b)
+    diag = np.abs(np.diag(r))
+    keep = diag > 1e-10 * max(diag.max(initial=0.0), 1e-300)   # a code combination already spanned
+    q = q[:, keep]
+    vertex_var = (s[keep] ** 2) / max(n - 1, 1)
+    rest = codes - (codes @ q) @ q.T
+    _, rs, rvt = _svd_wide(rest)
+    rvt = rvt[rs > 1e-5 * np.linalg.norm(codes)]       # only what the codes hold beyond the vertex order
+    basis = np.vstack([q.T, rvt - (rvt @ q) @ q.T])
+    basis /= np.linalg.norm(basis, axis=1, keepdims=True)
+    return _sign_flip(basis), np.concatenate([vertex_var, np.zeros(len(rvt))])
 
 
 def _sign_flip(vt: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ from scipy.cluster.vq import kmeans2
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.topology import vertex_components
-from bodyspace.shape import PROJECTIONS, ShapeSpace
+from bodyspace.shape import BASES, PROJECTIONS, ShapeSpace
 from bodyspace.shape.vertex_fit import MAX_ITER, MAX_JACOBIANS, align_parts, fit_coefficients
 from bodyspace.studies.scans import rows_by_subject
 
@@ -48,23 +48,26 @@ DEFAULT_COMPONENTS = (1, 4, 8, 16, 32)
 LOCAL_REGIONS = 12
 
 
-def model_names(encoders: dict, projections=PROJECTIONS) -> dict[str, tuple[str, str]]:
-    """{result key: (encoder name, projection)}: ``"<name>"`` for an affine decoder (one
-    projection), ``"<name> <projection>"`` for each asked projection otherwise."""
+def model_names(encoders: dict, projections=PROJECTIONS, bases=("code",)) -> dict[str, tuple[str, str, str]]:
+    """{result key: (encoder name, projection, basis)}: ``"<name>"`` for an affine decoder (one
+    projection, its two bases are one), otherwise ``"<name> <projection>"`` for each asked
+    projection of the code-ordered basis and ``"<name> vertex-basis <projection>"`` of the
+    vertex-ordered one (``ShapeSpace(basis=...)``)."""
     out = {}
     for name, enc in encoders.items():
         if getattr(enc, "is_linear", False):
-            out[name] = (name, "code")
-        else:
+            out[name] = (name, "code", "code")
+            continue
+        for b in [b for b in BASES if b in bases]:
             for p in sorted(projections, key=list(PROJECTIONS)[::-1].index):  # code projection first
-                out[f"{name} {p}"] = (name, p)
+                out[f"{name} {p}" if b == "code" else f"{name} {b}-basis {p}"] = (name, p, b)
     return out
 
 
 def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: int = 6,
                          components: Sequence[int] = DEFAULT_COMPONENTS, projections: Sequence[str] = PROJECTIONS,
                          max_iter: int = MAX_ITER, max_jacobians: int = MAX_JACOBIANS,
-                         with_all_components: bool = True,
+                         with_all_components: bool = True, bases: Sequence[str] = ("code",),
                          progress: Callable[[str, float], None] | None = None) -> dict:
     """Leave-one-subject-out reconstruction error (metres) against the number of components.
 
@@ -74,6 +77,8 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
         selection: "rest" (the database's rest-pose scans: a shape-only model) or "all" scans.
         n_folds: held-out subjects (the first ``n_folds``; at most 8 is the intended use).
         components: component counts; each is capped at the training set's rank.
+        bases: for encoders that are not affine, the component orders to measure
+            (``ShapeSpace``'s ``basis``: "code", "vertex").
         with_all_components: also measure the largest possible count (all components). The
             vertex fit's cost grows with the count (one tangent direction per component in
             each Jacobian): at ~140 components of a posed study it is most of the study's time.
@@ -81,7 +86,7 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
             "vertex"); max_iter, max_jacobians: the vertex fit's budget per mesh
             (``shape.vertex_fit.fit_coefficients``).
     Returns:
-        dict with ``components`` (the counts), ``models`` {key: {"encoder", "projection"}}
+        dict with ``components`` (the counts), ``models`` {key: {"encoder", "projection", "basis"}}
         (``model_names``), ``error_m`` {key: (n_counts,) mean over folds and held-out scans of
         the mean vertex distance, metres}, ``local_error_m`` (the same after a rigid alignment
         of each of ``LOCAL_REGIONS`` regions, see the module docstring), ``max_error_m`` {key:
@@ -113,7 +118,9 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
     if not ks:
         raise ParameterError(f"components={list(components)!r}: none between 1 and the training set's rank "
                              f"{max_k}, and with_all_components=False")
-    models = model_names(encoders, projections)
+    if not bases or any(b not in BASES for b in bases):
+        raise ParameterError(f"bases={list(bases)!r}, expected some of {', '.join(BASES)}")
+    models = model_names(encoders, projections, bases)
     errors, per_fold, local, worst, fit_s = {}, {}, {}, {}, {}
     mean_scan = scans.mean(axis=0)
     _, labels = kmeans2(mean_scan, min(LOCAL_REGIONS, len(mean_scan)), seed=0, minit="++")
@@ -121,7 +128,7 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
     n_work = len(held_subjects) * len(models)
     done = 0
     for name, enc in encoders.items():
-        keys = [key for key, (e, _) in models.items() if e == name]
+        keys = [key for key, (e, _, _) in models.items() if e == name]
         codes = enc.encode(scans)
         n_parts, part_of = vertex_components(enc.faces, enc.n_vertices)
         parts = [np.flatnonzero(part_of == c) for c in range(n_parts)]
@@ -131,9 +138,12 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
         seconds = {key: np.zeros_like(err[key]) for key in keys}
         for f, s in enumerate(held_subjects):
             test = subj == s
-            space = ShapeSpace(enc, n_components=max_k, solver="full").fit(codes[~test])
-            z_code = space.transform(codes[test])
+            spaces = {b: ShapeSpace(enc, n_components=max_k, solver="full", basis=b).fit(codes[~test],
+                                                                                         vertices=scans[~test])
+                      for b in {models[key][2] for key in keys}}
+            z_codes = {b: space.transform(codes[test]) for b, space in spaces.items()}
             for key in keys:
+                space, z_code = spaces[models[key][2]], z_codes[models[key][2]]
                 report(f"leave-one-subject-out ({key}, subject {s})", done / n_work)
                 done += 1
                 for j, k in enumerate(ks):
@@ -161,7 +171,7 @@ def generalization_study(db, encoders: dict, selection: str = "rest", n_folds: i
             fit_s[key] = seconds[key].mean(axis=0).tolist()
     report("generalization done", 1.0)
     return {"selection": selection, "components": ks, "folds": held_subjects,
-            "models": {key: {"encoder": e, "projection": p} for key, (e, p) in models.items()},
+            "models": {key: {"encoder": e, "projection": p, "basis": b} for key, (e, p, b) in models.items()},
             "error_m": errors, "local_error_m": local, "max_error_m": worst, "local_regions": len(regions),
             "error_m_per_fold": per_fold, "fit_s": fit_s, "training_subjects": len(groups) - 1,
             "held_out_scans": int(sum(len(groups[s]) for s in held_subjects)),
