@@ -18,6 +18,10 @@ slides and sinks. ``lock_feet`` moves each leg so that its foot joints go where 
   between two frames: a knee pop. What this costs (the ankle's miss) is returned.
 * **The foot** keeps its world orientation from the source, then turns about the ankle (the
   smallest rotation) to bring the toe to its own goal.
+* **The sole** (optional, ``sole_points``): the foot's skin as points carried by the foot's
+  bones. Where it would go below the floor (a toe-off, a tilted heel), that frame's goals are
+  lifted by the depth and the leg is solved again (up to three passes), so the skin stays above
+  the floor too, not only the joints.
 
 The thigh's and shin's twist bones follow their bones (the deltas are applied to whole
 sub-chains of world rotations), and the local rotations are recomputed from the world ones.
@@ -28,13 +32,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from bodyspace.errors import MotionError
 from bodyspace.motion.contacts import contact_runs
 from bodyspace.motion.retarget import Retargeted, minimal_rotation
 from bodyspace.rig.kinematics import forward_kinematics, rotvec_to_matrix
 
-__all__ = ["BLEND_SECONDS", "SOFT_REACH", "FootLock", "foot_goals", "knee_angles", "lock_feet", "two_bone_ik"]
+__all__ = ["BLEND_SECONDS", "SOFT_REACH", "FootLock", "bend_angle", "foot_goals", "foot_vertices", "knee_angles",
+           "lock_feet", "sole_points",
+           "two_bone_ik"]
 
 BLEND_SECONDS = 0.1      # goals ease between anchor and free position over this time
 SOFT_REACH = 0.02        # share of the leg's length approached exponentially near full extension
@@ -161,20 +168,66 @@ def _leg_bones(clip: Retargeted, side: str) -> tuple[int, int, int, int | None]:
     return (*(clip.skeleton.bone_index(lm[r]) for r in need), clip.skeleton.bone_index(toe) if toe else None)
 
 
-def knee_angles(clip: Retargeted, joint_positions: np.ndarray | None = None) -> np.ndarray:
-    """(F, 2) knee bend (radians, 0 = straight) of the left and right leg."""
-    J = clip.joint_positions() if joint_positions is None else joint_positions
+def bend_angle(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> np.ndarray:
+    """(F,) the bend (radians, 0 = straight) at ``knee`` of tracks hip, knee, ankle (F, 3)."""
+    u, w = knee - hip, ankle - knee
+    return np.arctan2(np.linalg.norm(np.cross(u, w), axis=-1), np.einsum("fi,fi->f", u, w))
+
+
+def knee_angles(clip: Retargeted, joint_positions: np.ndarray | None = None, source: bool = False) -> np.ndarray:
+    """(F, 2) knee bend (radians, 0 = straight) of the left and right leg of the target (or,
+    with ``source``, of the source clip)."""
     out = []
     for side in ("L", "R"):
-        h, k, a, _ = _leg_bones(clip, side)
-        u, w = J[:, k] - J[:, h], J[:, a] - J[:, k]
-        out.append(np.arctan2(np.linalg.norm(np.cross(u, w), axis=-1), np.einsum("fi,fi->f", u, w)))
+        if source:
+            lm = clip.match.source_landmarks
+            J = clip.source_positions
+            h, k, a = (clip.source_names.index(lm[f"{r}.{side}"]) for r in ("hip", "knee", "ankle"))
+        else:
+            J = clip.joint_positions() if joint_positions is None else joint_positions
+            h, k, a, _ = _leg_bones(clip, side)
+        out.append(bend_angle(J[:, h], J[:, k], J[:, a]))
     return np.stack(out, axis=1)
 
 
-def lock_feet(clip: Retargeted, blend: float = BLEND_SECONDS, soft: float = SOFT_REACH) -> tuple[Retargeted, FootLock]:
+def foot_vertices(clip: Retargeted, weights, side: str | None = None) -> np.ndarray:
+    """Indices of the vertices with at least half their weight (V, B) below an ankle landmark
+    bone (one ``side``, "L" or "R", or both)."""
+    W = sp.csr_matrix(weights, dtype=float)
+    foot = np.zeros(clip.skeleton.n_bones, bool)
+    for s in (side,) if side else ("L", "R"):
+        foot |= _subtree(clip.skeleton.parents, _leg_bones(clip, s)[2])
+    return np.flatnonzero(np.asarray(W[:, foot].sum(axis=1)).ravel() >= 0.5)
+
+
+def sole_points(clip: Retargeted, weights, vertices: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The skin of each foot as points rigidly carried by its bones, for ``lock_feet(sole=...)``.
+
+    weights: (V, B) skin weights; vertices: (V, 3) the rest body. Per side: the vertices with at
+    least half their weight below the ankle landmark bone, each given to its heaviest bone there:
+    (bone indices (P,), rest positions (P, 3)).
+    """
+    W = sp.csr_matrix(weights, dtype=float)
+    v = np.asarray(vertices, dtype=float)
+    out = {}
+    for side in ("L", "R"):
+        foot = _subtree(clip.skeleton.parents, _leg_bones(clip, side)[2])
+        Wf = W[:, foot]
+        mine = foot_vertices(clip, W, side)
+        if len(mine) == 0:
+            continue
+        heaviest = np.flatnonzero(foot)[np.asarray(Wf[mine].argmax(axis=1)).ravel()]
+        out[side] = (heaviest, v[mine])
+    return out
+
+
+def lock_feet(clip: Retargeted, blend: float = BLEND_SECONDS, soft: float = SOFT_REACH,
+              sole: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[Retargeted, FootLock]:
     """The clip with its feet kept where the source's feet are planted (module docstring).
 
+    sole: per side (``"L"``, ``"R"``) the foot's skin as points on its bones (``sole_points``);
+    given, a frame whose sole would go below the floor lifts that foot's goals by as much and
+    solves the leg again (twice at most), so the skin, not only the joints, stays above the floor.
     Returns the new clip (same translation, new leg and foot rotations) and a ``FootLock``.
     """
     sk = clip.skeleton
@@ -188,32 +241,52 @@ def lock_feet(clip: Retargeted, blend: float = BLEND_SECONDS, soft: float = SOFT
     role_index = {r: k for k, r in enumerate(feet.roles)}
     reached = np.full(goals.shape[:2], np.nan)
     changed = np.zeros(sk.n_bones, bool)
+    F = clip.n_frames
     for side in ("L", "R"):
         h, k, a, toe = _leg_bones(clip, side)
         upper = _subtree(parents, h) & ~_subtree(parents, k)
         lower = _subtree(parents, k) & ~_subtree(parents, a)
         foot = _subtree(parents, a)
-        changed |= _subtree(parents, h)
         ka = role_index.get(f"ankle.{side}")
         if ka is None:
             continue
-        goals[:, ka] = foot_goals(feet.target[:, ka], feet.contacts[:, ka], feet.clearance[ka], blend_frames)
+        changed |= _subtree(parents, h)
+        kt = role_index.get(f"toe.{side}") if toe is not None else None
         lateral = Rw[:, h] @ np.array([1.0, 0.0, 0.0])
-        swing, bend = two_bone_ik(J[:, h], J[:, k], J[:, a], goals[:, ka], lateral, soft)
+        base_ankle = foot_goals(feet.target[:, ka], feet.contacts[:, ka], feet.clearance[ka], blend_frames)
+        if sole is not None and side in sole:
+            bones, rest = sole[side]
+            Gb = G[:, bones]
+            sole_now = np.einsum("fpij,pj->fpi", Gb[..., :3, :3], rest) + Gb[..., :3, 3]          # (F, P, 3)
+        lift = np.zeros(F)
+        for _ in range(3 if sole is not None and side in sole else 1):
+            goal_a = base_ankle.copy()
+            goal_a[:, 1] += lift
+            swing, bend = two_bone_ik(J[:, h], J[:, k], J[:, a], goal_a, lateral, soft)
+            ankle_new = J[:, h] + np.einsum("fij,fj->fi", swing,
+                                            J[:, k] - J[:, h] + np.einsum("fij,fj->fi", bend, J[:, a] - J[:, k]))
+            turn = np.broadcast_to(np.eye(3), (F, 3, 3))
+            if kt is not None:
+                toe_now = ankle_new + (J[:, toe] - J[:, a])               # the foot kept its world rotation
+                goal_t = foot_goals(toe_now, feet.contacts[:, kt], feet.clearance[kt] + lift, blend_frames)
+                reach = _on_sphere(ankle_new, goal_t, np.linalg.norm(toe_now - ankle_new, axis=-1))
+                turn = minimal_rotation(toe_now - ankle_new, reach - ankle_new)
+            if sole is None or side not in sole:
+                break
+            # the foot subtree moved rigidly: x -> ankle_new + turn (x - ankle_old)
+            low = (np.einsum("fij,fpj->fpi", turn, sole_now - J[:, a][:, None])[..., 1].min(axis=1) + ankle_new[:, 1])
+            if (low >= -1e-4).all():
+                break
+            lift = lift + np.maximum(-low, 0.0)
+        goals[:, ka] = goal_a
+        reached[:, ka] = np.linalg.norm(ankle_new - goal_a, axis=-1)
         Rw[:, upper] = swing[:, None] @ Rw[:, upper]
         Rw[:, lower] = (swing @ bend)[:, None] @ Rw[:, lower]
-        ankle_new = J[:, h] + np.einsum("fij,fj->fi", swing,
-                                        J[:, k] - J[:, h] + np.einsum("fij,fj->fi", bend, J[:, a] - J[:, k]))
-        reached[:, ka] = np.linalg.norm(ankle_new - goals[:, ka], axis=-1)
-        kt = role_index.get(f"toe.{side}")
-        if kt is not None and toe is not None:
-            toe_now = ankle_new + (J[:, toe] - J[:, a])                   # the foot kept its world rotation
-            goals[:, kt] = foot_goals(toe_now, feet.contacts[:, kt], feet.clearance[kt], blend_frames)
-            reach = _on_sphere(ankle_new, goals[:, kt], np.linalg.norm(toe_now - ankle_new, axis=-1))
-            turn = minimal_rotation(toe_now - ankle_new, reach - ankle_new)
+        if kt is not None:
             Rw[:, foot] = turn[:, None] @ Rw[:, foot]
-            toe_new = ankle_new + np.einsum("fij,fj->fi", turn, toe_now - ankle_new)
-            reached[:, kt] = np.linalg.norm(toe_new - goals[:, kt], axis=-1)
+            goals[:, kt] = goal_t
+            reached[:, kt] = np.linalg.norm(ankle_new + np.einsum("fij,fj->fi", turn, toe_now - ankle_new) - goal_t,
+                                            axis=-1)
     # new local rotations of the legs' bones; every other bone keeps its own exactly
     R = clip.rotations.copy()
     legs = np.flatnonzero(changed & (parents >= 0))
