@@ -32,7 +32,7 @@ from bodyspace.cli.common import (
     progress,
 )
 from bodyspace.cli.motion import BvhUnitOption
-from bodyspace.cli.semantics import ClampOption, DatabaseOption, RefitOption, SetOption, _load, _targets
+from bodyspace.cli.semantics import ClampOption, DatabaseOption, RefitOption, SetOption, load_semantics, parse_targets
 from bodyspace.data.template import RIG_NAMES, load_template
 from bodyspace.errors import MotionError, ParameterError
 from bodyspace.export.gltf import SkeletonAnimation, write_gltf
@@ -59,15 +59,13 @@ def parse_frames(text: Optional[str], n_frames: int) -> slice:
     if text is None:
         return slice(0, n_frames, 1)
     parts = text.split(":")
-    try:
-        if len(parts) not in (2, 3):
-            raise ValueError
-        start = int(parts[0]) if parts[0] else 0
-        stop = int(parts[1]) if parts[1] else n_frames
-        step = int(parts[2]) if len(parts) == 3 and parts[2] else 1
-    except ValueError:
-        raise ParameterError(f"--frames {text!r}: expected START:STOP or START:STOP:STEP (frame numbers from 0), "
-                             "e.g. 0:240 or 0:240:4") from None
+    usage = ParameterError(f"--frames {text!r}: expected START:STOP or START:STOP:STEP (frame numbers from 0), "
+                           "e.g. 0:240 or 0:240:4")
+    if len(parts) not in (2, 3) or not all(p.strip().lstrip("-").isdigit() or not p.strip() for p in parts):
+        raise usage
+    start = int(parts[0]) if parts[0].strip() else 0
+    stop = int(parts[1]) if parts[1].strip() else n_frames
+    step = int(parts[2]) if len(parts) == 3 and parts[2].strip() else 1
     if step < 1 or not 0 <= start < stop:
         raise ParameterError(f"--frames {text!r}: expected 0 <= START < STOP and STEP >= 1")
     if start >= n_frames:
@@ -79,8 +77,8 @@ def _body(body: Path, sets, database, refit, clamp, seed) -> tuple[np.ndarray, n
     """Rest vertices, faces and a description of the body to animate."""
     if body.suffix.lower() == ".npz":
         if sets:
-            sm = _load(body, database, refit, clamp)
-            result = sm.body_model.generate(_targets(sets, None, allow_delta=False, sm=sm), rng=seed)
+            sm = load_semantics(body, database, refit, clamp)
+            result = sm.body_model.generate(parse_targets(sets, None, allow_delta=False, sm=sm), rng=seed)
             asked = ", ".join(sets)
             return result.vertices, sm.body_model.faces, f"{body.name} generated for {asked}"
         model = BodyModel.load(body, semantics=False)
