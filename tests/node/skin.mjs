@@ -9,7 +9,7 @@
 // boneInverses, weighted, exactly what its skinning shader does), and prints a JSON summary.
 import fs from "node:fs";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
-import { AnimationMixer, Vector3 } from "three";
+import { AnimationMixer, LoopOnce, Vector3 } from "three";
 
 const [file, posePath, outPath] = process.argv.slice(2);
 const bytes = fs.readFileSync(file);
@@ -29,7 +29,11 @@ if (pose.time !== undefined) {
   if (gltf.animations.length === 0) throw new Error("the file holds no animation");
   const clip = gltf.animations[0];
   const mixer = new AnimationMixer(gltf.scene);
-  mixer.clipAction(clip).play();
+  // played once and held at its end: a looping action wraps its last frame back to the first
+  const action = mixer.clipAction(clip);
+  action.setLoop(LoopOnce);
+  action.clampWhenFinished = true;
+  action.play();
   mixer.setTime(pose.time);
   animation = { name: clip.name, duration: clip.duration, tracks: clip.tracks.length };
 }
