@@ -256,8 +256,12 @@ def lock_feet(clip: Retargeted, blend: float = BLEND_SECONDS, soft: float = SOFT
         base_ankle = foot_goals(feet.target[:, ka], feet.contacts[:, ka], feet.clearance[ka], blend_frames)
         if sole is not None and side in sole:
             bones, rest = sole[side]
-            Gb = G[:, bones]
-            sole_now = np.einsum("fpij,pj->fpi", Gb[..., :3, :3], rest) + Gb[..., :3, 3]          # (F, P, 3)
+            # the sole as posed so far, relative to the ankle: one (F, 3, 3) @ (3, P_b) per bone
+            sole_now = np.empty((F, len(bones), 3))
+            for b in np.unique(bones):
+                on = bones == b
+                sole_now[:, on] = np.swapaxes(G[:, b, :3, :3] @ rest[on].T, 1, 2) + G[:, b, None, :3, 3]
+            sole_now -= J[:, a][:, None]
         lift = np.zeros(F)
         for _ in range(3 if sole is not None and side in sole else 1):
             goal_a = base_ankle.copy()
@@ -274,7 +278,7 @@ def lock_feet(clip: Retargeted, blend: float = BLEND_SECONDS, soft: float = SOFT
             if sole is None or side not in sole:
                 break
             # the foot subtree moved rigidly: x -> ankle_new + turn (x - ankle_old)
-            low = (np.einsum("fij,fpj->fpi", turn, sole_now - J[:, a][:, None])[..., 1].min(axis=1) + ankle_new[:, 1])
+            low = (sole_now @ turn[:, 1, :, None])[..., 0].min(axis=1) + ankle_new[:, 1]
             if (low >= -1e-4).all():
                 break
             lift = lift + np.maximum(-low, 0.0)
