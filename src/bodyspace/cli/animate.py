@@ -104,6 +104,19 @@ def _skeleton(vertices, faces, rig_name: str, where: str):
     return rig, body_skeleton(rig, vertices, rest_vertices=template.vertices)
 
 
+def _facing_front(posed: np.ndarray, root_rotations: np.ndarray) -> np.ndarray:
+    """Frames (N, V, 3) turned about the vertical through each frame's centre so that the root
+    bone's front (its rest +Z) faces +Z: previews show the body's front and side, wherever the
+    clip walks. root_rotations: (N, 3, 3) world rotations of the root bone."""
+    front = root_rotations[:, :, 2]
+    angle = np.arctan2(front[:, 0], front[:, 2])                     # heading about +Y
+    c, s = np.cos(-angle), np.sin(-angle)
+    R = np.zeros((len(angle), 3, 3))
+    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1.0, -s, c
+    centre = posed.mean(axis=1, keepdims=True)
+    return (posed - centre) @ np.swapaxes(R, 1, 2) + centre
+
+
 def _summary_table(rows: list[tuple[str, str, str, str]]) -> Table:
     table = Table(title="feet and arms (source contacts: height < 5 cm over the planted height, speed < 0.5 m/s)")
     for col in ("measure", "source clip", "retargeted", "with foot IK"):
@@ -154,6 +167,7 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
     if clip.n_frames == 0:
         raise MotionError(f"{motion}: holds no frames (Frames: 0); expected a clip")
     chosen = parse_frames(frames, clip.n_frames)
+    original_dt = clip.frame_time
     clip = clip.frames(chosen)
     if chosen.step > 1:             # every STEP-th frame: the time between kept frames grows
         clip = Motion(clip.skeleton, clip.values, clip.frame_time * chosen.step, clip.unit, clip.unit_note,
@@ -195,18 +209,25 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             write_bvh(out, to_bvh(final))
         else:
             write_mesh_sequence(out, posed, faces, clip.frame_time, extras={"motion": extras})
+        root = int(np.flatnonzero(skeleton.parents < 0)[0])
         if filmstrip_png is not None:
             n = clip.n_frames
             step = every or max(1, int(np.ceil(n / _FILMSTRIP_PANELS)))
             pick = np.arange(0, n, step)
             bar("filmstrip", 0.8)
-            filmstrip(filmstrip_png, posed[pick].astype(float), faces,
-                      [f"{i * clip.frame_time:.2f} s" for i in pick],
-                      title=f"{clip.name} on {said_body}, rig {rig_name}", ncols=min(len(pick), 4))
+            frames_shown = _facing_front(posed[pick].astype(float), transforms[pick, root, :3, :3])
+            filmstrip(filmstrip_png, frames_shown, faces,
+                      [f"frame {chosen.start + i * chosen.step} ({(chosen.start + i * chosen.step) * original_dt:.2f} s)"
+                       for i in pick],
+                      title=f"{clip.name} on {said_body}, rig {rig_name} (each frame turned to face the camera)",
+                      ncols=min(len(pick), 4))
         if gif is not None:
             step = max(1, int(np.ceil(clip.n_frames / _GIF_MAX_FRAMES)))
             pick = np.arange(0, clip.n_frames, step)
-            animated_gif(gif, posed[pick], faces, clip.frame_time * step, title=f"{clip.name}",
+            # one turn for the whole clip: the body's first heading faces the camera's side view
+            turned = _facing_front(posed[pick].astype(float), np.broadcast_to(transforms[0, root, :3, :3],
+                                                                              (len(pick), 3, 3)))
+            animated_gif(gif, turned, faces, clip.frame_time * step, title=f"{clip.name}",
                          progress=lambda m, f: bar(f"GIF: {m}", 0.85 + 0.14 * f))
         bar("done", 1.0)
     # what the clip does to this body
