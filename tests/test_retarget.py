@@ -18,6 +18,7 @@ from bodyspace.motion.matching import graph_from_motion, graph_from_skeleton, ma
 from bodyspace.motion.retarget import minimal_rotation, retarget, to_bvh
 from bodyspace.rig.kinematics import forward_kinematics, rotvec_to_matrix
 from bodyspace.rig.skeleton import Skeleton, body_skeleton
+from bodyspace.studies.retargeting import clip_on_body
 
 
 def body_of_stature(phenotype_model, stature_m: float, gender: float) -> np.ndarray:
@@ -323,3 +324,14 @@ def test_no_knee_pops(locked):
         speed_after = np.abs(np.diff(knee_angles(after), axis=0)).max()
         # the fastest knee of the locked clip is not much faster than the clip's own fastest
         assert speed_after < 1.5 * speed_before, (label, np.degrees([speed_before, speed_after]))
+
+
+@needs_clips
+def test_study_row_has_every_measure(walk, template):
+    row = clip_on_body(walk.frames(slice(0, 300)), template.vertices)
+    assert row["frames"] == 300 and 0.9 < row["leg_ratio"] < 1.1
+    for stage in ("source", "retargeted", "foot_ik"):
+        assert 0.0 <= row[stage]["share_sliding"] <= 1.0 and row[stage]["fastest_knee_deg_per_s"] > 0
+    assert row["foot_ik"]["share_sliding"] <= row["retargeted"]["share_sliding"]
+    assert row["foot_ik"]["feet_skin_below_floor_m"] < 0.01
+    assert 0 <= row["arms_in_torso"]["frames_intersecting"] <= 300
