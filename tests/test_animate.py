@@ -168,6 +168,10 @@ def test_a_body_asked_of_the_model_walks(semantic_model_file, tmp_path):
         assert abs(r["body_stature_m"] - stature / 100) < 0.03
         assert r["foot_ik"]["skating"]["share_sliding"] <= r["source"]["skating"]["share_sliding"]
         assert r["foot_ik"]["feet_skin_penetration_m"] < 0.01
+    # without --set: the model's mean body
+    code, text = run("animate", semantic_model_file, "--motion", CLIPS[-1], "--frames", "100:300:10", "--out",
+                     tmp_path / "mean.glb")
+    assert code == 0 and "the model's mean body" in text.replace("\n", " "), text
     # the taller body's root path is longer (leg ratio)
     a, b = (json.loads((tmp_path / f"r{s}.json").read_text())["leg_ratio"] for s in (155, 190))
     assert b > a * 1.1
