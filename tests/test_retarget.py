@@ -19,6 +19,7 @@ from bodyspace.motion.retarget import minimal_rotation, retarget, to_bvh
 from bodyspace.rig.kinematics import forward_kinematics, rotvec_to_matrix
 from bodyspace.rig.skeleton import Skeleton, body_skeleton
 from bodyspace.studies.retargeting import clip_on_body
+from bodyspace.synth.poses import load_pose_library
 
 
 def body_of_stature(phenotype_model, stature_m: float, gender: float) -> np.ndarray:
@@ -335,3 +336,63 @@ def test_study_row_has_every_measure(walk, template):
     assert row["foot_ik"]["share_sliding"] <= row["retargeted"]["share_sliding"]
     assert row["foot_ik"]["feet_skin_below_floor_m"] < 0.01
     assert 0 <= row["arms_in_torso"]["frames_intersecting"] <= 300
+
+
+def test_a_t_pose_clip_onto_the_a_pose_body(template, bodies, rng, tmp_path):
+    """A source whose rest pose is a T-pose (the default rig posed in the library's t_pose and taken
+    as a new rest skeleton), moving at random: on the A-pose body every limb points where the
+    source's does, and at the source's rest the body's arms are horizontal."""
+    rig = template.rigs["default"]
+    sk = body_skeleton(rig, template.vertices)
+    G = forward_kinematics(load_pose_library().rotations("t_pose", rig)[None], sk.heads, sk.parents)[0]
+    heads = np.einsum("bij,bj->bi", G[:, :3, :3], sk.heads) + G[:, :3, 3]
+    tails = np.einsum("bij,bj->bi", G[:, :3, :3], sk.tails) + G[:, :3, 3]
+    t_skeleton = Skeleton("t_pose", sk.bone_names, sk.parents, heads, tails, np.zeros(sk.n_bones))
+    rest = skeleton_from_rig(t_skeleton, frames=8)
+    R = rotvec_to_matrix(rng.normal(scale=0.25, size=(8, sk.n_bones, 3)))
+    R[0] = np.eye(3)                                                     # frame 0: the T-pose rest
+    tr = np.broadcast_to(rest.skeleton.offsets, (8, sk.n_bones, 3)).copy()
+    clip = Motion.from_rotations(rest.skeleton, R, tr, frame_time=1 / 30, name="tpose")
+    clip = read_bvh(write_bvh(tmp_path / "tpose.bvh", clip, precision=9), unit="m", translation="replace")
+    target, floor, _ = bodies["150"]
+    out = retarget(clip, target, target_floor=floor)
+    J = out.joint_positions()
+    tgt = {r: target.bone_index(n) for r, n in out.match.target_landmarks.items()}
+    # every bone below the hips and shoulders points where its source bone points (bone by bone:
+    # the random twist-bone rotations bend the limbs, so landmark-to-landmark lines differ with
+    # the proportions; a bone with several matched children, a foot with five toes, points to
+    # their mean)
+    limbs = [out.match.source_landmarks[f"{r}.{s}"] for r in ("hip", "shoulder") for s in "LR"]
+    n_children = {}
+    for seg in out.match.segments:
+        n_children[seg.parent] = n_children.get(seg.parent, 0) + 1
+    checked = 0
+    for seg in out.match.segments:
+        if seg.parent is None or n_children[seg.parent] > 1 or seg.parent[0] not in limbs and not any(
+                seg.parent[0] in _below(clip.skeleton, j) for j in limbs):
+            continue
+        ds = out.source_positions[:, out.source_names.index(seg.child[0])] - \
+            out.source_positions[:, out.source_names.index(seg.parent[0])]
+        dt = J[:, target.bone_index(seg.child[1])] - J[:, target.bone_index(seg.parent[1])]
+        ok = (np.linalg.norm(ds, axis=1) > 0.01) & (np.linalg.norm(dt, axis=1) > 0.01)
+        if not ok.any():                                  # heads that coincide (metacarpals at the wrist)
+            continue
+        ds, dt = (d[ok] / np.linalg.norm(d[ok], axis=1)[:, None] for d in (ds, dt))
+        assert angle_deg(ds, dt).max() < 1e-4, seg
+        checked += 1
+    assert checked > 20
+    for side in "LR":
+        arm = J[0, tgt[f"wrist.{side}"]] - J[0, tgt[f"shoulder.{side}"]]
+        assert abs(arm[1]) / np.linalg.norm(arm) < 0.05                 # horizontal: the A-pose body in a T
+    rest_arm = target.heads[tgt["wrist.L"]] - target.heads[tgt["shoulder.L"]]
+    assert -rest_arm[1] / np.linalg.norm(rest_arm) > 0.3                  # the body's own rest is an A-pose
+
+
+def _below(skeleton, name: str) -> set[str]:
+    """Joint names in the subtree of ``name`` (inclusive) of a BVH skeleton."""
+    j = skeleton.index(name)
+    inside = {j}
+    for k in range(skeleton.n_joints):                   # parents precede children
+        if skeleton.parents[k] in inside:
+            inside.add(k)
+    return {skeleton.names[k] for k in inside}
