@@ -71,12 +71,14 @@ def api_clip(template, frames=slice(200, 440, 12)):
 # ----------------------------------------------------------------------------- glTF animation
 
 @needs_clips
-def test_animated_glb_validates_and_three_js_plays_it_like_our_lbs(node, template, template_mesh, tmp_path):  # noqa: F811
+def test_animated_glb_validates_and_three_js_plays_it_like_our_lbs(node, template, template_mesh,  # noqa: F811
+                                                                    tmp_path):
     out = tmp_path / "walk.glb"
     code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", FRAMES, "--out", out)
     assert code == 0, text
     report = validate(node, out)[0]
-    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"][:10]
+    issues = report["issues"]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:10]
     assert report["info"]["animationCount"] == 1
     g = pygltflib.GLTF2.load(out)
     anim = g.animations[0]

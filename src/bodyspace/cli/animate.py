@@ -138,8 +138,8 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             frames: Optional[str] = typer.Option(None, "--frames", help="Frames of the clip to use, START:STOP[:STEP] "
                                                                         "from 0, e.g. 0:240:4 (default: all)."),
             no_ik: bool = typer.Option(False, "--no-ik", help="Leave the feet as retargeted (no foot locking)."),
-            filmstrip_png: Optional[Path] = typer.Option(None, "--filmstrip", help="A PNG of every n-th frame (--every), "
-                                                                                  "front and side."),
+            filmstrip_png: Optional[Path] = typer.Option(None, "--filmstrip", help="A PNG of every n-th frame "
+                                                                                  "(--every), front and side."),
             every: Optional[int] = typer.Option(None, "--every", min=1, help="Frames between filmstrip panels "
                                                                              "(default: 8 panels over the clip)."),
             gif: Optional[Path] = typer.Option(None, "--gif", help="An animated GIF (side view, at most 60 frames "
@@ -217,8 +217,7 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             bar("filmstrip", 0.8)
             frames_shown = _facing_front(posed[pick].astype(float), transforms[pick, root, :3, :3])
             filmstrip(filmstrip_png, frames_shown, faces,
-                      [f"frame {chosen.start + i * chosen.step} ({(chosen.start + i * chosen.step) * original_dt:.2f} s)"
-                       for i in pick],
+                      [f"frame {k} ({k * original_dt:.2f} s)" for k in chosen.start + pick * chosen.step],
                       title=f"{clip.name} on {said_body}, rig {rig_name} (each frame turned to face the camera)",
                       ncols=min(len(pick), 4))
         if gif is not None:
@@ -261,7 +260,8 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
                                        "fastest_knee_deg_per_s": knees[0]},
                             "retargeted": {"skating": before.to_dict(), "feet_skin_penetration_m": soles[0],
                                            "other_skin_penetration_m": others[0], "fastest_knee_deg_per_s": knees[1]},
-                            "foot_ik": None if no_ik else {"skating": after.to_dict(), "feet_skin_penetration_m": soles[1],
+                            "foot_ik": None if no_ik else {"skating": after.to_dict(),
+                                                           "feet_skin_penetration_m": soles[1],
                                                            "other_skin_penetration_m": others[1],
                                                            "fastest_knee_deg_per_s": knees[2]},
                             "arm_torso_intersections": crossing.to_dict()})

@@ -47,7 +47,8 @@ from bodyspace.mesh.geometry import check_mesh, face_normals
 from bodyspace.rig.kinematics import matrix_to_quaternion
 from bodyspace.rig.skeleton import Skeleton
 
-__all__ = ["MorphTarget", "SkeletonAnimation", "gltf_bytes", "write_gltf", "top_influences", "influences_matrix", "bone_distances", "joint_local_transforms", "vertex_normals", "GENERATOR",
+__all__ = ["MorphTarget", "SkeletonAnimation", "continuous_quaternions", "gltf_bytes", "write_gltf", "top_influences",
+           "influences_matrix", "bone_distances", "joint_local_transforms", "vertex_normals", "GENERATOR",
            "SKIN_COLOR", "MAX_INFLUENCES"]
 
 GENERATOR = f"bodyspace {__version__}"
@@ -294,7 +295,8 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
             raise ParameterError(f"animation: transforms of shape {G.shape}, expected finite (frames, "
                                  f"{skeleton.n_bones}, 4, 4) for the skeleton's bones")
         if not (np.isfinite(animation.frame_time) and animation.frame_time > 0):
-            raise ParameterError(f"animation: frame time {animation.frame_time!r}, expected a positive number of seconds")
+            raise ParameterError(f"animation: frame time {animation.frame_time!r}, expected a positive number of "
+                                 "seconds")
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator=GENERATOR, version="2.0",
                                                  extras={"units": "metre", "up": "+Y", "front": "+Z",
                                                          **(extras or {})}))
@@ -382,8 +384,8 @@ def _add_animation(gltf: pygltflib.GLTF2, buf: _Buffer, skeleton: Skeleton, anim
         channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(
             node=joints[b], path="rotation")))
     for b in np.flatnonzero(skeleton.parents < 0):
-        samplers.append(pygltflib.AnimationSampler(input=times, interpolation="LINEAR",
-                                                   output=buf.add(translation[:, b].astype(np.float32), _FLOAT, "VEC3")))
+        moved = buf.add(translation[:, b].astype(np.float32), _FLOAT, "VEC3")
+        samplers.append(pygltflib.AnimationSampler(input=times, interpolation="LINEAR", output=moved))
         channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(
             node=joints[int(b)], path="translation")))
     gltf.animations.append(pygltflib.Animation(name=animation.name, samplers=samplers, channels=channels,

@@ -15,7 +15,8 @@ and how deep, without correcting anything:
   is positive, the arm vertex lies within 45 degrees of the inward normal (behind the surface
   point, not beside it: at the edge of the torso region the nearest torso vertex can be far
   round the body) and the two are closer than ``REACH`` (5 cm; beyond it the nearest vertex
-  says nothing about inside or out, so deeper points are reported as 5 cm at most). A frame intersects when its deepest arm vertex is more than
+  says nothing about inside or out, so deeper points are reported as 5 cm at most). A frame
+  intersects when its deepest arm vertex is more than
   ``MIN_DEPTH`` (5 mm) inside.
 
 It is an approximation (one nearest vertex, not a point-in-solid test), tested to report
