@@ -30,6 +30,8 @@ from bodyspace.data.template import load_template
 from bodyspace.measure import load_landmarks, load_measurement_set, measure
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
+from bodyspace.motion.bvh import skeleton_from_rig, write_bvh
+from bodyspace.rig.skeleton import body_skeleton
 
 # A path no one (not even root) can write: the kernel refuses new files under /proc.
 UNWRITABLE = "/proc/bodyspace-fuzz/out"
@@ -1463,9 +1465,68 @@ def _rig_cases() -> list[Case]:
     return c
 
 
+def _small_clip(tmp: Path) -> Path:
+    """A valid 6-frame BVH: the cmu_mb rig's skeleton at rest, the root walking forward."""
+    t = load_template()
+    clip = skeleton_from_rig(body_skeleton(t.rigs["cmu_mb"], t.vertices), frames=6, frame_time=0.1)
+    clip.values[:, 2] += np.linspace(0.0, 0.5, 6)
+    return write_bvh(tmp / "clip.bvh", clip)
+
+
+def _bad_clip(text: str) -> Callable[[Env, Path], dict]:
+    def setup(env: Env, tmp: Path) -> dict:
+        good = _small_clip(tmp).read_text()
+        return {"clip": str(_write(tmp / "bad.bvh", text.replace("{good}", good).replace(
+            "{half}", good[:len(good) // 2])))}
+    return setup
+
+
+def _animate_cases() -> list[Case]:
+    """``bodyspace animate``: bad bodies, bad clips, bad options; each refused in one line."""
+    def with_clip(make_body):
+        def setup(env: Env, tmp: Path) -> dict:
+            return {**make_body(env, tmp), "clip": str(_small_clip(tmp))}
+        return setup
+    c = [Case(f"animate-obj-{name}", "animate", ("animate", "{bad}", "--motion", "{clip}", "--out", "{out}/w.glb"),
+              setup=with_clip(make_mesh(".obj", name))) for name in ("garbage", "empty", "nan_vertex", "extra_vertices")
+         if name in MESH_VARIANTS[".obj"]]
+    c.append(Case("animate-obj-scaled-mm", "animate", ("animate", "{bad}", "--motion", "{clip}", "--out", "{out}/w.glb"),
+                  setup=with_clip(make_scaled_obj(1000.0)), refusal=says("expected metres", one_line=True)))
+    for name, text, wanted in (("garbage", "\x00\x01 not a bvh", "bad.bvh"), ("empty", "", "bad.bvh"),
+                               ("truncated", "{half}", "bad.bvh"),
+                               ("no-frames", "HIERARCHY\nROOT a\n{\nOFFSET 0 0 0\nCHANNELS 3 Xposition Yposition "
+                                "Zposition\nEnd Site\n{\nOFFSET 0 1 0\n}\n}\nMOTION\nFrames: 0\nFrame Time: 0.1\n",
+                                "bad.bvh"),
+                               ("one-bone", "HIERARCHY\nROOT a\n{\nOFFSET 0 0 0\nCHANNELS 3 Xposition Yposition "
+                                "Zposition\nEnd Site\n{\nOFFSET 0 1 0\n}\n}\nMOTION\nFrames: 2\nFrame Time: 0.1\n"
+                                "0 0 0\n0 0 1\n", "map")):
+        c.append(Case(f"animate-bvh-{name}", "animate", ("animate", "{body}", "--motion", "{clip}", "--out",
+                                                         "{out}/w.glb"),
+                      setup=_bad_clip(text.encode().decode("unicode_escape")), refusal=says(wanted, one_line=True)))
+    for name, (args, refusal) in {
+        "frames-word": (("--frames", "all"), says("--frames 'all'", one_line=True)),
+        "frames-backwards": (("--frames", "5:2"), says("--frames '5:2'", one_line=True)),
+        "frames-past-end": (("--frames", "100:200"), says("the clip has 6 frames", one_line=True)),
+        "every-without-filmstrip": (("--every", "2"), says("--every", "--filmstrip", one_line=True)),
+        "set-on-a-mesh": (("--set", "stature=180cm"), says("--set", one_line=True)),
+        "unknown-rig": (("--rig", "skeleton"), says("--rig 'skeleton'", one_line=True)),
+        "out-obj": (("--out", "{out}/w.obj"), says("--out", ".glb", one_line=True)),
+        "filmstrip-jpg": (("--filmstrip", "{out}/f.jpg"), says("--filmstrip", ".png", one_line=True)),
+        "map-garbage": (("--map", "{clip}"), says("{clip}", "not valid JSON", one_line=True)),
+    }.items():
+        out = () if "--out" in args else ("--out", "{out}/w.glb")
+        c.append(Case(f"animate-option-{name}", "animate", ("animate", "{body}", "--motion", "{clip}", *out, *args),
+                      refusal=refusal, setup=lambda env, tmp: {"clip": str(_small_clip(tmp))}))
+    c.append(Case("animate-model-bare-set", "animate", ("animate", "{bare}", "--set", "stature=170cm", "--motion",
+                                                        "{clip}", "--out", "{out}/w.glb"),
+                  refusal=says("semantic", one_line=True),
+                  setup=lambda env, tmp: {"bare": str(env.bare), "clip": str(_small_clip(tmp))}))
+    return c
+
+
 def all_cases() -> list[Case]:
     cases = _asset_cases() + _mesh_cases() + _model_cases() + _db_cases() + _landmark_cases() + _output_cases() + _option_cases() \
-        + _set_cases() + _rig_cases()
+        + _set_cases() + _rig_cases() + _animate_cases()
     ids = [case.id for case in cases]
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
     assert not duplicates, f"fuzz case ids repeat: {duplicates}"

@@ -14,7 +14,7 @@ replace what bodyspace did not write.
   ``bodyspace.*``, a PNG the text chunk ``Software=bodyspace``, an OBJ the first line
   ``# bodyspace ...``, a Markdown file the first line ``<!-- written by bodyspace -->``, a JSON
   file the top-level field ``"written_by": "bodyspace"``, a rigged GLB its asset generator
-  ``bodyspace VERSION``.
+  ``bodyspace VERSION``, a GIF the comment ``written by bodyspace``.
 """
 
 from __future__ import annotations
@@ -251,6 +251,13 @@ def _own_glb(path: Path) -> bool:
     return isinstance(generator, str) and generator.startswith(WRITTEN_BY + " ")
 
 
+def _own_gif(path: Path) -> bool:
+    """A GIF whose comment extension says ``written by bodyspace`` (before the image data)."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    return head[:4] == b"GIF8" and f"written by {WRITTEN_BY}".encode() in head
+
+
 SIGNATURES = {
     ".npz": _own_npz,
     ".png": _own_png,
@@ -258,6 +265,7 @@ SIGNATURES = {
     ".md": lambda p: _first_line(p) == MARKDOWN_SIGNATURE,
     ".json": _own_json,
     ".glb": _own_glb,
+    ".gif": _own_gif,
 }
 
 

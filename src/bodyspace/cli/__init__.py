@@ -1,7 +1,7 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
 One module per command group (assets, population, examples (example-scans), data (import), model, measure,
-semantics, mapping, demo, export (rig), motion);
+semantics, mapping, demo, export (rig), motion, animate);
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 import typer
 
 from bodyspace import __version__
+from bodyspace.cli.animate import animate
 from bodyspace.cli.assets import assets
 from bodyspace.cli.common import guarded, out_console
 from bodyspace.cli.data import import_meshes
@@ -44,7 +45,8 @@ for _name, _command in (("assets", assets), ("population", population), ("exampl
                         ("demo", demo), ("import", import_meshes),
                         ("build", build),
                         ("sample", sample), ("measure", measure), ("evaluate", evaluate),
-                        ("generate", generate), ("morph", morph), ("crowd", crowd), ("rig", rig)):
+                        ("generate", generate), ("morph", morph), ("crowd", crowd), ("rig", rig),
+                        ("animate", animate)):
     app.command(_name)(guarded(_command))
 mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
 for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):

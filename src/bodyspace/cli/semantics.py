@@ -80,7 +80,7 @@ AcceptMissesOption = typer.Option(False, "--accept-misses", help="Write the body
 _fail, _progress, _report_warnings = fail, progress, report_warnings
 
 
-def _load(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
+def load_semantics(model_file: Path, database: Optional[Path], refit: bool, clamp: bool):
     """The model's ``SemanticModel``: stored in the model file; else fitted from ``database`` or
     folded in from a legacy ``MODEL.semantics.npz``, and then saved into the model file."""
     # refitting never reads the stored regressors, so damaged ones can be replaced
@@ -117,7 +117,7 @@ def _save_into(model, model_file: Path) -> bool:
     return True
 
 
-def _targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
+def parse_targets(sets, ranges, allow_delta: bool, sm=None) -> dict:
     """Parse --set/--range; with the semantic model ``sm``, an unknown name is refused (with the
     accepted names) before its value is parsed. A name asked twice (two --set, or --set and
     --range) is refused: which one was meant?"""
@@ -183,7 +183,7 @@ def evaluate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
     check_file_output(out, "--out", force, (".md",), example="evaluation.md")
     check_file_output(out.with_suffix(".json"), "--out (its .json beside it)", force, (".json",))
     try:
-        sm = _load(model_file, database, refit, False)
+        sm = load_semantics(model_file, database, refit, False)
         with _progress("evaluate") as cb:
             folds = min(10, len(sm.X_)) if folds is None else folds
             cb(f"{folds}-fold cross-validation of {len(sm.labels_)} labels x 3 regressors", 0.05)
@@ -263,8 +263,8 @@ def generate(model_file: Path = typer.Argument(..., help="Model file (.npz, body
         check_rig_options(out, rig, morphs, png, bones, force)
         if not sets and not ranges:
             raise BodyspaceError("nothing asked; pass --set NAME=VALUE, e.g. --set stature=180cm")
-        sm = _load(model_file, database, refit, clamp)
-        targets = _targets(sets, ranges, allow_delta=False, sm=sm)
+        sm = load_semantics(model_file, database, refit, clamp)
+        targets = parse_targets(sets, ranges, allow_delta=False, sm=sm)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             result = sm.body_model.generate(targets, rng=seed, accept_misses=accept_misses)
@@ -297,8 +297,8 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     try:
         if not sets:
             raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
-        sm = _load(model_file, database, refit, clamp)
-        changes = _targets(sets, None, allow_delta=True, sm=sm)
+        sm = load_semantics(model_file, database, refit, clamp)
+        changes = parse_targets(sets, None, allow_delta=True, sm=sm)
         v, f = load_mesh(mesh)
         if v.shape != sm.body_model.template_vertices.shape or not np.array_equal(f, sm.body_model.faces):
             raise BodyspaceError(f"{mesh}: {len(v)} vertices / {len(f)} faces, expected the model's template topology "
@@ -333,8 +333,8 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     try:
         if fmt.lower() not in ("obj", "ply", "glb"):
             raise BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb")
-        sm = _load(model_file, database, refit, clamp)
-        targets = _targets(sets, ranges, allow_delta=False, sm=sm)
+        sm = load_semantics(model_file, database, refit, clamp)
+        targets = parse_targets(sets, ranges, allow_delta=False, sm=sm)
         with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught, \
                 output_folder(out, "--out", force, CROWD_KIND) as folder:
             warnings.simplefilter("always", RuntimeWarning)

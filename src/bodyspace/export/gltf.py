@@ -19,7 +19,10 @@ weights from elsewhere (skeleton embedding, bone heat). What the file holds:
   radians), ``length``; of the mesh: ``targetNames`` (Blender and three.js name shape keys /
   morph targets from it) and what each morph means;
 - morph targets (optional): POSITION and NORMAL displacements, all weights 0 by default;
-- a plain skin material (PBR, not metallic, rough).
+- a plain skin material (PBR, not metallic, rough);
+- an animation (optional, ``SkeletonAnimation``): one rotation channel per joint and a
+  translation channel per root joint (the root motion), linear interpolation, one shared time
+  accessor; quaternions made sign-continuous frame to frame so interpolation takes the short way.
 
 pygltflib (MIT) writes the JSON and the GLB container; the binary buffer is laid out here,
 every view 4-byte aligned.
@@ -44,7 +47,8 @@ from bodyspace.mesh.geometry import check_mesh, face_normals
 from bodyspace.rig.kinematics import matrix_to_quaternion
 from bodyspace.rig.skeleton import Skeleton
 
-__all__ = ["MorphTarget", "gltf_bytes", "write_gltf", "top_influences", "influences_matrix", "bone_distances", "joint_local_transforms", "vertex_normals", "GENERATOR",
+__all__ = ["MorphTarget", "SkeletonAnimation", "continuous_quaternions", "gltf_bytes", "write_gltf", "top_influences",
+           "influences_matrix", "bone_distances", "joint_local_transforms", "vertex_normals", "GENERATOR",
            "SKIN_COLOR", "MAX_INFLUENCES"]
 
 GENERATOR = f"bodyspace {__version__}"
@@ -70,6 +74,27 @@ class MorphTarget:
     name: str
     deltas: np.ndarray
     meaning: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SkeletonAnimation:
+    """A skeletal animation: ``transforms`` (F, B, 4, 4) posed bone transforms per frame in our
+    convention (``rig.kinematics.forward_kinematics``, root motion included), ``frame_time``
+    seconds between frames, ``name`` of the glTF animation."""
+
+    transforms: np.ndarray
+    frame_time: float
+    name: str = "motion"
+
+
+def continuous_quaternions(q: np.ndarray) -> np.ndarray:
+    """Quaternions (F, ..., 4) with each frame's sign flipped to the hemisphere of the previous
+    frame's (``q`` and ``-q`` are one rotation; interpolating across a flip turns the long way)."""
+    q = np.array(q, dtype=float)
+    for f in range(1, len(q)):
+        flip = np.einsum("...i,...i->...", q[f], q[f - 1]) < 0
+        q[f][flip] *= -1.0
+    return q
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -249,7 +274,7 @@ def _check_inputs(vertices, faces, skeleton, weights, morphs):
 
 def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | None = None,
                weights: sp.spmatrix | np.ndarray | None = None, morphs: Sequence[MorphTarget] = (), *,
-               name: str = "body", extras: dict | None = None) -> bytes:
+               name: str = "body", extras: dict | None = None, animation: SkeletonAnimation | None = None) -> bytes:
     """A binary glTF 2.0 file (bytes) of one body, rigged when a skeleton and weights are given.
 
     vertices: (V, 3) metres, +Y up, +Z front (the rest pose, which becomes the bind pose).
@@ -259,8 +284,19 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
         vertex are written, the rest moved to skeleton kin (``top_influences``).
     morphs: ``MorphTarget`` shape keys (V, 3) displacements each.
     name: the mesh's and mesh node's name; extras: JSON-able facts for the asset's extras.
+    animation: a ``SkeletonAnimation`` of the skeleton's bones (needs a skeleton).
     """
     v, f, weights, deltas = _check_inputs(vertices, faces, skeleton, weights, morphs)
+    if animation is not None:
+        if skeleton is None:
+            raise ParameterError("animation: needs a skeleton and weights (a rigged body) to move")
+        G = np.asarray(animation.transforms, dtype=float)
+        if G.ndim != 4 or G.shape[1:] != (skeleton.n_bones, 4, 4) or len(G) == 0 or not np.isfinite(G).all():
+            raise ParameterError(f"animation: transforms of shape {G.shape}, expected finite (frames, "
+                                 f"{skeleton.n_bones}, 4, 4) for the skeleton's bones")
+        if not (np.isfinite(animation.frame_time) and animation.frame_time > 0):
+            raise ParameterError(f"animation: frame time {animation.frame_time!r}, expected a positive number of "
+                                 "seconds")
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator=GENERATOR, version="2.0",
                                                  extras={"units": "metre", "up": "+Y", "front": "+Z",
                                                          **(extras or {})}))
@@ -297,6 +333,8 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
     gltf.scene = 0
     if skeleton is not None:
         _add_skeleton(gltf, buf, skeleton)
+    if animation is not None:
+        _add_animation(gltf, buf, skeleton, animation)
     gltf.buffers.append(pygltflib.Buffer(byteLength=buf.size))
     gltf.set_binary_blob(buf.blob())
     return b"".join(gltf.save_to_bytes())
@@ -329,6 +367,29 @@ def _add_skeleton(gltf: pygltflib.GLTF2, buf: _Buffer, skeleton: Skeleton) -> No
                                      joints=[first + b for b in range(skeleton.n_bones)]))
     gltf.nodes[0].skin = 0
     gltf.scenes[0].nodes.append(first - 1)
+
+
+def _add_animation(gltf: pygltflib.GLTF2, buf: _Buffer, skeleton: Skeleton, animation: SkeletonAnimation) -> None:
+    """Rotation channels of every joint node, translation channels of the root joints."""
+    G = np.asarray(animation.transforms, dtype=float)
+    translation, rotation = joint_local_transforms(skeleton, G)               # (F, B, 3), (F, B, 4)
+    rotation = continuous_quaternions(rotation)
+    joints = gltf.skins[0].joints                                              # node of each bone
+    times = buf.add((np.arange(len(G)) * float(animation.frame_time)).astype(np.float32), _FLOAT, "SCALAR",
+                    minmax=True)
+    samplers, channels = [], []
+    for b in range(skeleton.n_bones):
+        samplers.append(pygltflib.AnimationSampler(input=times, interpolation="LINEAR",
+                                                   output=buf.add(rotation[:, b].astype(np.float32), _FLOAT, "VEC4")))
+        channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(
+            node=joints[b], path="rotation")))
+    for b in np.flatnonzero(skeleton.parents < 0):
+        moved = buf.add(translation[:, b].astype(np.float32), _FLOAT, "VEC3")
+        samplers.append(pygltflib.AnimationSampler(input=times, interpolation="LINEAR", output=moved))
+        channels.append(pygltflib.AnimationChannel(sampler=len(samplers) - 1, target=pygltflib.AnimationChannelTarget(
+            node=joints[int(b)], path="translation")))
+    gltf.animations.append(pygltflib.Animation(name=animation.name, samplers=samplers, channels=channels,
+                                               extras={"frames": len(G), "frame_time_s": float(animation.frame_time)}))
 
 
 def joint_local_transforms(skeleton: Skeleton, transforms: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
