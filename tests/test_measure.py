@@ -530,7 +530,7 @@ def test_registry_covers_every_method_of_the_default_set(mset):
     from bodyspace.measure.definitions import DEFAULT_PATH
     from bodyspace.measure.methods import METHODS
     used = {m["method"] for m in json.loads(DEFAULT_PATH.read_text())["measurements"]}
-    assert used == {"loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi"}
+    assert used == {"loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi", "top"}
     assert used <= set(METHODS)
     for name, method in METHODS.items():
         assert callable(method.compute) and method.unit, name
