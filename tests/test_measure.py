@@ -172,6 +172,9 @@ SQUEEZED = {
 UNDEFINED = {
     ("knee_lift_left", "hip_girth"): "hips_extended",     # a thigh 90 degrees from the torso
     ("step_forward_left", "hip_girth"): "hips_extended",  # the stride spreads the thighs 30 degrees
+    # The underbust tape of a heavy body moves up to 10 cm when the hips flex (squat, issue 12 §3).
+    ("knee_lift_left", "underbust_girth"): "hips_extended",
+    ("step_forward_left", "underbust_girth"): "hips_extended",
 }
 
 
