@@ -223,7 +223,7 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
         check_winding(v, faces, mesh_name)
     topology = _topology(faces)
     L = mset.landmark_matrix(v.shape[1])
-    parts = vertex_parts(mset, v, L)
+    parts = vertex_parts(mset, v, L, faces)
     jobs = []
     for s in range(0, len(v), chunk):
         sl = slice(s, s + chunk)
@@ -256,7 +256,7 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
     return out
 
 
-def vertex_parts(mset: MeasurementSet, v: np.ndarray, L) -> np.ndarray | None:
+def vertex_parts(mset: MeasurementSet, v: np.ndarray, L, faces: np.ndarray | None = None) -> np.ndarray | None:
     """The body part of each vertex (V,) for the set's part-aware girths: the set's own labels,
     else assigned from the landmarks of the first body ``v[0]`` (``parts.parts_from_landmarks``;
     a set without labels should be measured on standing bodies, or given labels made on one with
@@ -266,7 +266,7 @@ def vertex_parts(mset: MeasurementSet, v: np.ndarray, L) -> np.ndarray | None:
     if mset.vertex_parts is not None:
         return mset.vertex_parts
     P = _landmarks(L, v[:1])[0]
-    return parts_from_landmarks(v[0], {name: P[i] for i, name in enumerate(mset.landmarks)})
+    return parts_from_landmarks(v[0], {name: P[i] for i, name in enumerate(mset.landmarks)}, faces)
 
 
 def _run_job(job):
