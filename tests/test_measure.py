@@ -175,6 +175,7 @@ UNDEFINED = {
     # The underbust tape of a heavy body moves up to 10 cm when the hips flex (squat, issue 12 §3).
     ("knee_lift_left", "underbust_girth"): "hips_extended",
     ("step_forward_left", "underbust_girth"): "hips_extended",
+    ("torso_twist_left", "underbust_girth"): "torso_untwisted",   # the twist shears it by 3 cm
 }
 
 
