@@ -36,6 +36,10 @@ built-in ones:
   convex-hull perimeter. With ``band`` = {"from", "to", "start", "stop", "steps", "mode"} the
   plane origin runs from ``start`` to ``stop`` (fractions) of the segment from→to and the
   girth is the ``mode`` ("max" or "min") over the planes.
+  With ``part`` (a body part of ``parts.PARTS`` or a list of them) only the part's edges are
+  cut and all their crossings in a plane are the contour (the tape goes round that part only).
+- ``top``: height of the highest vertex of ``part`` over the lowest vertex (stature: the top of
+  the head, whichever vertex is highest).
 - ``distance``: ``from``, ``to`` (a point or ``"floor"``: the lowest vertex's level), ``axis``
   (none: straight; else the extent along the axis).
 - ``path``: ``through`` (points); summed straight segments.
@@ -43,7 +47,9 @@ built-in ones:
   ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
 
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
-is NaN with a note, never silently wrong. A condition holds when every axis in ``axes`` is
+is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":
+{earlier name: [lo, hi]}}``: a value outside is NaN with the reason (``evaluate``). The body
+part of every vertex is the optional ``"vertex_parts"`` (one letter a vertex, ``parts``). A condition holds when every axis in ``axes`` is
 within ``max_angle_deg`` of ``relative_to`` (an axis; default ``"up"``, world vertical), as
 lines (direction does not matter), and at least ``min_angle_deg`` (default 0) from it; with
 ``"directed": true`` the angle is between directions (0-180°: an arm hanging down is not an arm
