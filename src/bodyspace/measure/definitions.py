@@ -49,11 +49,12 @@ built-in ones:
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
 is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":
 {earlier name: [lo, hi]}}``: a value outside is NaN with the reason (``evaluate``). The body
-part of every vertex is the optional ``"vertex_parts"`` (one letter a vertex, ``parts``). A condition holds when every axis in ``axes`` is
-within ``max_angle_deg`` of ``relative_to`` (an axis; default ``"up"``, world vertical), as
-lines (direction does not matter), and at least ``min_angle_deg`` (default 0) from it; with
-``"directed": true`` the angle is between directions (0-180°: an arm hanging down is not an arm
-raised up).
+part of every vertex is the optional ``"vertex_parts"`` (one letter a vertex, ``parts``).
+
+A condition holds when every axis in ``axes`` is within ``max_angle_deg`` of ``relative_to``
+(an axis; default ``"up"``, world vertical), as lines (direction does not matter), and at least
+``min_angle_deg`` (default 0) from it; with ``"directed": true`` the angle is between directions
+(0-180°: an arm hanging down is not an arm raised up).
 """
 
 from __future__ import annotations
