@@ -250,12 +250,15 @@ def test_claims_the_geometry_contradicts_are_refused(template, mset, library_bod
 
 
 def test_too_few_landmarks_leave_the_layout_unchecked(template, mset, library_bodies):
-    """A landmark file naming the two acromions (shoulder width) allows one layout check and no
-    up axis: the layout is not judged on one check (the unit and winding still are)."""
-    few = with_landmarks(mset, {k: mset.landmarks[k] for k in ("shoulder_l", "shoulder_r")}, template.n_vertices)
+    """A landmark file naming one arm's joints (its length and girths) allows two layout checks and
+    no up axis: the layout is not judged on two checks (the unit and winding still are). (Two
+    acromions alone no longer give a measurement: shoulder width needs the arms' pose.)"""
+    few = with_landmarks(mset, {k: mset.landmarks[k] for k in ("shoulder_joint_l", "elbow_joint_l", "wrist_joint_l")},
+                         template.n_vertices)
+    assert "arm_length_l" in few.names and "upper_arm_girth_l" in few.names
     v, f, _ = fo.shuffle_vertices(library_bodies[0, 0], template.faces, 1)
     conv = cv.inspect(v, f, few)
-    assert conv.layout_checks == 1 < cv.LAYOUT_MIN_CHECKS and conv.up is None
+    assert conv.layout_checks == 2 < cv.LAYOUT_MIN_CHECKS and conv.up is None
     assert cv.find_problems(conv, few) == []
     assert [x.fix for x in cv.find_problems(cv.inspect(v * 1000, f, few), few)] == [{"units": ("mm",)}]
 

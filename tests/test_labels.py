@@ -167,11 +167,12 @@ def test_every_training_subject_is_reachable(small):
 
 
 def _upright_within(degrees: float):
-    """The default measurement set with the 'upright' condition at ``degrees`` (12 in the set):
-    our bodies' head axis leans ~9 degrees, so 9 leaves a third of the random bodies without a
-    stature and 1 every body."""
+    """The default measurement set with the 'upright' condition at ``degrees`` (12 in the set) and
+    'head_level' at ``degrees`` + 5 (35 in the set): our bodies' head axis leans ~14 degrees from
+    the torso's, so 9 leaves part of the random bodies without a stature and 1 every body."""
     definition = json.loads(DEFAULT_PATH.read_text())
     definition["conditions"]["upright"]["max_angle_deg"] = degrees
+    definition["conditions"]["head_level"]["max_angle_deg"] = degrees + 5
     return measurement_set_from_dict(definition, f"hm08 with upright at {degrees} degrees")
 
 

@@ -172,6 +172,10 @@ SQUEEZED = {
 UNDEFINED = {
     ("knee_lift_left", "hip_girth"): "hips_extended",     # a thigh 90 degrees from the torso
     ("step_forward_left", "hip_girth"): "hips_extended",  # the stride spreads the thighs 30 degrees
+    # The underbust tape of a heavy body moves up to 10 cm when the hips flex (squat, issue 12 §3).
+    ("knee_lift_left", "underbust_girth"): "hips_extended",
+    ("step_forward_left", "underbust_girth"): "hips_extended",
+    ("torso_twist_left", "underbust_girth"): "torso_untwisted",   # the twist shears it by 3 cm
 }
 
 
@@ -530,7 +534,7 @@ def test_registry_covers_every_method_of_the_default_set(mset):
     from bodyspace.measure.definitions import DEFAULT_PATH
     from bodyspace.measure.methods import METHODS
     used = {m["method"] for m in json.loads(DEFAULT_PATH.read_text())["measurements"]}
-    assert used == {"loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi"}
+    assert used == {"loop", "slice", "distance", "path", "volume", "surface_area", "mass", "bmi", "top"}
     assert used <= set(METHODS)
     for name, method in METHODS.items():
         assert callable(method.compute) and method.unit, name

@@ -234,7 +234,7 @@ def test_landmark_files_that_do_not_fit_are_refused(scans, db, tmp_path):
     swapped = write("swapped.json", lambda d: d["landmarks"].update(head_top=d["landmarks"]["crotch"]))
     off = write("off.json", lambda d: (d.pop("n_vertices"), d["landmarks"].update(crotch=VERTICES + 5)))
     other = write("other.json", lambda d: d.update(n_vertices=6890))
-    for path, message in ((swapped, r"'stature' is \d+\.\d cm.*head_top.*expected 100-250 cm"),
+    for path, message in ((swapped, r"'(stature|height)' is \d+\.\d cm.*head_top.*expected 100-250 cm"),
                           (off, "landmark 'crotch' is vertex 3005, which is off the mesh"),
                           (other, "for meshes of 6890 vertices.*these meshes have 3000")):
         with pytest.raises(MeasurementError, match=message):

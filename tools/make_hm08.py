@@ -21,12 +21,14 @@ landmark, each rule a comment below; left landmarks are picked on the left and m
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import scipy.optimize
 
 from bodyspace.data.template import load_template
+from bodyspace.measure.parts import encode_parts, parts_from_weights
 from bodyspace.measure.slicing import mesh_edges, pick_contours, slice_contours
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel
 
@@ -219,8 +221,38 @@ def _dumps(spec: dict) -> str:
     return "\n".join(lines) + "\n}\n"
 
 
+# The body part each girth's tape goes round (measure/parts.py); a list is a union of parts
+# (the wrist plane lies on the forearm/hand border).
+GIRTH_PARTS = {
+    "chest_girth": "torso", "underbust_girth": "torso", "waist_girth": "torso",
+    "hip_girth": ["torso", "thigh_l", "thigh_r"],      # the buttocks are on the thighs' bones too
+    "thigh_girth_l": "thigh_l", "calf_girth_l": "calf_l", "upper_arm_girth_l": "upper_arm_l",
+    "wrist_girth_l": ["forearm_l", "hand_l"],
+    "thigh_girth_r": "thigh_r", "calf_girth_r": "calf_r", "upper_arm_girth_r": "upper_arm_r",
+    "wrist_girth_r": ["forearm_r", "hand_r"],
+    "neck_girth": ["neck", "torso"],       # the neck base is on the spine's bones; the chin (head) never enters
+}
+
+
+def add_parts(spec: dict, template) -> None:
+    """Each girth's ``part`` and the template's ``vertex_parts`` (from the default rig's skin weights)."""
+    rig = template.rigs["default"]
+    for m in spec.get("measurements", []):
+        if m["name"] in GIRTH_PARTS:
+            m["part"] = GIRTH_PARTS[m["name"]]
+    spec["vertex_parts"] = encode_parts(parts_from_weights(rig.weights, rig.bone_names))
+
+
 def main() -> None:
     from bodyspace.measure.definitions import measurement_set_from_dict
+
+    if "--parts-only" in sys.argv:       # only the part labels and fields, landmarks as they are
+        spec = json.loads(OUT.read_text())
+        add_parts(spec, load_template())
+        text = _dumps(spec)
+        measurement_set_from_dict(json.loads(text), str(OUT))
+        OUT.write_text(text)
+        return
 
     template = load_template()
     model = PhenotypeModel(template)
@@ -240,6 +272,7 @@ def main() -> None:
     }
     spec = json.loads(OUT.read_text()) if OUT.exists() else {}
     spec["landmarks"] = lm
+    add_parts(spec, template)
     for m in spec.get("measurements", []):
         if m.get("method") == "loop" and m["name"] in loops:
             m["vertices"] = loops[m["name"]]

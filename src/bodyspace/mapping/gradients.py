@@ -12,6 +12,8 @@ batched functions), then chained with ``C``:
 - **distance** (``|b - a|`` or ``|(b - a) . axis|``; ``axis`` fixed or a landmark pair; ``to`` may be
   the floor, the lowest vertex: its gradient goes to that vertex's y).
 - **path** (sum of segment lengths through landmark points): unit segment vectors.
+- **top** (the highest vertex of a body part over the lowest vertex: stature): +1 on the
+  highest vertex's y, -1 on the lowest's.
 
 Landmarks are sparse linear combinations of vertices (``L @ v``), so their gradients go back to
 vertices through ``L^T``.
@@ -37,6 +39,7 @@ import numpy as np
 
 from bodyspace.errors import ParameterError
 from bodyspace.measure.definitions import MeasurementSet
+from bodyspace.measure.parts import PART_INDEX
 
 RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length", "shoulder_size")
 # Four of Rupprecht's six are vertex loops of the template (Rupprecht §3.1.2), which a set of
@@ -49,7 +52,7 @@ SUBSTITUTES = {"height": ("stature",), "breast_size": ("chest_girth",), "waist_s
 # A mapping from fewer measurements than this is refused (two numbers do not pin a body shape).
 MIN_INPUTS = 3
 UP = np.array([0.0, 1.0, 0.0])
-DIFFERENTIABLE = ("loop", "distance", "path")
+DIFFERENTIABLE = ("loop", "distance", "path", "top")
 _CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
@@ -190,7 +193,23 @@ class LinearBodyMeasures:
         self.lm_basis = np.ascontiguousarray(np.einsum("lu,kud->kld", L, basis_u))   # (K, Lm, 3)
         self.rings = {name: (base_u[idx], np.ascontiguousarray(basis_u[:, idx]))
                       for name, idx in self.loop_pos.items()}
-        self.needs_floor = any(m["method"] == "distance" and m["to"] == "floor" for m in self.defs)
+        self.needs_floor = any((m["method"] == "distance" and m["to"] == "floor") or m["method"] == "top"
+                               for m in self.defs)
+        # "top": the highest vertex of the part (the set's labels; without labels: of the body).
+        self.top_ids = None
+        tops = [m for m in self.defs if m["method"] == "top"]
+        if tops:
+            parts = tops[0]["part"]
+            if mset.vertex_parts is not None:
+                names = [parts] if isinstance(parts, str) else list(parts)
+                self.top_ids = np.flatnonzero(np.isin(mset.vertex_parts, [PART_INDEX[p] for p in names]))
+            else:
+                self.top_ids = np.arange(V)
+            if len({repr(m["part"]) for m in tops}) > 1:
+                raise ParameterError("measurements of the method 'top' on different parts have no analytic "
+                                     "Jacobian yet (expected one part)")
+            self.top_base = np.ascontiguousarray(base[self.top_ids, 1])
+            self.top_basis = np.ascontiguousarray(basis[:, self.top_ids, 1])
         if self.needs_floor:
             self.base_y = np.ascontiguousarray(base[:, 1])
             self.basis_y = np.ascontiguousarray(basis[:, :, 1])           # (K, V)
@@ -298,7 +317,12 @@ class LinearBodyMeasures:
                 low = np.argmin(y, axis=1)
                 floor_y = y[np.arange(n), low]
         rings = {name: rb + (z @ rc.reshape(K, -1)).reshape(n, -1, 3) for name, (rb, rc) in self.rings.items()}
-        out = self._measure(lm, rings, floor_y, low, jacobian)
+        top = None
+        if self.top_ids is not None:
+            y = self.top_base + z @ self.top_basis
+            hi = np.argmax(y, axis=1)
+            top = (y[np.arange(n), hi], self.top_ids[hi])
+        out = self._measure(lm, rings, floor_y, low, jacobian, top)
         if single:
             return (out[0][0], out[1][0]) if jacobian else out[0]
         return out
@@ -319,11 +343,16 @@ class LinearBodyMeasures:
         if self.needs_floor:
             low = np.argmin(v[:, :, 1], axis=1)
             floor_y = v[np.arange(n), low, 1]
-        return self._measure(lm, rings, floor_y, low, jacobian)
+        top = None
+        if self.top_ids is not None:
+            hi = self.top_ids[np.argmax(v[:, self.top_ids, 1], axis=1)]
+            top = (v[np.arange(n), hi, 1], hi)
+        return self._measure(lm, rings, floor_y, low, jacobian, top)
 
-    def _measure(self, lm, rings, floor_y, low, jacobian):
+    def _measure(self, lm, rings, floor_y, low, jacobian, top=None):
         """Values (N, M) and (with ``jacobian``) d/dz (N, M, K) from the touched points: landmarks
-        lm (N, Lm, 3), loop rings (name -> (N, R, 3)), floor height (N,) and lowest vertex (N,)."""
+        lm (N, Lm, 3), loop rings (name -> (N, R, 3)), floor height (N,) and lowest vertex (N,),
+        and ``top``: the part's highest height (N,) and vertex (N,)."""
         n, K = len(lm), self.n_coefficients
         vals = np.empty((n, len(self.defs)))
         J = np.empty((n, len(self.defs), K)) if jacobian else None
@@ -331,6 +360,11 @@ class LinearBodyMeasures:
             glm = np.zeros_like(lm) if jacobian else None
             gfloor = None
             meth = m["method"]
+            if meth == "top":
+                vals[:, j] = top[0] - floor_y
+                if jacobian:
+                    J[:, j] = self.basis_y[:, top[1]].T - self.basis_y[:, low].T
+                continue
             if meth == "loop":
                 rc = self.rings[m["name"]][1]
                 val, g = loop_length_grad(rings[m["name"]], UP)

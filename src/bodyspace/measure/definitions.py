@@ -7,6 +7,8 @@ File layout (``bodyspace/data/measurements/hm08.json`` is the default; docs/meas
  "landmarks": {"crotch": 4372,                                          # a vertex id, or
                "knee_joint_l": {"vertices": [1, 2, 3], "weights": [0.2, 0.3, 0.5]}},  # a weighted set
  "conditions": {"upright": {"axes": [[A, B], ...], "max_angle_deg": 12},
+                "arms_as_at_rest": {"axes": [...], "relative_to": [C, D], "directed": true,
+                                    "min_angle_deg": 129, "max_angle_deg": 149},
                 "head_up": {"axes": [[A, B]], "relative_to": [C, D], "max_angle_deg": 20}},
  "measurements": [{"name": ..., "method": ..., ...}, ...]}
 ```
@@ -34,6 +36,10 @@ built-in ones:
   convex-hull perimeter. With ``band`` = {"from", "to", "start", "stop", "steps", "mode"} the
   plane origin runs from ``start`` to ``stop`` (fractions) of the segment from→to and the
   girth is the ``mode`` ("max" or "min") over the planes.
+  With ``part`` (a body part of ``parts.PARTS`` or a list of them) only the part's edges are
+  cut and all their crossings in a plane are the contour (the tape goes round that part only).
+- ``top``: height of the highest vertex of ``part`` over the lowest vertex (stature: the top of
+  the head, whichever vertex is highest).
 - ``distance``: ``from``, ``to`` (a point or ``"floor"``: the lowest vertex's level), ``axis``
   (none: straight; else the extent along the axis).
 - ``path``: ``through`` (points); summed straight segments.
@@ -41,9 +47,14 @@ built-in ones:
   ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
 
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
-is NaN with a note, never silently wrong. A condition holds when every axis in ``axes`` is
-within ``max_angle_deg`` of ``relative_to`` (an axis; default ``"up"``, world vertical), as
-lines (direction does not matter).
+is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":
+{earlier name: [lo, hi]}}``: a value outside is NaN with the reason (``evaluate``). The body
+part of every vertex is the optional ``"vertex_parts"`` (one letter a vertex, ``parts``).
+
+A condition holds when every axis in ``axes`` is within ``max_angle_deg`` of ``relative_to``
+(an axis; default ``"up"``, world vertical), as lines (direction does not matter), and at least
+``min_angle_deg`` (default 0) from it; with ``"directed": true`` the angle is between directions
+(0-180°: an arm hanging down is not an arm raised up).
 """
 
 from __future__ import annotations
@@ -59,6 +70,7 @@ import scipy.sparse as sp
 
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
+from bodyspace.measure.parts import decode_parts, encode_parts
 from bodyspace.measure.points import check_axis, fail, point_names
 
 FORMAT = "bodyspace-measurements"
@@ -76,6 +88,10 @@ class MeasurementSet:
     measurements: validated definition dicts, in file order.
     conditions: name → {"axes": [[a, b], ...], "max_angle_deg": float}.
     n_vertices: vertex count the set was made for (None: any mesh the ids fit).
+    vertex_parts: (V,) int8 body part of each vertex (``parts.PARTS``, -1 none), what a
+        measurement's ``part`` restricts its slice to; None: assigned from the landmarks of
+        the measured body (``parts.parts_from_landmarks``; give a standing body's labels with
+        ``with_vertex_parts`` to measure posed bodies of another topology).
     """
 
     landmarks: dict[str, tuple[np.ndarray, np.ndarray]]
@@ -84,6 +100,7 @@ class MeasurementSet:
     n_vertices: int | None = None
     template: str = "hm08"
     source: str = "<memory>"
+    vertex_parts: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -116,9 +133,12 @@ class MeasurementSet:
         for name, (ids, w) in self.landmarks.items():
             landmarks[name] = (int(ids[0]) if len(ids) == 1 and float(w[0]) == 1.0 else
                                {"vertices": [int(i) for i in ids], "weights": [float(x) for x in w]})
-        return {"format": FORMAT, "template": self.template, "n_vertices": self.n_vertices,
-                "source": self.source, "landmarks": landmarks, "conditions": _plain(self.conditions),
-                "measurements": _plain(list(self.measurements))}
+        out = {"format": FORMAT, "template": self.template, "n_vertices": self.n_vertices,
+               "source": self.source, "landmarks": landmarks, "conditions": _plain(self.conditions),
+               "measurements": _plain(list(self.measurements))}
+        if self.vertex_parts is not None:
+            out["vertex_parts"] = encode_parts(self.vertex_parts)
+        return out
 
 
 def _parse_landmark(src: str, name: str, val: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -184,10 +204,35 @@ def _validate_measurement(src: str, i: int, m: Any, landmarks, conditions, seen:
             raise fail(where, f"requires unknown condition {c!r}; defined: {', '.join(conditions) or 'none'}")
     if method.check is not None:
         method.check(where, m, landmarks, seen)
+    _check_plausible(where, m.get("plausible"), seen)
     out = dict(m)
     out.setdefault("unit", method.unit)
     out.setdefault("requires", [])
     return out
+
+
+def _check_plausible(where: str, rule: Any, earlier: set) -> None:
+    """The optional ``plausible`` field: {"range": [lo, hi], "ratio_to": {earlier name: [lo, hi]}}."""
+    if rule is None:
+        return
+    where += " field 'plausible'"
+
+    def bounds(x, what):
+        if (not isinstance(x, list) or len(x) != 2 or not all(isinstance(b, (int, float)) and not isinstance(b, bool)
+                                                               for b in x) or not x[0] < x[1]):
+            raise fail(where, f"{what} is {x!r}, expected [low, high] with low < high")
+
+    if not isinstance(rule, dict) or set(rule) - {"range", "ratio_to"}:
+        raise fail(where, f"got {rule!r}, expected {{\"range\": [low, high], \"ratio_to\": {{name: [low, high]}}}}")
+    if "range" in rule:
+        bounds(rule["range"], "'range'")
+    ratios = rule.get("ratio_to", {})
+    if not isinstance(ratios, dict):
+        raise fail(where, f"'ratio_to' is {ratios!r}, expected {{measurement name: [low, high]}}")
+    for name, b in ratios.items():
+        if name not in earlier:
+            raise fail(where, f"'ratio_to' names {name!r}, expected a measurement defined earlier in the file")
+        bounds(b, f"'ratio_to.{name}'")
 
 
 def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSet:
@@ -210,9 +255,17 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
         for a in c["axes"]:
             check_axis(where + " axis", a, landmarks)
         check_axis(where + " field 'relative_to'", c.get("relative_to", "up"), landmarks)
+        directed = c.get("directed", False)
+        if not isinstance(directed, bool):
+            raise fail(where + " field 'directed'", f"got {directed!r}, expected true or false")
+        top = 180 if directed else 90
         lim = c.get("max_angle_deg", 12)
-        if not isinstance(lim, (int, float)) or isinstance(lim, bool) or not 0 < lim <= 90:
-            raise fail(where + " field 'max_angle_deg'", f"got {lim!r}, expected a number of degrees in (0, 90]")
+        if not isinstance(lim, (int, float)) or isinstance(lim, bool) or not 0 < lim <= top:
+            raise fail(where + " field 'max_angle_deg'", f"got {lim!r}, expected a number of degrees in (0, {top}]")
+        low = c.get("min_angle_deg", 0)
+        if not isinstance(low, (int, float)) or isinstance(low, bool) or not 0 <= low < lim:
+            raise fail(where + " field 'min_angle_deg'", f"got {low!r}, expected a number of degrees in "
+                                                         f"[0, max_angle_deg={lim})")
     ms = d.get("measurements")
     if not isinstance(ms, list):
         raise fail(source, "'measurements' is missing or not a list")
@@ -222,9 +275,30 @@ def measurement_set_from_dict(d: Any, source: str = "<memory>") -> MeasurementSe
         vm = _validate_measurement(source, i, m, landmarks, conditions, seen)
         seen.add(vm["name"])
         out.append(vm)
-    n = d.get("n_vertices")
-    return MeasurementSet(landmarks, tuple(out), dict(conditions), _n_vertices(source, n),
-                          str(d.get("template", "")), source)
+    n = _n_vertices(source, d.get("n_vertices"))
+    parts = None
+    if d.get("vertex_parts") is not None:     # older files have none: parts from the landmarks
+        parts = decode_parts(d["vertex_parts"], f"{source} field 'vertex_parts'")
+        _check_parts_length(f"{source} field 'vertex_parts'", parts, n, landmarks)
+    return MeasurementSet(landmarks, tuple(out), dict(conditions), n, str(d.get("template", "")), source,
+                          parts)
+
+
+def _check_parts_length(where: str, parts: np.ndarray, n: int | None, landmarks: dict) -> None:
+    """Labels for exactly the set's vertices: ``n`` if declared, else at least every landmark's."""
+    top = max((int(i.max()) for i, _ in landmarks.values()), default=-1)
+    if (n is not None and len(parts) != n) or len(parts) <= top:
+        want = n if n is not None else f"more than {top}"
+        raise fail(where, f"{len(parts)} vertex labels, expected one per vertex ({want}); re-make the labels for "
+                          "this topology (with_vertex_parts) or drop the field")
+
+
+def with_vertex_parts(mset: MeasurementSet, vertex_parts: np.ndarray) -> MeasurementSet:
+    """``mset`` with the body part of every vertex (V,) (``parts.parts_from_weights`` on a rigged
+    template, ``parts.parts_from_landmarks`` on a standing body of any topology)."""
+    labels = np.asarray(vertex_parts).astype(np.int8).ravel()
+    _check_parts_length("vertex_parts", labels, mset.n_vertices, mset.landmarks)
+    return replace(mset, vertex_parts=labels)
 
 
 def _plain(x: Any) -> Any:
@@ -336,7 +410,7 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
         raise MeasurementError(f"{source}: the landmarks {sorted(landmarks)} are not enough for any measurement "
                                f"of {base.source} but volume and surface area; {_closest(base, landmarks)}")
     return replace(base, landmarks=dict(landmarks), measurements=tuple(kept), conditions=conditions,
-                   n_vertices=n_vertices, source=source)
+                   n_vertices=n_vertices, source=source, vertex_parts=None)
 
 
 def _closest(base: MeasurementSet, landmarks) -> str:

@@ -22,6 +22,7 @@ import scipy.sparse as sp
 from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
+from bodyspace.measure.parts import parts_from_landmarks
 from bodyspace.measure.points import axis, format_point
 from bodyspace.mesh.geometry import check_mesh
 
@@ -101,30 +102,32 @@ def _conditions(mset: MeasurementSet, lm: dict, n: int) -> dict[str, list]:
     """Per condition, per body: None if it holds, else the reason it fails."""
     out = {}
     for cname, c in mset.conditions.items():
-        lim = float(c.get("max_angle_deg", 12.0))
+        lo, hi = float(c.get("min_angle_deg", 0.0)), float(c.get("max_angle_deg", 12.0))
+        directed = bool(c.get("directed", False))
         rel = c.get("relative_to", "up")
         ref = axis(rel, lm, n)
         ref_name = "vertical" if rel == "up" else f"axis {format_point(rel[0])}→{format_point(rel[1])}"
+        limit = f"at most {hi:.0f}°" if lo == 0 else f"expected {lo:.0f}-{hi:.0f}°"
         notes: list = [None] * n
         for a in c["axes"]:
-            # An axis is a line: its direction (up or down the body) does not matter.
-            cos = np.abs(np.sum(axis(a, lm, n) * ref, axis=-1))
-            ang = np.degrees(np.arccos(np.clip(cos, 0, 1)))
-            for i in np.flatnonzero(ang > lim):
+            # An axis is a line unless the condition is directed (an arm down is not an arm up).
+            cos = np.sum(axis(a, lm, n) * ref, axis=-1)
+            ang = np.degrees(np.arccos(np.clip(cos if directed else np.abs(cos), -1, 1)))
+            for i in np.flatnonzero((ang > hi) | (ang < lo)):
                 if notes[i] is None:
                     notes[i] = (f"not {cname}: axis {format_point(a[0])}→{format_point(a[1])} is {ang[i]:.0f}° "
-                                f"from {ref_name} (at most {lim:.0f}°)")
+                                f"from {ref_name} ({limit})")
         out[cname] = notes
     return out
 
 
 def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, keep_polylines: bool,
-                    age_years, male) -> dict:
+                    age_years, male, parts=None) -> dict:
     """Measure one chunk (N, V, 3): name → (values (N,), polylines or None, notes [N])."""
     n = len(v)
     P = _landmarks(L, v)
     chunk = Chunk(v, {name: P[:, i] for i, name in enumerate(mset.landmarks)}, topology, keep_polylines,
-                  age_years, male)
+                  age_years, male, parts)
     cond = _conditions(mset, chunk.landmarks, n)
     res: dict = {}
     for m in mset.measurements:
@@ -140,6 +143,7 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
                 if why is not None:
                     val[i] = np.nan
                     notes[i] = notes[i] or why
+        _implausible(m, val, notes, chunk.values)
         for i in np.flatnonzero(~np.isfinite(val)):
             # Every undefined value says why (the method's reason, else the geometry's).
             why = method_notes[i] if method_notes is not None else None
@@ -148,6 +152,36 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
         chunk.values[m["name"]] = val
         res[m["name"]] = (val, poly, notes)
     return res
+
+
+def _implausible(m: dict, val: np.ndarray, notes: list, earlier: dict) -> None:
+    """Set to NaN (with the reason) the values outside the definition's ``plausible`` bounds: the
+    ``range`` [lo, hi] a human's value lies in (SI), and the ``ratio_to`` bounds against
+    measurements made earlier ({name: [lo, hi]}: chest, waist and hip keep an order that holds
+    for people). A tape that caught an arm or a chin, or a plane that missed the body, gives
+    values these bounds catch; nonsense is never printed as a number (issue 12 §3)."""
+    rule = m.get("plausible")
+    if not rule:
+        return
+    unit, scale = _DISPLAY.get(m["unit"], (m["unit"], 1.0))
+    label = m["name"].replace("_", " ")
+    if "range" in rule:
+        lo, hi = rule["range"]
+        for i in np.flatnonzero((val < lo) | (val > hi)):
+            notes[i] = notes[i] or (f"implausible: {label} {val[i] * scale:.1f} {unit} is outside the "
+                                    f"{lo * scale:g}-{hi * scale:g} {unit} of a human (the tape caught another "
+                                    "body part or missed this one)")
+            val[i] = np.nan
+    for other, (lo, hi) in rule.get("ratio_to", {}).items():
+        ref = earlier.get(other)
+        if ref is None:
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = val / ref
+        for i in np.flatnonzero((r < lo) | (r > hi)):
+            notes[i] = notes[i] or (f"implausible: {label} is {r[i]:.2f} x the {other.replace('_', ' ')}, "
+                                    f"expected {lo:g}-{hi:g} x for a human")
+            val[i] = np.nan
 
 
 def _landmarks(L, v: np.ndarray) -> np.ndarray:
@@ -189,6 +223,7 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
         check_winding(v, faces, mesh_name)
     topology = _topology(faces)
     L = mset.landmark_matrix(v.shape[1])
+    parts = vertex_parts(mset, v, L, faces)
     jobs = []
     for s in range(0, len(v), chunk):
         sl = slice(s, s + chunk)
@@ -196,7 +231,7 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
         mm = None if male is None or np.ndim(male) == 0 else np.asarray(male)[sl]
         a = age_years if a is None else a
         mm = male if mm is None else mm
-        jobs.append((mset, v[sl], topology, L, keep_polylines, a, mm))
+        jobs.append((mset, v[sl], topology, L, keep_polylines, a, mm, parts))
     if workers > 1 and len(jobs) > 1:
         # The forked workers inherit the jobs: only (token, index) is pickled, not ~20 MB of
         # vertices per chunk (that pickling cost ~10 % of the CPU time).
@@ -219,6 +254,19 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
             val, poly, note = float(val[0]), (poly[0] if poly else None), note[0]
         out[name] = Measurement(name, val, m["unit"], m["method"], m.get("iso", ""), poly, note)
     return out
+
+
+def vertex_parts(mset: MeasurementSet, v: np.ndarray, L, faces: np.ndarray | None = None) -> np.ndarray | None:
+    """The body part of each vertex (V,) for the set's part-aware girths: the set's own labels,
+    else assigned from the landmarks of the first body ``v[0]`` (``parts.parts_from_landmarks``;
+    a set without labels should be measured on standing bodies, or given labels made on one with
+    ``with_vertex_parts``). None when no measurement names a part."""
+    if not any(m.get("part") for m in mset.measurements):
+        return None
+    if mset.vertex_parts is not None:
+        return mset.vertex_parts
+    P = _landmarks(L, v[:1])[0]
+    return parts_from_landmarks(v[0], {name: P[i] for i, name in enumerate(mset.landmarks)}, faces)
 
 
 def _run_job(job):

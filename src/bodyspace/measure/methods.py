@@ -30,6 +30,7 @@ import numpy as np
 
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.composition import mass_from_volume
+from bodyspace.measure.parts import PART_INDEX, PARTS
 from bodyspace.measure.points import axis, check_axis, check_point, fail, point
 from bodyspace.measure.slicing import (
     approx_heights,
@@ -37,6 +38,7 @@ from bodyspace.measure.slicing import (
     contour_girths,
     edge_neighbours,
     mesh_edges,
+    part_sections,
     pick_contours,
     support_perimeters,
 )
@@ -61,6 +63,24 @@ class Topology:
         self.edges, self.edge_faces = mesh_edges(self.faces)
         self.neighbours = edge_neighbours(self.faces, self.edges, self.edge_faces)
         self.loops = boundary_loops(self.faces)
+        self._part_edges: dict = {}
+
+    def part_edges(self, labels: np.ndarray, part) -> tuple[np.ndarray, np.ndarray]:
+        """The edges (E', 2) whose two ends are on ``part`` (a part name or a list of them) by the
+        vertex ``labels`` (V,), and which of them lie on the part's border (E',) bool (a face
+        beside them reaches off the part). Cached: labels are per topology."""
+        names = (part,) if isinstance(part, str) else tuple(part)
+        key = (hash(labels.tobytes()), names)
+        if key not in self._part_edges:
+            on = np.isin(labels, [PART_INDEX[p] for p in names])
+            keep = on[self.edges[:, 0]] & on[self.edges[:, 1]]
+            face_on = on[self.faces].all(axis=1)
+            ef = self.edge_faces[keep]
+            inside = np.where(ef >= 0, face_on[np.maximum(ef, 0)], False).all(axis=1)
+            self._part_edges[key] = (self.edges[keep], ~inside)
+            if len(self._part_edges) > 64:
+                self._part_edges.pop(next(iter(self._part_edges)))
+        return self._part_edges[key]
 
 
 @dataclass
@@ -71,6 +91,8 @@ class Chunk:
     landmarks: landmark name → (N, 3) points.
     topology: the mesh's ``Topology``.
     keep_polylines: whether methods return the measured lines.
+    parts: (V,) body part of each vertex (``parts.PARTS`` index), or None (a slice with a
+        ``part`` then falls back to the contour around its point).
     age_years, male: None, scalars or (N,): the caller's overrides of the mass defaults.
     values: measurement name → (N,) values of the measurements done so far (file order).
     cache: scratch shared by the methods within this chunk (slice heights, volume and area).
@@ -82,6 +104,7 @@ class Chunk:
     keep_polylines: bool = False
     age_years: object = None
     male: object = None
+    parts: np.ndarray | None = None
     values: dict = field(default_factory=dict)
     cache: dict = field(default_factory=dict)
 
@@ -149,28 +172,50 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     pick_fixed = point(m["pick"], lm) if m.get("pick") is not None else None
     # Every plane of the band in one Contours: group p * n + i is plane p of body i.
     n_planes = len(origins)
-    cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
-                         heights=heights[key], neighbours=geo.neighbours)
     normals = np.tile(normal, (n_planes, 1))
-    picks = np.concatenate(origins if pick_fixed is None else [pick_fixed] * n_planes)
-    chosen = pick_contours(cuts, picks, normals)
-    missed = np.flatnonzero(chosen < 0)
-    if len(missed):
-        raise MeasurementError(f"measurement {m['name']!r}: the plane through {m.get('at', band)} hits "
-                               f"nothing on body {int(missed[0]) % n} (the landmarks are off the body or "
-                               "the normal axis is degenerate)")
+    part = m.get("part")
+    notes = None
+    if part is not None and chunk.parts is not None:
+        # The tape round one body part: only the part's edges are cut, and all its crossings
+        # in a plane are the contour (``slicing.part_sections``).
+        part_edges, border = geo.part_edges(chunk.parts, part)
+        cuts, edge = part_sections(v, part_edges, np.stack(origins), normal, heights=heights[key])
+        chosen = np.where(np.bincount(cuts.body, minlength=n_planes * n) >= 3, np.arange(n_planes * n), -1)
+        # A plane that crosses the part's border cuts it only partly (it leaves the part at a
+        # joint): its girth is too small, so a "min" band must not choose it while a plane
+        # that goes round the whole part exists.
+        opened = np.bincount(cuts.body[border[edge]], minlength=n_planes * n) > 0
+        missed = (chosen < 0).reshape(n_planes, n).all(axis=0)
+        if missed.any():
+            what = part if isinstance(part, str) else " or ".join(part)
+            notes = [f"no plane of this girth crosses the {what.replace('_', ' ')} (its landmarks are off that "
+                     "part, or the part labels do not fit this mesh)" if x else None for x in missed]
+    else:
+        cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
+                             heights=heights[key], neighbours=geo.neighbours)
+        picks = np.concatenate(origins if pick_fixed is None else [pick_fixed] * n_planes)
+        chosen = pick_contours(cuts, picks, normals)
+        missed = np.flatnonzero(chosen < 0)
+        if len(missed):
+            raise MeasurementError(f"measurement {m['name']!r}: the plane through {m.get('at', band)} hits "
+                                   f"nothing on body {int(missed[0]) % n} (the landmarks are off the body or "
+                                   "the normal axis is degenerate)")
     if n_planes == 1:
         k = np.zeros(n, dtype=np.int64)
     else:
         # Pick the band's extreme plane by the fast support-function estimate, then measure
         # only that plane exactly: one hull per body instead of one per plane.
         est = support_perimeters(cuts, chosen, normals).reshape(n_planes, n)
+        if part is not None and chunk.parts is not None and band["mode"] == "min":
+            whole = ~opened.reshape(n_planes, n)
+            est = np.where(whole | ~whole.any(axis=0), est, np.nan)
+        est = np.where(np.isnan(est), -np.inf if band["mode"] == "max" else np.inf, est)
         k = np.argmax(est, axis=0) if band["mode"] == "max" else np.argmin(est, axis=0)
     group = k * n + np.arange(n)
     ch = np.full(n_planes * n, -1, dtype=np.int64)
     ch[group] = chosen[group]
     g, pl = contour_girths(cuts, ch, normals, chunk.keep_polylines)
-    return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), None
+    return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), notes
 
 
 def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
@@ -190,6 +235,50 @@ def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
             raise fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")
     if m.get("pick") is not None:
         check_point(where + " field 'pick'", m["pick"], landmarks)
+    check_part(where, m.get("part"))
+
+
+# --- top: the height of a body part's highest point ------------------------------------------
+
+def part_top(m: dict, chunk: Chunk) -> tuple:
+    """Height (N,) of the highest vertex of ``m["part"]`` (world +Y) over the body's lowest vertex:
+    stature as the top of the head, whichever vertex is highest (a tilted head has a stature)."""
+    v = chunk.vertices
+    floor = v[:, :, 1].min(axis=1)
+    if chunk.parts is None:
+        on = np.arange(v.shape[1])
+    else:
+        on = np.flatnonzero(np.isin(chunk.parts, [PART_INDEX[p] for p in _part_names(m["part"])]))
+    if not len(on):
+        return np.full(len(v), np.nan), None, [f"no vertex is on the {m['part']} part"] * len(v)
+    y = v[:, on, 1]
+    top = on[np.argmax(y, axis=1)]
+    val = y.max(axis=1) - floor
+    poly = None
+    if chunk.keep_polylines:
+        p = v[np.arange(len(v)), top]
+        q = p.copy()
+        q[:, 1] = floor
+        poly = [np.stack([a, b]) for a, b in zip(p, q)]
+    return val, poly, None
+
+
+def _part_names(part) -> list:
+    return [part] if isinstance(part, str) else list(part)
+
+
+def check_part(where: str, part, required: bool = False) -> None:
+    """Raise MeasurementError unless ``part`` is a body part name or a list of them (``parts.PARTS``)."""
+    if part is None and not required:
+        return
+    names = [part] if isinstance(part, str) else part
+    if not isinstance(names, list) or not names or not all(isinstance(p, str) and p in PARTS for p in names):
+        raise fail(where + " field 'part'", f"got {part!r}, expected a body part or a list of them, from "
+                                            f"{', '.join(PARTS)}")
+
+
+def check_top(where: str, m: dict, landmarks, earlier: set) -> None:
+    check_part(where, m.get("part"), required=True)
 
 
 # --- distance and path: lengths between landmarks ---------------------------------------------
@@ -256,7 +345,8 @@ def mass(m: dict, chunk: Chunk) -> tuple:
     if sex is None:
         val = 0.5 * (mass_from_volume(vol, h, age, 1.0)[0] + mass_from_volume(vol, h, age, 0.0)[0])
     else:
-        val = mass_from_volume(vol, h, age, float(sex))[0]
+        # A scalar or one value per body (N,): ``float(sex)`` would refuse the array.
+        val = mass_from_volume(vol, h, age, np.asarray(sex, dtype=float))[0]
     return val, None, _needs_stature(m, val)
 
 
@@ -326,6 +416,7 @@ METHODS: dict[str, Method] = {
     "surface_area": Method(surface_area, "m^2"),
     "mass": Method(mass, "kg", _check_earlier("stature")),
     "bmi": Method(bmi, "kg/m^2", _check_earlier("mass", "stature")),
+    "top": Method(part_top, "m", check_top),
 }
 
 

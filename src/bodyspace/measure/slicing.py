@@ -161,6 +161,24 @@ def band_contours(vertices: np.ndarray, edges: np.ndarray, edge_faces: np.ndarra
     return Contours(x.points, group, label.astype(np.int64), seg, int(n_labels))
 
 
+def part_sections(vertices: np.ndarray, edges: np.ndarray, origins: np.ndarray, normals: np.ndarray,
+                  heights: HeightBounds | None = None) -> tuple[Contours, np.ndarray]:
+    """The cross-section of one body part by P parallel planes per body: ``origins`` (P, N, 3),
+    unit ``normals`` (N, 3), ``edges`` (E', 2) the part's edges (both ends on the part).
+
+    Every crossing of a plane with the part is one contour (label = group = p * N + i), so the
+    tape goes round the whole part however its border cuts the ring (the armpit of a chest
+    plane opens the torso's ring: the tape bridges it, as ``contour_girths``' hull does), and
+    nothing of another part (an arm against the chest, the other thigh) ever enters it. No
+    linking of crossings is needed: the same ``_band_crossings`` pass, on fewer edges. Returns
+    the Contours and the edge (into ``edges``) of each crossing (K,).
+    """
+    x = _band_crossings(vertices, edges, origins, normals, heights)
+    group = x.plane * len(vertices) + x.body
+    return (Contours(x.points, group, group, np.zeros((0, 2), dtype=np.int64), len(origins) * len(vertices)),
+            x.edge)
+
+
 def edge_neighbours(faces: np.ndarray, edges: np.ndarray, edge_faces: np.ndarray):
     """Per edge (a, b) and each of its two faces (E, 2): the face's third vertex c and the edge
     ids of a-c and b-c, for ``band_contours``. -1 on a border, on a degenerate face and where
@@ -503,6 +521,8 @@ def support_perimeters(c: Contours, chosen: np.ndarray, normals: np.ndarray, n_d
     if c.n_labels == 0:
         return out
     sel, bodies, x, y = _chosen_in_plane(c, chosen, normals)
+    if not len(sel):
+        return out
     th = np.linspace(0.0, 2 * np.pi, n_dirs, endpoint=False)
     cos, sin = np.cos(th), np.sin(th)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
@@ -526,6 +546,8 @@ def contour_girths(c: Contours, chosen: np.ndarray, normals: np.ndarray,
     if c.n_labels == 0:
         return girth, lines
     sel, bodies, x, y = _chosen_in_plane(c, chosen, normals)
+    if not len(sel):
+        return girth, lines
     xy = np.stack([x, y], axis=1)
     starts = np.flatnonzero(np.r_[True, bodies[1:] != bodies[:-1]])
     ends = np.r_[starts[1:], len(sel)]

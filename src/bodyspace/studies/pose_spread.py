@@ -125,7 +125,7 @@ def pose_spread_study(template: Template, n_subjects: int = 4, poses: Sequence[s
     rest -= rest[..., 1].min(axis=1)[:, None, None] * np.array([0.0, 1.0, 0.0])
     mset = load_measurement_set()
     # Mass from volume with the set's default age and sex for every body: the study compares a body
-    # with itself (passing per-body arrays trips the mass method's float(sex) on numpy 2).
+    # with itself.
     measured = evaluate(mset, rest, template.faces)
     names = list(measured)
     units = [m.display()[1] for m in measured.values()]
