@@ -101,6 +101,10 @@ COST_TOLERANCE = 3e-3
 MAX_RESIDUAL_SHARE = 0.02
 # A mesh is "nearly closed" when its boundary edges are at most this share of its edges.
 MAX_BOUNDARY_SHARE = 0.02
+# Surface points near the mirror plane, as a share of a band 5-15 % of the height from an end: a
+# standing body has none between its shins (0.0-0.5 % on the study's bodies); the band around the
+# head, a sphere's or a box's end cross each other's plane (6-40 %).
+MAX_LEG_GAP_SHARE = 0.02
 # Parts smaller than this share of the surface area are debris (a scanner's floaters) and are
 # not counted as components; the fit ignores nothing, though (they are matched like the rest).
 MIN_COMPONENT_SHARE = 0.002
@@ -246,7 +250,7 @@ def body_frame(vertices: np.ndarray, faces: np.ndarray, up: str | None = None, u
         feet_high = central_share(hi - 0.15 * height, hi - 0.05 * height)
         if feet_high < feet_low:
             up_vec = -up_vec
-        if min(feet_low, feet_high) > 0.15:
+        if min(feet_low, feet_high) > MAX_LEG_GAP_SHARE:
             raise RigError(f"{mesh_name}: no two legs found at either end of its long axes (share of the surface "
                            f"near the mirror plane {100 * feet_low:.0f} % and {100 * feet_high:.0f} % at the ends, a "
                            "standing body has almost none between its shins); expected a humanoid standing in an "
@@ -629,10 +633,11 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
 def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -> Skeleton:
     """Every bone of a CC0 rig (any of ``load_template().rigs``) placed from an embedding.
 
-    Heads and tails are regressed on the fitted rest body and carried by the fitted pose, each
-    point by the blend of the default rig's bone transforms that its regressor's skin carries
-    (at a joint between two bones both give the same point: forward kinematics exactly); rolls
-    follow the skin (``body_skeleton``). frame: "internal" (metres, our axes: what glTF wants)
+    Heads and tails are regressed on the fitted rest body and carried by the fitted pose: for the
+    default rig (the one fitted) by its own bone transforms (forward kinematics); for another rig
+    each point by the blend of the default rig's bone transforms that its regressor's skin
+    carries (at a joint between two bones both give the same point). Rolls follow the skin
+    (``body_skeleton``). frame: "internal" (metres, our axes: what glTF wants)
     or "mesh" (the mesh's own coordinates).
     """
     if frame not in ("internal", "mesh"):
@@ -650,8 +655,12 @@ def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -
         return np.asarray(np.einsum("nb,nbi->ni", mix.toarray(), moved))
 
     rest = embedding.rest_body
-    heads = carry(rig.head_regressor, rig.heads(rest))
-    tails = carry(rig.tail_regressor, rig.tails(rest))
+    if rig.bone_names == model.rig.bone_names:       # the fitted rig itself: forward kinematics exactly
+        heads = np.einsum("bij,bj->bi", T[:, :3, :3], rig.heads(rest)) + T[:, :3, 3]
+        tails = np.einsum("bij,bj->bi", T[:, :3, :3], rig.tails(rest)) + T[:, :3, 3]
+    else:
+        heads = carry(rig.head_regressor, rig.heads(rest))
+        tails = carry(rig.tail_regressor, rig.tails(rest))
     skeleton = body_skeleton(rig, embedding.posed_body, heads=heads, tails=tails)
     if frame == "internal":
         return skeleton
