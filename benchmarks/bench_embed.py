@@ -14,21 +14,16 @@ Run: python benchmarks/bench_embed.py
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import report  # noqa: E402
-
-import bodyspace.rig.embed as embed  # noqa: E402
-from bodyspace.data.template import load_template  # noqa: E402
-from bodyspace.export.gltf import gltf_bytes  # noqa: E402
-from bodyspace.rig.weights import bone_heat_weights  # noqa: E402
-from bodyspace.synth.foreign import foreign_body, foreign_topology  # noqa: E402
-from bodyspace.synth.phenotype import PhenotypeModel  # noqa: E402
+import bodyspace.rig.embed as embed
+from bodyspace.data.template import load_template
+from bodyspace.export.gltf import gltf_bytes
+from bodyspace.rig.weights import bone_heat_weights
+from bodyspace.synth.foreign import foreign_body, foreign_topology
+from bodyspace.synth.phenotype import PhenotypeModel
 
 _analytic = embed._jacobian
 
@@ -76,7 +71,8 @@ def main() -> None:
         print(f"  {fb.pose}: analytic {fast[-1]:.2f} s ({a.rounds} rounds), finite differences {slow[-1]:.2f} s "
               f"({b.rounds} rounds); joints differ by at most {1000 * diff[-1]:.2f} mm; mean joint error "
               f"{100 * err.mean():.2f} cm")
-    report("embed_skeleton, 6,000-vertex foreign bodies", sum(fast), sum(slow), len(bodies), "meshes")
+    print(f"embed_skeleton, 6,000-vertex foreign bodies: {sum(fast) / len(fast):.2f} s a mesh (baseline "
+          f"{sum(slow) / len(slow):.2f} s a mesh), speed-up x{sum(slow) / sum(fast):.1f}")
 
     print("bodyspace rig pipeline per mesh (A-pose, mm, Z up), default rig (163 bones):")
     rig = template.rigs["default"]

@@ -23,7 +23,8 @@ from bodyspace.mesh.geometry import cap_holes
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.embed import JOINT_GROUPS, body_frame, check_riggable, embed_skeleton, embedded_skeleton, joint_group
 from bodyspace.rig.skeleton import body_skeleton
-from bodyspace.synth.foreign import foreign_body, foreign_topology, from_frame, punch_holes, hole_sites
+from bodyspace.synth.foreign import (add_noise, foreign_body, foreign_topology, from_frame, hole_sites, punch_holes,
+                                     reverse_winding)
 
 NODE_DIR = Path(__file__).resolve().parent / "node"
 # (pose, to_frame arguments): an A-pose in millimetres with Z up (Blender's axes), a T-pose in
@@ -111,14 +112,18 @@ def test_joint_groups_cover_the_default_rig(template):
     assert groups == {g for g, _ in JOINT_GROUPS}
 
 
-def test_small_holes_are_riggable(bodies, topology):
+def test_scanner_damage_is_riggable(bodies):
+    """Holes where scanners leave them (2 cm), faces wound inwards and 2 mm of depth noise at once."""
     fb = bodies["a_pose_mm_z_up"]
     internal = fb.internal_vertices()
     faces = punch_holes(internal, fb.faces, hole_sites(internal, {k: from_frame(v, **fb.frame)
                                                                    for k, v in fb.true_landmarks.items()}), 0.02)
-    check_riggable(fb.vertices, faces)
-    emb = embed_skeleton(fb.vertices, faces)
-    assert _errors_m(fb, emb).mean() <= 0.02
+    assert len(faces) < len(fb.faces)
+    faces = reverse_winding(faces)
+    noisy = add_noise(fb.vertices, 2.0, rng=1, faces=fb.faces)             # millimetres
+    check_riggable(noisy, faces)
+    err = _errors_m(fb, embed_skeleton(noisy, faces))
+    assert err.mean() <= 0.02 and err.max() <= 0.04
 
 
 def _two_bodies(fb):
@@ -133,7 +138,7 @@ def test_what_cannot_be_rigged_is_refused_naming_what_was_found(bodies):
         embed_skeleton(v2, f2)
     v = fb.internal_vertices()
     half = fb.faces[(v[fb.faces, 0] > 0.0).all(axis=1)]            # the left half: far from closed
-    with pytest.raises(RigError, match=r"far from closed: \d+ of about \d+ edges"):
+    with pytest.raises(RigError, match=r"far from closed: \d+ of \d+ edges"):
         embed_skeleton(v, half)
     box = trimesh.creation.box((0.5, 1.7, 0.3))
     sphere = trimesh.creation.icosphere(4, 0.8)

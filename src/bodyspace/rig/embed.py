@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree
 from bodyspace.data.template import Rig, Template, load_template
 from bodyspace.errors import ParameterError, RigError
 from bodyspace.measure.conventions import MESH_UNITS, plausible_units, signed_volume
-from bodyspace.mesh.geometry import boundary_loops, face_areas, face_normals
+from bodyspace.mesh.geometry import face_areas, face_normals
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.mesh.topology import vertex_components
 from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
@@ -157,12 +157,13 @@ def check_riggable(vertices: np.ndarray, faces: np.ndarray, mesh_name: str = "th
             raise RigError(f"{mesh_name}: {len(big)} separate parts (shares of the surface area: {shares}"
                            f"{', ...' if len(big) > 5 else ''}); expected one connected body. Join or delete the "
                            "extra parts (clothing, props, a second person) before rigging")
-    loops = boundary_loops(f)
-    n_boundary = sum(len(loop) for loop in loops)
-    n_edges = len(f) * 3 / 2
+    # Boundary edges: used by one face only (counted directly: a scan's boundary need not form loops).
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, uses = np.unique(edges[:, 0] * len(v) + edges[:, 1], return_counts=True)
+    n_boundary, n_edges = int((uses == 1).sum()), len(uses)
     if n_boundary > MAX_BOUNDARY_SHARE * n_edges:
-        raise RigError(f"{mesh_name}: far from closed: {n_boundary} of about {int(n_edges)} edges lie on "
-                       f"{len(loops)} hole boundaries ({100 * n_boundary / n_edges:.1f} %, at most "
+        raise RigError(f"{mesh_name}: far from closed: {n_boundary} of {n_edges} edges lie on hole boundaries "
+                       f"({100 * n_boundary / n_edges:.1f} %, at most "
                        f"{100 * MAX_BOUNDARY_SHARE:g} % allowed); expected a closed or nearly closed body surface. "
                        "Fill the holes (a watertight scan or remesh) before rigging")
 
