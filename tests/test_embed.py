@@ -18,13 +18,17 @@ import trimesh
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
+from bodyspace.cli.export import skeleton_and_weights
 from bodyspace.errors import RigError
+from bodyspace.export.gltf import influences_matrix, joint_local_transforms, top_influences, write_gltf
 from bodyspace.mesh.geometry import cap_holes
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.embed import JOINT_GROUPS, body_frame, check_riggable, embed_skeleton, embedded_skeleton, joint_group
+from bodyspace.rig.kinematics import forward_kinematics, linear_blend_skinning
 from bodyspace.rig.skeleton import body_skeleton
 from bodyspace.synth.foreign import (add_noise, foreign_body, foreign_topology, from_frame, hole_sites, punch_holes,
                                      reverse_winding)
+from bodyspace.synth.poses import load_pose_library
 
 NODE_DIR = Path(__file__).resolve().parent / "node"
 # (pose, to_frame arguments): an A-pose in millimetres with Z up (Blender's axes), a T-pose in
@@ -172,3 +176,32 @@ def test_rig_command_rigs_a_foreign_mesh(bodies, tmp_path):
     r = CliRunner().invoke(app, ["rig", str(tmp_path / "two.obj"), "--out", str(tmp_path / "two.glb")])
     assert r.exit_code == 2 and "separate parts" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "two.glb").exists()
+
+
+def test_threejs_skins_an_embedded_rig_as_we_do(bodies, template, tmp_path):
+    """The rigged file of a foreign mesh (embedded skeleton, bone-heat weights): three.js binds it
+    at the mesh as given and skins a posed frame as our LBS does, within 0.1 mm."""
+    node = shutil.which("node")
+    if node is None or not (NODE_DIR / "node_modules" / "three").is_dir():
+        pytest.skip("node and the oracle packages (npm ci in tests/node) are needed for three.js")
+    fb = bodies["a_pose_mm_z_up"]
+    body, s, w, how = skeleton_and_weights(fb.vertices, fb.faces, "default", "scan")
+    assert how.startswith("skeleton embedded")
+    path = tmp_path / "embedded.glb"
+    write_gltf(path, body, fb.faces, s, w)
+    R = load_pose_library().rotations("arms_overhead", template.rigs["default"])
+    G = forward_kinematics(R[None], s.heads, s.parents)[0]
+    for name, transforms in (("bind", None), ("posed", G)):
+        bones = {}
+        if transforms is not None:
+            t, q = joint_local_transforms(s, transforms)
+            bones = {b: {"translation": t[i].tolist(), "rotation": q[i].tolist()} for i, b in enumerate(s.bone_names)}
+        (tmp_path / "pose.json").write_text(json.dumps({"bones": bones}))
+        done = subprocess.run([node, str(NODE_DIR / "skin.mjs"), str(path), str(tmp_path / "pose.json"),
+                               str(tmp_path / "three.bin")], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        theirs = np.fromfile(tmp_path / "three.bin").reshape(-1, 3)
+        j, wt = top_influences(w, parents=s.parents)
+        ours = body if transforms is None else linear_blend_skinning(body, influences_matrix(j, wt, s.n_bones),
+                                                                     transforms[None])[0]
+        assert np.abs(theirs - ours).max() < 1e-4, (name, 1000 * np.abs(theirs - ours).max())
