@@ -23,7 +23,8 @@ from bodyspace.errors import RigError
 from bodyspace.export.gltf import influences_matrix, joint_local_transforms, top_influences, write_gltf
 from bodyspace.mesh.geometry import cap_holes
 from bodyspace.mesh.io import save_mesh
-from bodyspace.rig.embed import JOINT_GROUPS, body_frame, check_riggable, embed_skeleton, embedded_skeleton, joint_group
+from bodyspace.rig.embed import (JOINT_GROUPS, _movable, body_frame, check_riggable, embed_skeleton, embedded_skeleton,
+                                 into_interior, joint_group, winding_numbers)
 from bodyspace.rig.kinematics import forward_kinematics, linear_blend_skinning
 from bodyspace.rig.skeleton import body_skeleton
 from bodyspace.synth.foreign import (add_noise, foreign_body, foreign_topology, from_frame, hole_sites, punch_holes,
@@ -205,3 +206,21 @@ def test_threejs_skins_an_embedded_rig_as_we_do(bodies, template, tmp_path):
         ours = body if transforms is None else linear_blend_skinning(body, influences_matrix(j, wt, s.n_bones),
                                                                      transforms[None])[0]
         assert np.abs(theirs - ours).max() < 1e-4, (name, 1000 * np.abs(theirs - ours).max())
+
+
+def test_body_joints_are_inside_the_mesh(embeddings, template):
+    sphere = trimesh.creation.icosphere(3, 1.0)
+    w = winding_numbers(np.array([[0.0, 0.0, 0.0], [0.5, 0.2, 0.1], [1.5, 0.0, 0.0]]), sphere.vertices, sphere.faces)
+    assert np.allclose(w, [1.0, 1.0, 0.0], atol=1e-6)
+    movable = _movable(template.rigs["default"])
+    for name, emb in embeddings.items():
+        skeleton = embedded_skeleton(emb, template.rigs["default"])
+        for points in (skeleton.heads, skeleton.tails):
+            w = winding_numbers(points[movable], emb.mesh_vertices, emb.mesh_faces)
+            assert (w > 0.5).all(), (name, np.asarray(skeleton.bone_names)[movable][w <= 0.5])
+    # a joint put outside is brought back under the surface
+    emb = embeddings["a_pose_mm_z_up"]
+    v, n = emb.mesh_vertices, emb.mesh_normals
+    outside = v[:3] + 0.01 * n[:3]
+    moved = into_interior(outside, np.array([True, True, False]), v, emb.mesh_faces, n)
+    assert (winding_numbers(moved[:2], v, emb.mesh_faces) > 0.5).all() and np.array_equal(moved[2], outside[2])

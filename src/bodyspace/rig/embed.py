@@ -66,7 +66,7 @@ from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotve
 from bodyspace.rig.skeleton import Skeleton, body_skeleton, roll_from_x_axis
 
 __all__ = ["BodyFrame", "Embedding", "FITTED_BONES", "JOINT_GROUPS", "body_frame", "check_riggable",
-           "embed_skeleton", "embedded_skeleton", "joint_group"]
+           "embed_skeleton", "embedded_skeleton", "into_interior", "joint_group", "winding_numbers"]
 
 # The bones whose rotation the fit estimates (the others turn with their parent): the trunk, the
 # limbs down to hands and feet. Twist bones, fingers, toes and the face follow; an A- or T-pose
@@ -108,6 +108,14 @@ MAX_LEG_GAP_SHARE = 0.02
 # Parts smaller than this share of the surface area are debris (a scanner's floaters) and are
 # not counted as components; the fit ignores nothing, though (they are matched like the rest).
 MIN_COMPONENT_SHARE = 0.002
+
+# A joint of the body that the fit leaves outside the mesh is moved to this depth under the
+# mesh's nearest vertex (bone heat needs bones inside; MakeHuman's shoulder joints sit a few mm
+# under the skin, and the fit's few millimetres of residual can put them just outside). Only
+# points within NEAR_SURFACE of a vertex are tested. The face's control bones (lips, eyelids,
+# tongue) and skinless helpers (the root) lie outside a closed body surface by design and stay.
+INTERIOR_DEPTH = 0.005
+NEAR_SURFACE = 0.03
 
 # Joint groups of the default rig, for the accuracy table: (group, bone-name prefixes).
 JOINT_GROUPS = (
@@ -563,6 +571,55 @@ def _turns(model: _Model, st: _State, start: _State, G: np.ndarray) -> np.ndarra
     return np.einsum("pij,pj->pi", A, rel)
 
 
+# ------------------------------------------------------------------------------ the interior
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Generalized winding numbers (P,) of points (P, 3) for a mesh (V, 3), (F, 3): about 1 inside
+    a closed outward-wound surface, 0 outside, in between near holes (Jacobson et al. 2013: the
+    sum of the faces' signed solid angles over 4 pi, each by Van Oosterom & Strackee 1983)."""
+    out = np.empty(len(points))
+    for i, p in enumerate(np.asarray(points, dtype=float)):
+        a, b, c = (vertices[faces[:, k]] - p for k in range(3))
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+               + np.einsum("ij,ij->i", c, a) * lb)
+        out[i] = np.arctan2(det, den).sum() / (2.0 * np.pi)
+    return out
+
+
+def into_interior(points: np.ndarray, movable: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                  normals: np.ndarray) -> np.ndarray:
+    """Points (P, 3) with every ``movable`` (P,) one that lies outside the mesh (winding number
+    below 1/2) moved ``INTERIOR_DEPTH`` under its nearest vertex (or, where that is still outside,
+    to the centroid of its 12 nearest vertices). vertices (V, 3), faces (F, 3), normals (V, 3)
+    outward unit normals, metres. Returns (P, 3)."""
+    pts = np.array(points, dtype=float)
+    tree = cKDTree(vertices)
+    dist, nearest = tree.query(pts)
+    # Only points near the surface and not deep under their nearest vertex's tangent plane are
+    # tested (the winding number costs a pass over the faces per point; at a fingertip of a coarse
+    # mesh a point 2.5 mm under that plane can still be outside).
+    above = np.einsum("ij,ij->i", pts - vertices[nearest], normals[nearest]) > -2.0 * INTERIOR_DEPTH
+    test = np.flatnonzero(np.asarray(movable) & (dist < NEAR_SURFACE) & above)
+    if len(test):
+        outside = test[winding_numbers(pts[test], vertices, faces) < 0.5]
+        pts[outside] = vertices[nearest[outside]] - INTERIOR_DEPTH * normals[nearest[outside]]
+        # Where a thin tip's normal leads out again, the centroid of the nearest vertices (inside a
+        # convex tip) is taken instead.
+        still = outside[winding_numbers(pts[outside], vertices, faces) < 0.5]
+        if len(still):
+            _, ring = tree.query(pts[still], k=min(12, len(vertices)))
+            pts[still] = vertices[ring].mean(axis=1)
+    return pts
+
+
+def _movable(rig: Rig) -> np.ndarray:
+    """(B,) bones whose ends are kept inside the mesh: skinned, not the face's control bones."""
+    skinned = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
+    return skinned & np.array([joint_group(b) != "face" for b in rig.bone_names])
+
+
 # ------------------------------------------------------------------------------ the embedding
 
 @dataclass(frozen=True)
@@ -577,6 +634,8 @@ class Embedding:
         (rest -> posed, the internal frame; the fit's scale included).
     residual_m: RMS point-to-plane distance (metres) of the last round's closest-point pairs.
     rounds: closest-point rounds the fit took.
+    mesh_vertices, mesh_faces, mesh_normals: the mesh in the internal frame (metres, our axes),
+        with outward unit vertex normals: joints are kept inside it (``into_interior``).
     """
 
     joints: np.ndarray
@@ -586,6 +645,9 @@ class Embedding:
     transforms: np.ndarray
     residual_m: float
     rounds: int
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    mesh_normals: np.ndarray
 
     @property
     def internal_joints(self) -> np.ndarray:
@@ -608,9 +670,9 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
     frame = body_frame(v, f, up, units, mesh_name)
     x = frame.to_internal(v)
     used = np.unique(f)
+    if signed_volume(x, f)[0] < 0:                 # wound inwards: turn it out (normals, winding numbers)
+        f = f[:, ::-1].copy()
     normals = _vertex_normals(x, f)
-    if signed_volume(x, f)[0] < 0:                 # wound inwards: the normals point in
-        normals = -normals
     model = _model()
     # Small dense matrices (a few thousand rows, 116 columns): BLAS threads only contend.
     with single_threaded_blas():
@@ -626,9 +688,10 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
     T[:, :3, :] *= st.s
     T[:, :3, 3] += st.t
     joints = np.einsum("bij,bj->bi", T[:, :3, :3], heads) + T[:, :3, 3]
+    joints = into_interior(joints, _movable(model.rig), x, f, normals)
     rest = model.mean + model.basis @ st.c
     posed = _posed(model, st, np.arange(len(rest)), G)
-    return Embedding(frame.from_internal(joints), frame, rest, posed, T, rms, rounds)
+    return Embedding(frame.from_internal(joints), frame, rest, posed, T, rms, rounds, x, f, normals)
 
 
 def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -> Skeleton:
@@ -662,6 +725,12 @@ def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -
     else:
         heads = carry(rig.head_regressor, rig.heads(rest))
         tails = carry(rig.tail_regressor, rig.tails(rest))
+    keep_inside = _movable(rig)
+    mesh = (embedding.mesh_vertices, embedding.mesh_faces, embedding.mesh_normals)
+    heads = into_interior(heads, keep_inside, *mesh)
+    moved_tails = into_interior(tails, keep_inside, *mesh)
+    # a bone whose two ends went under one vertex keeps its fitted tail (a bone needs a length)
+    tails = np.where((np.linalg.norm(moved_tails - heads, axis=1) > 1e-4)[:, None], moved_tails, tails)
     skeleton = body_skeleton(rig, embedding.posed_body, heads=heads, tails=tails)
     if frame == "internal":
         return skeleton
