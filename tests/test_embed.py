@@ -222,5 +222,6 @@ def test_body_joints_are_inside_the_mesh(embeddings, template):
     emb = embeddings["a_pose_mm_z_up"]
     v, n = emb.mesh_vertices, emb.mesh_normals
     outside = v[:3] + 0.01 * n[:3]
-    moved = into_interior(outside, np.array([True, True, False]), v, emb.mesh_faces, n)
+    anchors = v[:3] - 0.02 * n[:3]
+    moved = into_interior(outside, anchors, np.array([True, True, False]), v, emb.mesh_faces, n)
     assert (winding_numbers(moved[:2], v, emb.mesh_faces) > 0.5).all() and np.array_equal(moved[2], outside[2])

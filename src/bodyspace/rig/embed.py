@@ -38,6 +38,10 @@ fine, and the joints come from the fitted template, where they are known:
    fitted rest body and carried by the fitted pose ("joint skinning": each point moved by the
    blend of the bone transforms its regressor's skin carries, which is exact forward kinematics
    at a joint between two bones), and rolls follow the skin (``rig.skeleton.body_skeleton``).
+5. **Into the interior** (``into_interior``): a body joint the fit leaves outside the mesh
+   (generalized winding number below 1/2; the few millimetres of fit residual can put a shoulder
+   joint or a fingertip's bone end just outside) is moved along its limb (toward its parent's
+   joint; a tail toward its head) to ``INTERIOR_DEPTH`` inside. Bone heat needs its bones inside.
 
 Why this beats a discrete medial embedding here: every one of the 163 bones (fingers, toes, face)
 is placed, not only the ~17 a medial graph resolves, and the joints sit where the template's
@@ -116,6 +120,7 @@ MIN_COMPONENT_SHARE = 0.002
 # tongue) and skinless helpers (the root) lie outside a closed body surface by design and stay.
 INTERIOR_DEPTH = 0.005
 NEAR_SURFACE = 0.03
+INTERIOR_STEPS = 16
 
 # Joint groups of the default rig, for the accuracy table: (group, bone-name prefixes).
 JOINT_GROUPS = (
@@ -588,29 +593,37 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray)
     return out
 
 
-def into_interior(points: np.ndarray, movable: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                  normals: np.ndarray) -> np.ndarray:
+def into_interior(points: np.ndarray, anchors: np.ndarray, movable: np.ndarray, vertices: np.ndarray,
+                  faces: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Points (P, 3) with every ``movable`` (P,) one that lies outside the mesh (winding number
-    below 1/2) moved ``INTERIOR_DEPTH`` under its nearest vertex (or, where that is still outside,
-    to the centroid of its 12 nearest vertices). vertices (V, 3), faces (F, 3), normals (V, 3)
-    outward unit normals, metres. Returns (P, 3)."""
+    below 1/2) moved toward its anchor (P, 3) (a point of the same limb inside the body: its
+    bone's other end or its parent's joint) to ``INTERIOR_DEPTH`` past where the segment enters
+    the body (found on ``INTERIOR_STEPS`` points of the segment). A point whose anchor is outside
+    too stays. vertices (V, 3), faces (F, 3), normals (V, 3) outward unit normals, metres.
+    Returns (P, 3). Moving along the limb, not to the nearest surface, keeps a fingertip on its
+    own finger (the nearest surface may be the next finger's)."""
     pts = np.array(points, dtype=float)
-    tree = cKDTree(vertices)
-    dist, nearest = tree.query(pts)
+    anchors = np.asarray(anchors, dtype=float)
+    dist, nearest = cKDTree(vertices).query(pts)
     # Only points near the surface and not deep under their nearest vertex's tangent plane are
     # tested (the winding number costs a pass over the faces per point; at a fingertip of a coarse
     # mesh a point 2.5 mm under that plane can still be outside).
     above = np.einsum("ij,ij->i", pts - vertices[nearest], normals[nearest]) > -2.0 * INTERIOR_DEPTH
     test = np.flatnonzero(np.asarray(movable) & (dist < NEAR_SURFACE) & above)
-    if len(test):
-        outside = test[winding_numbers(pts[test], vertices, faces) < 0.5]
-        pts[outside] = vertices[nearest[outside]] - INTERIOR_DEPTH * normals[nearest[outside]]
-        # Where a thin tip's normal leads out again, the centroid of the nearest vertices (inside a
-        # convex tip) is taken instead.
-        still = outside[winding_numbers(pts[outside], vertices, faces) < 0.5]
-        if len(still):
-            _, ring = tree.query(pts[still], k=min(12, len(vertices)))
-            pts[still] = vertices[ring].mean(axis=1)
+    if not len(test):
+        return pts
+    outside = test[winding_numbers(pts[test], vertices, faces) < 0.5]
+    fractions = np.linspace(0.0, 1.0, INTERIOR_STEPS + 1)[1:]              # from the point toward the anchor
+    for i in outside:
+        length = float(np.linalg.norm(anchors[i] - pts[i]))
+        if length < 1e-9:
+            continue
+        along = pts[i] + fractions[:, None] * (anchors[i] - pts[i])
+        inside = np.flatnonzero(winding_numbers(along, vertices, faces) > 0.5)
+        if not len(inside):
+            continue                                                       # the anchor is outside too
+        f = min(fractions[inside[0]] + INTERIOR_DEPTH / length, 1.0)
+        pts[i] = pts[i] + f * (anchors[i] - pts[i])
     return pts
 
 
@@ -688,7 +701,9 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
     T[:, :3, :] *= st.s
     T[:, :3, 3] += st.t
     joints = np.einsum("bij,bj->bi", T[:, :3, :3], heads) + T[:, :3, 3]
-    joints = into_interior(joints, _movable(model.rig), x, f, normals)
+    par = model.parents
+    joints = into_interior(joints, joints[np.where(par >= 0, par, np.arange(len(par)))], _movable(model.rig),
+                           x, f, normals)
     rest = model.mean + model.basis @ st.c
     posed = _posed(model, st, np.arange(len(rest)), G)
     return Embedding(frame.from_internal(joints), frame, rest, posed, T, rms, rounds, x, f, normals)
@@ -727,10 +742,9 @@ def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -
         tails = carry(rig.tail_regressor, rig.tails(rest))
     keep_inside = _movable(rig)
     mesh = (embedding.mesh_vertices, embedding.mesh_faces, embedding.mesh_normals)
-    heads = into_interior(heads, keep_inside, *mesh)
-    moved_tails = into_interior(tails, keep_inside, *mesh)
-    # a bone whose two ends went under one vertex keeps its fitted tail (a bone needs a length)
-    tails = np.where((np.linalg.norm(moved_tails - heads, axis=1) > 1e-4)[:, None], moved_tails, tails)
+    par = np.asarray(rig.parents)
+    heads = into_interior(heads, heads[np.where(par >= 0, par, np.arange(len(par)))], keep_inside, *mesh)
+    tails = into_interior(tails, heads, keep_inside, *mesh)
     skeleton = body_skeleton(rig, embedding.posed_body, heads=heads, tails=tails)
     if frame == "internal":
         return skeleton
