@@ -40,14 +40,15 @@ fine, and the joints come from the fitted template, where they are known:
    at a joint between two bones), and rolls follow the skin (``rig.skeleton.body_skeleton``).
 5. **Into the interior** (``into_interior``): a body joint the fit leaves outside the mesh
    (generalized winding number below 1/2; the few millimetres of fit residual can put a shoulder
-   joint or a fingertip's bone end just outside) is moved along its limb (toward its parent's
-   joint; a tail toward its head) to ``INTERIOR_DEPTH`` inside. Bone heat needs its bones inside.
+   joint just outside) is moved in along its limb (toward its parent's joint or its own tail,
+   whichever enters sooner) to ``INTERIOR_DEPTH`` inside, by at most ``MAX_INTERIOR_MOVE``.
+   Bone heat needs its bones inside.
 
 Why this beats a discrete medial embedding here: every one of the 163 bones (fingers, toes, face)
 is placed, not only the ~17 a medial graph resolves, and the joints sit where the template's
 anatomy puts them inside the flesh (a knee is not at the centre of the leg's cross-section).
-What it assumes: a person in an A- or T-pose (other poses start too far from the template for
-closest points); a mesh that is not a humanoid leaves a large residual and is refused
+What it assumes: a person in an A- or T-pose (measured: arms at the sides, a wide stance and a
+star pose work too; hands on hips does not, and arms forward is refused: docs/embedding.md); a mesh that is not a humanoid leaves a large residual and is refused
 (``RigError``), as are several components and meshes far from closed (``check_riggable``).
 """
 
