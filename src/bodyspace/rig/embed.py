@@ -48,7 +48,8 @@ Why this beats a discrete medial embedding here: every one of the 163 bones (fin
 is placed, not only the ~17 a medial graph resolves, and the joints sit where the template's
 anatomy puts them inside the flesh (a knee is not at the centre of the leg's cross-section).
 What it assumes: a person in an A- or T-pose (measured: arms at the sides, a wide stance and a
-star pose work too; hands on hips does not, and arms forward is refused: docs/embedding.md); a mesh that is not a humanoid leaves a large residual and is refused
+star pose work too; hands on hips does not, and arms forward is refused: docs/embedding.md); a
+mesh that is not a humanoid has no legs to find or leaves a large residual and is refused
 (``RigError``), as are several components and meshes far from closed (``check_riggable``).
 """
 
