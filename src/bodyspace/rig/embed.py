@@ -58,6 +58,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
@@ -585,18 +586,36 @@ def _turns(model: _Model, st: _State, start: _State, G: np.ndarray) -> np.ndarra
 
 # ------------------------------------------------------------------------------ the interior
 
+@numba.njit(cache=True, nogil=True)
+def _winding_kernel(points, a, b, c, out):
+    """Sum over triangles (a, b, c) (F, 3) of signed solid angles seen from each point, / 4 pi."""
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        total = 0.0
+        for f in range(a.shape[0]):
+            ax, ay, az = a[f, 0] - px, a[f, 1] - py, a[f, 2] - pz
+            bx, by, bz = b[f, 0] - px, b[f, 1] - py, b[f, 2] - pz
+            cx, cy, cz = c[f, 0] - px, c[f, 1] - py, c[f, 2] - pz
+            la = np.sqrt(ax * ax + ay * ay + az * az)
+            lb = np.sqrt(bx * bx + by * by + bz * bz)
+            lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+            det = ax * (by * cz - bz * cy) - ay * (bx * cz - bz * cx) + az * (bx * cy - by * cx)
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la
+                   + (cx * ax + cy * ay + cz * az) * lb)
+            total += np.arctan2(det, den)
+        out[i] = total / (2.0 * np.pi)
+
+
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Generalized winding numbers (P,) of points (P, 3) for a mesh (V, 3), (F, 3): about 1 inside
     a closed outward-wound surface, 0 outside, in between near holes (Jacobson et al. 2013: the
-    sum of the faces' signed solid angles over 4 pi, each by Van Oosterom & Strackee 1983)."""
+    sum of the faces' signed solid angles over 4 pi, each by Van Oosterom & Strackee 1983). A
+    compiled loop: P x F triangle terms (100 points of a 48,000-face mesh in ~0.1 s)."""
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces, dtype=np.int64)
     out = np.empty(len(points))
-    for i, p in enumerate(np.asarray(points, dtype=float)):
-        a, b, c = (vertices[faces[:, k]] - p for k in range(3))
-        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
-        det = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
-               + np.einsum("ij,ij->i", c, a) * lb)
-        out[i] = np.arctan2(det, den).sum() / (2.0 * np.pi)
+    _winding_kernel(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(v[f[:, 0]]),
+                    np.ascontiguousarray(v[f[:, 1]]), np.ascontiguousarray(v[f[:, 2]]), out)
     return out
 
 
@@ -605,10 +624,12 @@ def into_interior(points: np.ndarray, anchors: np.ndarray, movable: np.ndarray, 
     """Points (P, 3) with every ``movable`` (P,) one that lies outside the mesh (winding number
     below 1/2) moved toward one of its anchors (P, 3) or (P, A, 3) (points of the same limb
     inside the body: its bone's other end, its parent's joint; the one giving the shortest move)
-    to ``INTERIOR_DEPTH`` past where the segment enters the body (found on ``INTERIOR_STEPS`` points of the segment). A point whose anchor is outside
-    too, or that would move more than ``MAX_INTERIOR_MOVE``, stays. vertices (V, 3), faces (F, 3), normals (V, 3) outward unit normals, metres.
-    Returns (P, 3). Moving along the limb, not to the nearest surface, keeps a fingertip on its
-    own finger (the nearest surface may be the next finger's)."""
+    to ``INTERIOR_DEPTH`` past where the segment enters the body (found on ``INTERIOR_STEPS``
+    points of the segment), never past the segment's middle. A point whose anchors are outside
+    too, or that would move more than ``MAX_INTERIOR_MOVE``, stays. vertices (V, 3), faces
+    (F, 3), normals (V, 3) outward unit normals, metres. Returns (P, 3). Moving along the limb,
+    not to the nearest surface, keeps a fingertip on its own finger (the nearest surface may be
+    the next finger's)."""
     pts = np.array(points, dtype=float)
     anchors = np.asarray(anchors, dtype=float)
     dist, nearest = cKDTree(vertices).query(pts)
@@ -623,15 +644,21 @@ def into_interior(points: np.ndarray, anchors: np.ndarray, movable: np.ndarray, 
     fractions = np.linspace(0.0, 1.0, INTERIOR_STEPS + 1)[1:]              # from the point toward the anchor
     for i in outside:
         best = None
-        for anchor in anchors[i].reshape(-1, 3):                           # the shortest way in
+        ends = anchors[i].reshape(-1, 3)
+        along = pts[i] + fractions[None, :, None] * (ends[:, None, :] - pts[i])          # (A, S, 3)
+        w_along = winding_numbers(along.reshape(-1, 3), vertices, faces).reshape(len(ends), -1)
+        for anchor, w in zip(ends, w_along):                                # the shortest way in
             length = float(np.linalg.norm(anchor - pts[i]))
             if length < 1e-9:
                 continue
-            along = pts[i] + fractions[:, None] * (anchor - pts[i])
-            inside = np.flatnonzero(winding_numbers(along, vertices, faces) > 0.5)
+            inside = np.flatnonzero(w > 0.5)
             if not len(inside):
                 continue                                                   # this anchor is outside too
-            f = min(fractions[inside[0]] + INTERIOR_DEPTH / length, 1.0)
+            # never past the segment's middle: an anchor is often the bone's other end, and a
+            # bone keeps a length
+            if fractions[inside[0]] > 0.5:
+                continue
+            f = min(fractions[inside[0]] + INTERIOR_DEPTH / length, 0.5)
             if f * length <= MAX_INTERIOR_MOVE and (best is None or f * length < best[0]):
                 best = (f * length, pts[i] + f * (anchor - pts[i]))
         if best is not None:
@@ -757,8 +784,12 @@ def embedded_skeleton(embedding: Embedding, rig: Rig, frame: str = "internal") -
     mesh = (embedding.mesh_vertices, embedding.mesh_faces, embedding.mesh_normals)
     par = np.asarray(rig.parents)
     anchors = np.stack([heads[np.where(par >= 0, par, np.arange(len(par)))], tails], axis=1)    # (B, 2, 3)
-    heads = into_interior(heads, anchors, keep_inside, *mesh)
-    tails = into_interior(tails, heads, keep_inside, *mesh)
+    moved_heads = into_interior(heads, anchors, keep_inside, *mesh)
+    moved_tails = into_interior(tails, moved_heads, keep_inside, *mesh)
+    # a bone the moves would shorten to nothing keeps its fitted ends
+    short = np.linalg.norm(moved_tails - moved_heads, axis=1) < 1e-6
+    heads = np.where(short[:, None], heads, moved_heads)
+    tails = np.where(short[:, None], tails, moved_tails)
     skeleton = body_skeleton(rig, embedding.posed_body, heads=heads, tails=tails)
     if frame == "internal":
         return skeleton
