@@ -510,7 +510,12 @@ def test_rig_command_on_a_template_mesh_and_a_foreign_one(template, phenotype_mo
     fb = foreign_body(template, phenotype_model, rng=0, pose="rest", target_vertices=3000)
     other = tmp_path / "other.obj"
     save_mesh(other, fb.internal_vertices(), fb.faces)
-    r = CliRunner().invoke(app, ["rig", str(other), "--out", str(tmp_path / "other.glb")])
-    assert r.exit_code == 2 and "template topology" in " ".join(r.output.split())
+    r = CliRunner().invoke(app, ["rig", str(other), "--out", str(tmp_path / "other.glb"), "--rig", "cmu_mb"])
+    assert r.exit_code == 0 and "skeleton embedded" in " ".join(r.output.split()), r.output
+    g = read_glb(tmp_path / "other.glb")                     # another topology: embedding + bone heat
+    assert len(g.skins[0].joints) == EXPECTED_BONES["cmu_mb"]
+    r = CliRunner().invoke(app, ["rig", str(other), "--out", str(tmp_path / "o2.glb"), "--model", str(root / "model.npz"),
+                                 "--morphs", "muscle"])
+    assert r.exit_code == 2 and "--morphs" in r.output and "topology" in " ".join(r.output.split())
     r = CliRunner().invoke(app, ["rig", str(mesh), "--out", str(tmp_path / "x.glb"), "--model", str(mesh)])
     assert r.exit_code == 2 and "--model is read for --morphs only" in " ".join(r.output.split())

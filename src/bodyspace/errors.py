@@ -52,3 +52,8 @@ class SemanticsFileError(BodyspaceError):
 
 class MotionError(BodyspaceError):
     """A motion file (BVH) is malformed, or a skeleton match or its map file cannot be made or read."""
+
+
+class RigError(BodyspaceError):
+    """A mesh cannot be rigged: several components, not a humanoid, far from closed, or a
+    skeleton that does not fit inside it."""

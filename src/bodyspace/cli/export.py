@@ -3,8 +3,10 @@ branch of ``bodyspace generate`` (``write_rigged``), with ``--morphs`` and ``--p
 
 A body of the template topology carries a CC0 rig: its skeleton is regressed from the body's
 own vertices (``rig.skeleton.body_skeleton``) and MakeHuman's skin weights apply as they are.
-The exporter (``export.gltf.write_gltf``) takes any mesh with any skeleton and weights, so
-skeleton embedding and bone-heat weights for other topologies plug in at ``skeleton_and_weights``.
+Any other mesh (another topology, frame or unit) gets the rig by skeleton embedding
+(``rig.embed``: the template fitted into it) and bone-heat weights on its own surface
+(``rig.weights.bone_heat_weights``); it is written in metres, +Y up, facing +Z (glTF's axes),
+standing on y = 0. Both branches meet in ``skeleton_and_weights``.
 """
 
 from __future__ import annotations
@@ -20,11 +22,15 @@ from bodyspace.data.template import RIG_NAMES, load_template
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.export.gltf import write_gltf
 from bodyspace.export.morphs import parse_morph_specs, semantic_morph_targets
+from bodyspace.measure.conventions import MESH_UNITS
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
+from bodyspace.rig.embed import embed_skeleton, embedded_skeleton
 from bodyspace.rig.skeleton import body_skeleton
+from bodyspace.rig.weights import bone_heat_weights
 
+UP_CHOICES = ("y", "-y", "x", "-x", "z", "-z")
 RigOption = typer.Option(None, "--rig", help="Write a rigged glTF (--out NAME.glb) with this CC0 rig: "
                                              + ", ".join(RIG_NAMES) + ".")
 MorphsOption = typer.Option(None, "--morphs", help="With --rig: morph targets (shape keys) of the model's semantic "
@@ -58,41 +64,51 @@ def check_rig_options(out: Path, rig: Optional[str], morphs: Optional[str], png:
         raise ParameterError("--bones chooses the weight maps of --png; pass --png FILE.png too")
 
 
-def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str, where: str):
-    """The skeleton and skin weights of a body for rig ``rig_name``: the template's rig when the
-    body has the template topology (what ``where`` names otherwise says what was found)."""
+def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str, where: str, *,
+                         up: Optional[str] = None, units: Optional[str] = None):
+    """``(vertices, skeleton, weights, how)`` of a body for rig ``rig_name``: the template's rig and
+    MakeHuman's weights when the body has the template topology (vertices as given); else the
+    rig embedded into the mesh and bone-heat weights, the vertices in metres, our axes (``up``,
+    ``units``: the mesh's, found from it when None). ``how`` says which, for people."""
     template = load_template()
-    v, f = np.asarray(vertices), np.asarray(faces)
-    if v.shape != template.vertices.shape or not np.array_equal(f, template.faces):
-        raise ParameterError(f"{where}: {len(v)} vertices / {len(f)} faces; the CC0 rigs are defined on the template "
-                             f"topology ({len(template.vertices)} vertices, {len(template.faces)} faces); a mesh of "
-                             "another topology needs skeleton embedding and bone-heat weights (not part of this "
-                             "command yet)")
+    v, f = np.asarray(vertices, dtype=float), np.asarray(faces)
     rig = template.rigs.get(rig_name)
     if rig is None:
         raise ParameterError(f"--rig {rig_name!r}: the asset folder has no such rig; it has "
                              f"{', '.join(template.rigs)}")
-    return body_skeleton(rig, v, rest_vertices=template.vertices), rig.weights
+    if v.shape == template.vertices.shape and np.array_equal(f, template.faces) and up is None and units is None:
+        return v, body_skeleton(rig, v, rest_vertices=template.vertices), rig.weights, "template topology"
+    embedding = embed_skeleton(v, f, up=up, units=units, mesh_name=where)
+    skeleton = embedded_skeleton(embedding, rig)
+    body = embedding.frame.to_internal(v)
+    deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0     # the bones MakeHuman's weights move
+    weights = bone_heat_weights(body, f, skeleton.heads, skeleton.tails, deform=deform)
+    how = (f"skeleton embedded (mesh up {embedding.frame.up}, {embedding.frame.units}; fit residual "
+           f"{1000 * embedding.residual_m:.1f} mm), bone-heat weights")
+    return body, skeleton, weights, how
 
 
 def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: str, *, body_model=None,
                  morphs: Optional[str] = None, png: Optional[Path] = None, bones: Optional[str] = None,
-                 where: str = "the body") -> str:
+                 where: str = "the body", up: Optional[str] = None, units: Optional[str] = None) -> str:
     """Write the rigged ``.glb`` (and the ``--png``); returns a line saying what was written."""
-    skeleton, weights = skeleton_and_weights(vertices, faces, rig_name, where)
     names = [b.strip() for b in bones.split(",")] if bones else None
+    if morphs is not None and body_model is None:
+        raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
+    vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units)
     for b in names or []:
         if b not in skeleton.bone_names:
             raise ParameterError(f"--bones {b!r}: not a bone of rig {rig_name}; expected names such as "
                                  f"{', '.join(skeleton.bone_names[:8])}, ... ({skeleton.n_bones} bones)")
     targets = []
     if morphs is not None:
-        if body_model is None:
-            raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
+        if how != "template topology":
+            raise ParameterError(f"--morphs: {where} is not of the model's topology; morph targets are made for bodies "
+                                 "of the template topology (leave --morphs out)")
         targets = semantic_morph_targets(body_model, vertices, parse_morph_specs(morphs))
     write_gltf(out, vertices, faces, skeleton, weights, targets,
                extras={"rig": rig_name, "template": load_template().template_id})
-    said = f"wrote {out}: rig {rig_name} ({skeleton.n_bones} bones), {len(vertices)} vertices"
+    said = f"wrote {out}: rig {rig_name} ({skeleton.n_bones} bones), {len(vertices)} vertices, {how}"
     if targets:
         said += ", morph targets " + ", ".join(t.name for t in targets)
     if png is not None:
@@ -102,19 +118,30 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
     return said
 
 
-def rig(mesh: Path = typer.Argument(..., help="A body mesh of the template topology (.obj, .ply or .glb; metres, "
-                                              "+Y up), e.g. from bodyspace generate or sample."),
+def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or .stl): of the template topology "
+                                              "(from bodyspace generate or sample), or any closed humanoid mesh "
+                                              "standing in an A- or T-pose (any vertex count, unit and up axis)."),
         out: Path = typer.Option(..., "--out", help="The rigged binary glTF to write (.glb)."),
         rig_name: str = typer.Option("default", "--rig", help="The CC0 rig: " + ", ".join(RIG_NAMES) + "."),
         model: Optional[Path] = typer.Option(None, "--model", help="With --morphs: the model file (with semantic "
                                                                    "regressors) whose variables they are."),
         morphs: Optional[str] = MorphsOption, png: Optional[Path] = PngOption, bones: Optional[str] = BonesOption,
+        up: Optional[str] = typer.Option(None, "--up", help="The mesh's up axis (y, -y, x, -x, z, -z); found from "
+                                                            "the mesh when left out."),
+        units: Optional[str] = typer.Option(None, "--units", help="The mesh's length unit (m, cm, mm, in); found "
+                                                                  "from its size when left out."),
         force: bool = ForceOption):
-    """A rigged glTF 2.0 of a body: skeleton regressed from its vertices, MakeHuman's CC0 skin weights (4 per vertex),
-    bind pose = the mesh as given; optionally morph targets of a model's semantic variables."""
+    """A rigged glTF 2.0 of a body, bind pose = the mesh as given. Template topology: skeleton regressed from its
+    vertices, MakeHuman's CC0 skin weights, optional morph targets of a model's semantic variables. Any other
+    humanoid mesh: the rig embedded into it (the template fitted inside), bone-heat weights (4 per vertex), written
+    in metres, +Y up, facing +Z."""
     check_file_output(out, "--out", force, (".glb",), example="body.glb")
     try:
         check_rig_options(out, rig_name, morphs, png, bones, force)
+        if up is not None and up not in UP_CHOICES:
+            raise ParameterError(f"--up {up!r}: expected one of {', '.join(UP_CHOICES)}")
+        if units is not None and units not in MESH_UNITS:
+            raise ParameterError(f"--units {units!r}: expected one of {', '.join(MESH_UNITS)}")
         if model is not None and morphs is None:
             raise ParameterError("--model is read for --morphs only; pass --morphs NAMES or leave --model out")
         v, f = load_mesh(mesh)
@@ -123,7 +150,7 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh of the template topol
             raise ParameterError(f"--model {model}: holds no semantic regressors; fit them once with bodyspace generate "
                                  f"{model} --database DB ... (they are saved into the model file)")
         said = write_rigged(out, v, f, rig_name, body_model=body_model, morphs=morphs, png=png, bones=bones,
-                            where=str(mesh))
+                            where=str(mesh), up=up, units=units)
     except BodyspaceError as exc:
         fail(exc)
     console.print(said, highlight=False)

@@ -154,15 +154,18 @@ def skin_rotations(weights: sp.spmatrix, rest: np.ndarray, body: np.ndarray) -> 
     return R, ok
 
 
-def body_skeleton(rig: Rig, vertices: np.ndarray, rest_vertices: np.ndarray | None = None) -> Skeleton:
+def body_skeleton(rig: Rig, vertices: np.ndarray, rest_vertices: np.ndarray | None = None, *,
+                  heads: np.ndarray | None = None, tails: np.ndarray | None = None) -> Skeleton:
     """The skeleton of ``rig`` on one body of the template topology.
 
     rig: a ``Rig`` of the template (``load_template().rigs[name]``).
     vertices: (V, 3) the body, metres, our axes.
     rest_vertices: (V, 3) the body the rig's rolls were authored on; by default the shipped
         template's vertices (``load_template().vertices``).
-    Returns a ``Skeleton`` with heads and tails regressed from ``vertices`` and rolls carried
-    over by the skin's rotation (module docstring).
+    heads, tails: (B, 3) the bones' ends when known otherwise (skeleton embedding places them by
+        forward kinematics); by default regressed from ``vertices``.
+    Returns a ``Skeleton`` with heads and tails regressed from ``vertices`` (or as given) and
+    rolls carried over by the skin's rotation (module docstring).
     """
     v = np.asarray(vertices, dtype=float)
     V = rig.weights.shape[0]
@@ -171,7 +174,11 @@ def body_skeleton(rig: Rig, vertices: np.ndarray, rest_vertices: np.ndarray | No
                         f"rig {rig.name!r}")
     if not np.isfinite(v).all():
         raise MeshError("vertices: contain NaN or infinity, expected finite coordinates")
-    heads, tails = rig.heads(v), rig.tails(v)
+    heads = rig.heads(v) if heads is None else np.asarray(heads, dtype=float)
+    tails = rig.tails(v) if tails is None else np.asarray(tails, dtype=float)
+    if heads.shape != (rig.n_bones, 3) or tails.shape != (rig.n_bones, 3):
+        raise MeshError(f"heads, tails: shapes {heads.shape}, {tails.shape}; expected ({rig.n_bones}, 3) for rig "
+                        f"{rig.name!r}")
     r = np.asarray(load_template().vertices if rest_vertices is None else rest_vertices, dtype=float)
     if r.shape != (V, 3):
         raise MeshError(f"rest_vertices: shape {r.shape}, expected ({V}, 3)")
