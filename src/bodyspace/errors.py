@@ -52,3 +52,8 @@ class SemanticsFileError(BodyspaceError):
 
 class MotionError(BodyspaceError):
     """A motion file (BVH) is malformed, or a skeleton match or its map file cannot be made or read."""
+
+
+class RegistrationError(BodyspaceError):
+    """A scan cannot be registered: too few points, no body of the right size, or a fit that
+    explains too little of it (two people, an object, a scan cut short)."""
