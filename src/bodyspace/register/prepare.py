@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
 from bodyspace.errors import MeshError, ParameterError
@@ -76,8 +77,6 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
             raise MeshError(f"{path}: could not read points ({exc}); expected one point a line, x y z "
                             "first") from None
     else:
-        import trimesh   # the scan formats trimesh reads; imported here so a NPY scan never pays for it
-
         try:
             loaded = trimesh.load(path, process=False)
         except Exception as exc:  # trimesh raises many kinds on a broken file
