@@ -17,7 +17,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from bodyspace.errors import MeshError, ParameterError
-from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, _TO_Y_UP, plausible_units
+from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, to_internal
 
 __all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "MIN_POINTS", "SCAN_SUFFIXES"]
 
@@ -169,7 +169,7 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
         up_known = False
     elif up not in UP_AXES:
         raise ParameterError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
-    rot = _TO_Y_UP[up]
+    rot = to_internal(np.eye(3), np.zeros((0, 3), dtype=np.int64), "m", up)[0].T     # the up axis onto +Y
     q = (p * scale) @ rot.T
     to_scan = np.eye(4)
     to_scan[:3, :3] = rot.T / scale
