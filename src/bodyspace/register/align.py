@@ -25,10 +25,10 @@ __all__ = ["Alignment", "similarity_from_landmarks", "heading_candidates", "init
 
 # Points of the subsample the candidates are scored on, and the pose-fit iterations per candidate.
 SCORE_POINTS = 6000
-SCORE_ITERATIONS = 10
+SCORE_ITERATIONS = 8
 # Library poses the pose fit is also started from (besides the template's A-pose) once the
 # heading is chosen.
-START_POSES = ("t_pose", "arms_overhead", "arms_at_sides", "arms_forward", "wide_stance")
+START_POSES = ("t_pose", "arms_overhead", "arms_forward")
 
 
 @dataclass(frozen=True)
