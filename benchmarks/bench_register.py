@@ -40,7 +40,7 @@ def amberg(scan, template, mset):
     s, R, t = similarity_from_landmarks(template.vertices[ids], target)
     source = trimesh.Trimesh(s * template.vertices @ R.T + t, template.faces, process=False)
     out = trimesh.registration.nricp_amberg(source, np.asarray(scan.points), source_landmarks=ids,
-                                            target_positions=target, distance_threshold=50.0)
+                                            target_positions=target, distance_threshold=50.0, use_faces=False)
     return np.asarray(out)
 
 

@@ -115,29 +115,35 @@ def _score(template: Template, state: PoseState, points: np.ndarray, tree: cKDTr
 
 
 def _short_fit(points, normals, tree, template, state):
+    # The scale stays the height ratio: fitted, it trades stature for girth on a body wider than
+    # the template (a heavy 1.46 m man came out 1.65 m tall); the shape fit takes the girth.
     state, _ = fit_pose(points, normals, template, state, iterations=SCORE_ITERATIONS, scan_tree=tree,
-                        start_distance=0.25, end_distance=0.06, template_samples=1500, scan_samples=2500)
+                        start_distance=0.25, end_distance=0.06, template_samples=1500, scan_samples=2500,
+                        fit_scale=False)
     return state, _score(template, state, points, tree)
 
 
 def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Template, *,
-                      up_known: bool = True, landmarks: tuple | None = None, rng=0) -> Alignment:
+                      up_known: bool = True, landmarks: tuple | None = None, rest: np.ndarray | None = None,
+                      rng=0) -> Alignment:
     """The rigid motion of the prepared scan (P, 3) (normals (P, 3)) onto the template's frame.
 
     landmarks: (template landmark positions (L, 3) on the rest body, scan positions (L, 3)),
-    or None (principal axes and candidate scoring; see the module docstring). Either way the
+    or None (principal axes and candidate scoring; see the module docstring). rest: (V, 3) the
+    rest body the pose is fitted with (default: the template's; the pipeline passes its shape
+    space's mean), scaled to the scan's height. Either way the
     pose is then started from each of ``START_POSES`` (a limb ICP cannot swing far: an A-pose
     template's arm does not reach a T-pose scan's) and the best short fit is kept as
     ``Alignment.state``.
     """
-    rest = np.asarray(template.vertices, dtype=float)
+    rest = np.asarray(template.vertices if rest is None else rest, dtype=float)
     rig = template.rigs["default"]
     rng = np.random.default_rng(rng)
     sub = rng.choice(len(points), size=min(SCORE_POINTS, len(points)), replace=False)
     p, n = points[sub], normals[sub]
 
     def start(q, pose_rotations=None):
-        state = rest_state(template, rig)
+        state = rest_state(template, rig, rest)
         height = np.percentile(q[:, 1], 99.5) - np.percentile(q[:, 1], 0.5)
         R = state.rotations if pose_rotations is None else pose_rotations
         state = PoseState(state.rest, R, 1.0, np.zeros(3))

@@ -33,7 +33,7 @@ __all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "BASIS_COMPONENTS"]
 BASIS_COMPONENTS = 24
 BASIS_SAMPLES = 300
 # Weight of the prior c_k / σ_k against the RMS residual (metres).
-SHAPE_PRIOR = 0.002
+SHAPE_PRIOR = 0.0005
 
 
 @dataclass(frozen=True)
