@@ -35,11 +35,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from bodyspace.mesh.geometry import face_normals
 from bodyspace.mesh.operators import cotangent_laplacian
+from bodyspace.mesh.topology import face_adjacency
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.register.correspondences import tangent_plane_targets, vertex_normals
 
-__all__ = ["NicpResult", "nonrigid_icp", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
+__all__ = ["NicpResult", "nonrigid_icp", "folded_faces", "unfold", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
 
 STIFFNESS_START = 3000.0
 STIFFNESS_END = 1.0
@@ -48,13 +50,15 @@ STIFFNESS_END = 1.0
 HASLER_END = 0.01
 HOMOGENEOUS = 1.0
 MM = 1.0
+# Rounds of ``unfold`` after the last level.
+UNFOLD_ROUNDS = 20
 # Conjugate-gradient iterations per solve (each level starts from the last level's transforms).
 CG_ITERATIONS = 25
 
 
 @dataclass(frozen=True)
 class NicpResult:
-    """vertices: (V, 3) metres; has_target: (V,) bool at the last iteration; transforms:
+    """vertices: (V, 3) metres (after ``unfold``); has_target: (V,) bool at the last iteration; transforms:
     (V, 4, 3) the affine transforms (millimetre frame, see the module docstring); stiffness:
     the β of each level."""
 
@@ -147,6 +151,41 @@ class _System:
         return x
 
 
+def folded_faces(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
+    """(F,) bool: faces whose normal points against the area-weighted normal of their edge
+    neighbours (the definition of ``rig.posing.count_folded_triangles``); neighbors: (F, 3)
+    from ``mesh.topology.face_adjacency`` (-1: boundary)."""
+    n = face_normals(vertices, faces, normalize=False)
+    ok = neighbors >= 0
+    acc = (np.where(ok[..., None], n[np.where(ok, neighbors, 0)], 0.0)).sum(axis=1)
+    return (n * acc).sum(axis=1) < 0
+
+
+def unfold(vertices: np.ndarray, faces: np.ndarray, rounds: int = UNFOLD_ROUNDS) -> tuple[np.ndarray, int]:
+    """Move the corners of folded faces to the mean of their 1-ring, up to ``rounds`` times.
+
+    The last NICP levels fit the scan's noise where its normals are poor (fingers, toes, the
+    face) and fold a few dozen triangles; a local uniform-Laplacian step on exactly those
+    vertices undoes most folds and moves nothing else. Returns vertices (V, 3) and the number
+    of faces still folded.
+    """
+    v = np.asarray(vertices, dtype=float).copy()
+    neighbors = face_adjacency(faces).neighbors
+    V = len(v)
+    ring = sp.csr_matrix((np.ones(6 * len(faces)), (faces[:, [0, 1, 2, 1, 2, 0]].ravel(),
+                                                    faces[:, [1, 2, 0, 0, 1, 2]].ravel())), shape=(V, V))
+    ring.data[:] = 1.0
+    degree = np.asarray(ring.sum(axis=1)).ravel()
+    bad = folded_faces(v, faces, neighbors)
+    for _ in range(int(rounds)):
+        if not bad.any():
+            break
+        move = np.unique(faces[bad])
+        v[move] = (ring[move] @ v) / degree[move, None]
+        bad = folded_faces(v, faces, neighbors)
+    return v, int(bad.sum())
+
+
 def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, points: np.ndarray,
                  point_normals: np.ndarray, *, steps: int = 10, inner: int = 2,
                  cg_iterations: int = CG_ITERATIONS, stiffness_end: float = STIFFNESS_END,
@@ -196,4 +235,5 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
                 done += 1
                 if progress is not None:
                     progress(done / total)
-    return NicpResult(x / MM + centre, has, X, betas)
+    unfolded, _ = unfold(x / MM + centre, faces)
+    return NicpResult(unfolded, has, X, betas)
