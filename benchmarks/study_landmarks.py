@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from bodyspace.data.template import load_template
+from bodyspace.errors import MeshError
 from bodyspace.register.landmarks import mesh_landmarks
 from bodyspace.register.model_fit import phenotype_basis
 from bodyspace.synth.phenotype import PhenotypeModel
@@ -27,13 +28,17 @@ POSES = ("rest", "t_pose", "step_forward_left", "arms_forward")
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--bodies", type=int, default=3)
+    ap.add_argument("--first", type=int, default=0)
     args = ap.parse_args()
     template = load_template()
     pm = PhenotypeModel(template)
     phenotype_basis(template)
     means = []
-    for i in range(args.bodies):
-        body = foreign_body(template, pm, rng=200 + i, pose=POSES[i % len(POSES)], target_vertices=5000)
+    for i in range(args.first, args.first + args.bodies):
+        try:
+            body = foreign_body(template, pm, rng=200 + i, pose=POSES[i % len(POSES)], target_vertices=5000)
+        except MeshError:        # the remesher folded a face for this seed (synth.foreign): the next one
+            body = foreign_body(template, pm, rng=300 + i, pose=POSES[i % len(POSES)], target_vertices=5000)
         t = time.perf_counter()
         lms, reg = mesh_landmarks(body.vertices, body.faces, template=template, check=False)
         sec = time.perf_counter() - t
