@@ -77,7 +77,7 @@ def main():
               f"{np.mean([e['seconds'] for e in r]):.1f} s")
     ours = np.mean([e["seconds"] for e in rows["bodyspace, 13 landmarks"]])
     base = np.mean([e["seconds"] for e in rows["trimesh nricp_amberg, 13 landmarks"]])
-    report("register (13 landmarks) vs nricp_amberg", ours, base, 1, "scans")
+    report("register (13 landmarks) vs nricp_amberg", ours, base, 1000, "milliscans")
 
 
 if __name__ == "__main__":

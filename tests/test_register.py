@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from bodyspace.cli import app
 from bodyspace.errors import MeshError, RegistrationError
+from bodyspace.measure import evaluate
 from bodyspace.measure.definitions import load_landmarks, load_measurement_set
 from bodyspace.mesh.io import load_mesh
 from bodyspace.register.align import similarity_from_landmarks
@@ -118,7 +119,7 @@ def test_register_refuses_two_people(scan, template):
         register_scan(pts, template=template, units="mm", up="z", steps=1, pose_iterations=8)
 
 
-def test_cli_register_writes_outputs(scan, tmp_path):
+def test_cli_register_writes_outputs(scan, template, phenotype_model, tmp_path):
     path = tmp_path / "scan.ply"
     trimesh.PointCloud(scan.points).export(path)
     lm = tmp_path / "lm.json"
@@ -133,7 +134,8 @@ def test_cli_register_writes_outputs(scan, tmp_path):
     v, f = load_mesh(out / "registered.obj")
     assert registration_errors(v, f, scan)["correspondence_mm"] < 25.0
     m = json.loads((out / "measurements.json").read_text())["measurements"]
-    assert 140 < m["stature"]["value"] < 210
+    truth = evaluate(load_measurement_set(), phenotype_model.vertices(scan.phenotype[None])[0], template.faces)
+    assert abs(m["stature"]["value"] - 100 * truth["stature"].value) < 2.5      # cm (measured: 1.0)
     again = runner.invoke(app, ["register", str(path), "--out", str(out)])
     assert again.exit_code == 2 and "--force" in again.output
     bad = runner.invoke(app, ["register", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")])
