@@ -11,7 +11,6 @@ import json
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 import trimesh
 from typer.testing import CliRunner
 

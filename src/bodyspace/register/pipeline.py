@@ -30,7 +30,7 @@ from bodyspace.register.align import initial_alignment
 from bodyspace.register.correspondences import orient_normals, vertex_normals
 from bodyspace.register.model_fit import ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
-from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices  # noqa: F401 (PoseState: the result type)
+from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 from bodyspace.register.prepare import prepare_scan
 from bodyspace.register.quality import Quality, assess
 
@@ -120,17 +120,17 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         q, qn = q[keep], qn[keep]
     seconds["prepare"] = time.perf_counter() - t0
 
+    basis = basis if basis is not None else phenotype_basis(template)
     lm_pairs = None
     if landmarks:
         def to_prepared(p):    # the file's frame → the prepared scan's (units and up applied)
             return np.linalg.solve(prep.to_scan[:3, :3], p.T).T
 
         M, lm_scan = _landmark_pairs(landmarks, load_measurement_set(), template, to_prepared)
-        lm_template = M @ template.vertices
+        lm_template = M @ basis.mean
         lm_pairs = (M, lm_scan)
     report("initial alignment", 0.05)
     t = time.perf_counter()
-    basis = basis if basis is not None else phenotype_basis(template)
     align = initial_alignment(q, qn, template, up_known=prep.up_known, rest=basis.mean,
                               landmarks=None if lm_pairs is None else (lm_template, lm_pairs[1]), rng=rng)
     q = align.apply(q)
