@@ -157,3 +157,25 @@ def test_cli_landmarks_on_a_remeshed_body(template, phenotype_model, tmp_path):
     measured = runner.invoke(app, ["measure", str(mesh), "--landmarks", str(out), "--units", "mm", "--up", "z",
                                    "--json"])
     assert measured.exit_code == 0, measured.output
+
+
+def _box_points(lo, hi, n, rng):
+    """``n`` points on the surface of an axis-aligned box (lo, hi), spread by area."""
+    lo, hi = np.array(lo, dtype=float), np.array(hi, dtype=float)
+    size = hi - lo
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+    face = rng.choice(6, n, p=np.repeat(areas, 2) / (2 * areas.sum()))
+    p = lo + rng.random((n, 3)) * size
+    axis, side = face // 2, face % 2
+    p[np.arange(n), axis] = np.where(side, hi[axis], lo[axis])
+    return p
+
+
+def test_register_refuses_a_chair(template):
+    """A chair (seat, back, four legs; 0.95 m tall, in mm): refused (measured quality 0.35)."""
+    rng = np.random.default_rng(0)
+    parts = [([0, 0.42, 0], [0.45, 0.47, 0.45], 6000), ([0, 0.47, 0.40], [0.45, 0.95, 0.45], 5000)]
+    parts += [([x, 0, z], [x + 0.04, 0.42, z + 0.04], 1500) for x in (0, 0.41) for z in (0, 0.41)]
+    pts = np.concatenate([_box_points(lo, hi, n, rng) for lo, hi, n in parts]) * 1000
+    with pytest.raises(RegistrationError, match="refused"):
+        register_scan(pts, template=template, units="mm", up="y", steps=2, pose_iterations=8)
