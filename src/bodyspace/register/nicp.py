@@ -20,6 +20,9 @@ warm-started from the previous step (``_System`` says why not a factorization). 
 ``steps`` levels (Hasler iterates 1500 times; here ``steps`` levels of ``inner`` iterations, the
 correspondences recomputed at every iteration).
 
+After the last level ``unfold`` moves the corners of the few folded triangles to their 1-ring
+mean (the last levels fit the scan's noise where its normals are poor: fingers, toes, face).
+
 Units. Positions enter in metres, centred on the body, with the homogeneous coordinate 1: a body
 of about unit size, so that smoothness weighs a change of translation like the same change of
 the linear part times a typical lever arm (Amberg's γ weighting of the translation), and β = 1
