@@ -57,3 +57,8 @@ class MotionError(BodyspaceError):
 class RigError(BodyspaceError):
     """A mesh cannot be rigged: several components, not a humanoid, far from closed, or a
     skeleton that does not fit inside it."""
+
+
+class RegistrationError(BodyspaceError):
+    """A scan cannot be registered: too few points, no body of the right size, or a fit that
+    explains too little of it (two people, an object, a scan cut short)."""

@@ -1,7 +1,7 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
 One module per command group (assets, population, examples (example-scans), data (import), model, measure,
-semantics, mapping, demo, export (rig), motion, animate);
+semantics, mapping, demo, export (rig), motion, animate, register (register, landmarks));
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 """
@@ -23,6 +23,7 @@ from bodyspace.cli.measure import measure
 from bodyspace.cli.model import build, sample
 from bodyspace.cli.motion import motion_info, motion_match
 from bodyspace.cli.population import population
+from bodyspace.cli.register import landmarks, register
 from bodyspace.cli.semantics import crowd, evaluate, generate, morph
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -46,7 +47,7 @@ for _name, _command in (("assets", assets), ("population", population), ("exampl
                         ("build", build),
                         ("sample", sample), ("measure", measure), ("evaluate", evaluate),
                         ("generate", generate), ("morph", morph), ("crowd", crowd), ("rig", rig),
-                        ("animate", animate)):
+                        ("animate", animate), ("register", register), ("landmarks", landmarks)):
     app.command(_name)(guarded(_command))
 mapping_app = typer.Typer(no_args_is_help=True, help="Measurements → shape: forest with linear leaves, exact refinement.")
 for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):

@@ -1,0 +1,169 @@
+"""``bodyspace register`` (a raw scan → the template fitted to it, measured) and ``bodyspace
+landmarks`` (a mesh of any topology → a landmark file for ``measure --landmarks``)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from bodyspace.atomic import write_json
+from bodyspace.cli.common import ForceOption, check_choice, check_file_output, console, output_folder, progress
+from bodyspace.data.template import load_template
+from bodyspace.errors import MeshError, RegistrationError
+from bodyspace.measure import evaluate, load_measurement_set, to_json
+from bodyspace.measure.conventions import MESH_UNITS, UP_AXES
+from bodyspace.mesh.io import load_mesh, save_mesh
+from bodyspace.register.landmarks import landmark_document, mesh_landmarks
+from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
+from bodyspace.register.prepare import read_scan
+from bodyspace.report.registration import distance_figure
+from bodyspace.report.render import contact_sheet
+from bodyspace.rig.kinematics import matrix_to_rotvec
+from bodyspace.rig.unpose import unpose
+
+REGISTRATION_KIND = "registration"
+UnitsOption = typer.Option(None, "--units", help="The scan's length unit: m, cm, mm or in. Default: found from its "
+                           "size (printed).")
+UpOption = typer.Option(None, "--up", help="The scan's up axis: y, -y, x, -x, z (Z up, facing -Y) or -z. Default: "
+                        "the axis it spreads most along, which end is the head found by the fit (printed).")
+
+
+def _read_landmarks(path: Path) -> dict:
+    """--landmarks FILE: {"landmarks": {name: [x, y, z]}} in the scan's frame and units."""
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RegistrationError(f"--landmarks {path}: could not read it as JSON ({exc}); expected "
+                                "{\"landmarks\": {name: [x, y, z], ...}} in the scan's units") from None
+    raw = d.get("landmarks", d) if isinstance(d, dict) else None
+    if not isinstance(raw, dict) or not raw:
+        raise RegistrationError(f"--landmarks {path}: expected {{\"landmarks\": {{name: [x, y, z], ...}}}} in the "
+                                "scan's frame and units")
+    out = {}
+    for name, v in raw.items():
+        a = np.asarray(v, dtype=float) if isinstance(v, list) else None
+        if a is None or a.shape != (3,) or not np.isfinite(a).all():
+            raise RegistrationError(f"--landmarks {path}: landmark {name!r} is {v!r}; expected [x, y, z] (three "
+                                    "numbers in the scan's units)")
+        out[str(name)] = a
+    return out
+
+
+def _standing_measurements(vertices: np.ndarray, faces: np.ndarray, template) -> dict:
+    """Measurements of the registered body (metres, +Y up) brought back to the rest pose."""
+    mset = load_measurement_set()
+    try:
+        rest, _, info = unpose(vertices, template.rigs["default"], mesh_name="the registered mesh")
+        note = f"measured standing: unposed first ({info.describe()})"
+    except MeshError as exc:
+        rest, note = vertices, f"measured as posed: the fit could not be unposed ({exc})"
+    rows = to_json(evaluate(mset, rest, faces, mesh_name="the registered mesh"))
+    rows["unposed"] = {"value": None, "unit": "", "note": note}
+    return rows
+
+
+def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB point cloud or mesh, or XYZ/TXT/CSV/NPY "
+                                          "points (any frame and unit: see --units, --up)."),
+             out: Path = typer.Option(..., "--out", help="Output folder (refused if it exists, unless --force)."),
+             landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="JSON {\"landmarks\": {name: [x, y, z]}} "
+                                                      "of measurement-set landmarks on the scan (its frame and "
+                                                      "units; at least 3): a similarity alignment, weighted in."),
+             units: Optional[str] = UnitsOption, up: Optional[str] = UpOption,
+             steps: int = typer.Option(DEFAULT_STEPS, "--steps", min=1, max=40, help="Stiffness levels of the "
+                                       "non-rigid refinement (3000 → 1)."),
+             no_check: bool = typer.Option(False, "--no-check", help="Write the fit even when its quality is below "
+                                           "the threshold (it is refused by default)."),
+             force: bool = ForceOption):
+    """Fit the template to a raw scan: registered mesh, distances, pose, measurements, a PNG."""
+    if units is not None:
+        units = check_choice(units, "--units", MESH_UNITS)
+    if up is not None:
+        up = check_choice(up, "--up", UP_AXES)
+    points, faces = read_scan(scan)
+    lms = _read_landmarks(landmarks) if landmarks is not None else None
+    template = load_template()
+    with progress("register") as report:
+        try:
+            reg = register_scan(points, faces, template=template, units=units, up=up, landmarks=lms, steps=steps,
+                                check=not no_check, name=str(scan), progress=report)
+        except RegistrationError as exc:
+            raise RegistrationError(f"{exc}{'' if no_check or 'refused' not in str(exc) else ' (--no-check writes it anyway)'}") from None
+    for line in reg.assumed:
+        console.print(f"[assumed] {line}", markup=False, highlight=False)
+    measurements = _standing_measurements(reg.internal, reg.faces, template)
+    rig = template.rigs["default"]
+    with output_folder(out, "--out", force, REGISTRATION_KIND) as tmp:
+        save_mesh(tmp / "registered.obj", reg.vertices, reg.faces)
+        save_mesh(tmp / "registered_standard.obj", reg.internal, reg.faces)
+        with open(tmp / "distance.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["vertex", "distance_mm"])
+            w.writerows((i, f"{1000 * d:.3f}") for i, d in enumerate(reg.distance))
+        write_json(tmp / "pose.json", {
+            "written_by": "bodyspace", "rig": rig.name, "convention": "rotation vectors (radians) per bone, rest-pose "
+            "world axes about the bone heads (pose_bodies); scale and translation (m) place the posed template",
+            "rotations": {b: [round(float(c), 6) for c in r] for b, r in zip(rig.bone_names,
+                                                                              matrix_to_rotvec(reg.pose.rotations))},
+            "scale": reg.pose.scale, "translation_m": [float(c) for c in reg.pose.translation],
+            "to_scan": reg.to_scan.tolist(), "shape_coefficients": [float(c) for c in reg.coefficients]})
+        write_json(tmp / "measurements.json", {"written_by": "bodyspace", "measurements": measurements})
+        with open(tmp / "measurements.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["name", "value", "unit", "note"])
+            for name, e in measurements.items():
+                w.writerow([name, "" if e["value"] is None else e["value"], e["unit"], e.get("note", "")])
+        q = reg.quality
+        write_json(tmp / "summary.json", {
+            "written_by": "bodyspace", "scan": str(scan), "units": reg.units, "up": reg.up, "assumed": reg.assumed,
+            "quality": round(q.quality, 4), "explained_share": round(q.explained, 4),
+            "coverage_share": round(q.coverage, 4), "accepted": q.accepted,
+            "mean_vertex_distance_mm": round(1000 * float(np.mean(reg.distance)), 3),
+            "seconds": {k: round(v, 2) for k, v in reg.seconds.items()}})
+        distance_figure(reg.points[q.point_index], q.point_distance, tmp / "distance.png",
+                        title=f"{scan.name}: scan points coloured by distance to the fit; {q.describe()}")
+    console.print(f"{q.describe()}", markup=False, highlight=False)
+    console.print(f"wrote {out}/ (registered.obj in the scan's frame, registered_standard.obj in metres +Y up, "
+                  "distance.csv, pose.json, measurements.json/csv, summary.json, distance.png)", markup=False,
+                  highlight=False)
+
+
+def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology (OBJ/PLY/GLB/STL; any frame and unit)."),
+              out: Path = typer.Option(..., "--out", help="The landmark file to write (.json; refused if it exists, "
+                                       "unless --force)."),
+              png: Optional[Path] = typer.Option(None, "--png", help="Also draw the landmarks on the mesh to this PNG."),
+              units: Optional[str] = UnitsOption, up: Optional[str] = UpOption,
+              force: bool = ForceOption):
+    """Landmarks for a mesh of another topology: register the template to it and carry them across."""
+    check_file_output(out, "--out", force, (".json",), example="landmarks.json")
+    if png is not None:
+        check_file_output(png, "--png", force, (".png",), example="landmarks.png")
+    if units is not None:
+        units = check_choice(units, "--units", MESH_UNITS)
+    if up is not None:
+        up = check_choice(up, "--up", UP_AXES)
+    vertices, faces = load_mesh(mesh)
+    template = load_template()
+    with progress("landmarks") as report:
+        lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
+    doc = landmark_document(lms, len(vertices), written_by="bodyspace",
+                            note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}")
+    write_json(out, doc)
+    if png is not None:
+        to_internal = np.linalg.inv(reg.to_scan)
+        v = vertices @ to_internal[:3, :3].T + to_internal[:3, 3]
+        crosses = []
+        for ids, w in lms.values():
+            c = w @ v[ids]
+            for axis in np.eye(3) * 0.015:
+                crosses.append(np.stack([c - axis, c + axis]))
+        contact_sheet([v], [faces], png, labels=[f"{mesh.name}: {len(lms)} landmarks"], views=("front", "side"),
+                      polylines=[crosses], title="bodyspace landmarks", panel_height=6.0)
+    console.print(f"{reg.quality.describe()}", markup=False, highlight=False)
+    console.print(f"wrote {out} ({len(lms)} landmarks for {len(vertices)} vertices; bodyspace measure {mesh} "
+                  f"--landmarks {out}{'' if units is None else f' --units {units}'}"
+                  f"{'' if up is None else f' --up {up}'})", markup=False, highlight=False)

@@ -1,0 +1,9 @@
+"""Registration of raw scans and of meshes of other topologies (Hasler §2.2–2.3).
+
+One module per stage, each usable alone: ``prepare`` (read, units, up, normals), ``align``
+(initial alignment), ``pose_fit`` (skeleton pose by twist ICP), ``model_fit`` (shape
+coefficients), ``nicp`` (per-vertex affine non-rigid ICP), ``quality`` (fit quality and
+refusal); ``correspondences`` holds the matching they share, ``pipeline`` runs them in order
+(``register_scan``) and ``landmarks`` carries the measurement set's landmarks to a mesh of
+another topology. docs/registration.md.
+"""

@@ -1,0 +1,182 @@
+"""Initial alignment of a prepared scan (metres, +Y up or its axis found) to the template's frame.
+
+Stage 2 of the registration. With landmarks: the similarity transform (Umeyama 1991) taking the
+scan's named points onto the template's (``similarity_from_landmarks``). Without: the scan's
+principal axes give the candidates (the up axis, its sign if it was found rather than given,
+and the heading: the horizontal axis of least spread is front/back for a standing body, the
+other one in a T-pose) and each candidate is put feet to feet on the template's rest body and
+scored by a short pose fit (``pose_fit.fit_pose``) on a subsample: front and back are told
+apart by the body itself (feet, face, chest), not by a rule (``initial_alignment``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bodyspace.data.template import Template
+from bodyspace.errors import ParameterError
+from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices, rest_state
+from bodyspace.synth.poses import load_pose_library
+
+__all__ = ["Alignment", "similarity_from_landmarks", "heading_candidates", "initial_alignment"]
+
+# Points of the subsample the candidates are scored on, and the pose-fit iterations per candidate.
+SCORE_POINTS = 6000
+SCORE_ITERATIONS = 8
+# Library poses the pose fit is also started from (besides the template's A-pose) once the
+# heading is chosen.
+START_POSES = ("t_pose", "arms_overhead", "arms_forward")
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A rigid motion ``p' = rotation @ p + translation`` of the prepared scan into the template's
+    frame; ``scale``: the template's size against the scan (landmarks), 1 otherwise; ``state``:
+    the pose the scoring fit reached (a warm start), or None; ``scores``: each candidate's RMS
+    residual (metres)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    scale: float = 1.0
+    state: PoseState | None = None
+    scores: tuple = ()
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.rotation.T + self.translation
+
+
+def similarity_from_landmarks(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama's similarity ``target ≈ s R source + t`` from (L, 3) pairs (L >= 3, not collinear).
+
+    Returns (s, R (3, 3) proper, t (3,)).
+    """
+    src, dst = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ParameterError(f"landmarks: {len(src)} pairs of shape {src.shape}; expected at least 3 points (L, 3)")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    u, sig, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    D = np.diag([1.0, 1.0, d])
+    R = u @ D @ vt
+    var = (xs ** 2).sum() / len(src)
+    if var <= 0:
+        raise ParameterError("landmarks: all at one point; expected landmarks spread over the body")
+    s = float(np.trace(np.diag(sig) @ D) / var)
+    return s, R, mu_d - s * R @ mu_s
+
+
+def _yaw(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def heading_candidates(points: np.ndarray, up_known: bool = True) -> list[np.ndarray]:
+    """Rotations (3, 3) that may bring a scan (P, 3), +Y up, to face +Z.
+
+    The horizontal principal axes: the one of least spread (front/back of a standing body) and
+    the other (a T-pose's arms), each in both directions; with ``up_known=False`` also each of
+    these turned upside down (about X).
+    """
+    c = points - points.mean(axis=0)
+    h = c[:, [0, 2]]
+    _, vecs = np.linalg.eigh(h.T @ h)
+    out = []
+    for axis in (vecs[:, 0], vecs[:, 1]):
+        for sign in (1.0, -1.0):
+            fx, fz = sign * axis
+            theta = np.arctan2(fx, fz)            # heading of the candidate front
+            out.append(_yaw(-theta))              # turn it onto +Z
+    if not up_known:
+        flip = np.diag([1.0, -1.0, -1.0])
+        out += [R @ flip for R in out]
+    return out
+
+
+def _place(points: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """Translation putting the points' floor on the template's and their vertical axis on its."""
+    lo = np.percentile(points[:, 1], 0.5)
+    mid = np.median(points[:, [0, 2]], axis=0)
+    rmid = np.median(rest[:, [0, 2]], axis=0)
+    return np.array([rmid[0] - mid[0], rest[:, 1].min() - lo, rmid[1] - mid[1]])
+
+
+def _score(template: Template, state: PoseState, points: np.ndarray, tree: cKDTree) -> float:
+    """Mean distance both ways (each capped at 10 cm), not the residual the fit minimized (a fit
+    that lost its points has a small residual)."""
+    x, _, _ = posed_vertices(template.rigs["default"], state)
+    d1 = tree.query(x[::4])[0]
+    d2 = cKDTree(x).query(points)[0]
+    return float(np.mean(np.minimum(d1, 0.1)) + np.mean(np.minimum(d2, 0.1)))
+
+
+def _short_fit(points, normals, tree, template, state):
+    # The scale stays the height ratio: fitted, it trades stature for girth on a body wider than
+    # the template (a heavy 1.46 m man came out 1.65 m tall); the shape fit takes the girth.
+    state, _ = fit_pose(points, normals, template, state, iterations=SCORE_ITERATIONS, scan_tree=tree,
+                        start_distance=0.25, end_distance=0.06, template_samples=1500, scan_samples=2500,
+                        fit_scale=False)
+    return state, _score(template, state, points, tree)
+
+
+def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Template, *,
+                      up_known: bool = True, landmarks: tuple | None = None, rest: np.ndarray | None = None,
+                      rng=0) -> Alignment:
+    """The rigid motion of the prepared scan (P, 3) (normals (P, 3)) onto the template's frame.
+
+    landmarks: (template landmark positions (L, 3) on the rest body, scan positions (L, 3)),
+    or None (principal axes and candidate scoring; see the module docstring). rest: (V, 3) the
+    rest body the pose is fitted with (default: the template's; the pipeline passes its shape
+    space's mean), scaled to the scan's height. Either way the
+    pose is then started from each of ``START_POSES`` (a limb ICP cannot swing far: an A-pose
+    template's arm does not reach a T-pose scan's) and the best short fit is kept as
+    ``Alignment.state``.
+    """
+    rest = np.asarray(template.vertices if rest is None else rest, dtype=float)
+    rig = template.rigs["default"]
+    rng = np.random.default_rng(rng)
+    sub = rng.choice(len(points), size=min(SCORE_POINTS, len(points)), replace=False)
+    p, n = points[sub], normals[sub]
+
+    def start(q, pose_rotations=None):
+        state = rest_state(template, rig, rest)
+        height = np.percentile(q[:, 1], 99.5) - np.percentile(q[:, 1], 0.5)
+        R = state.rotations if pose_rotations is None else pose_rotations
+        state = PoseState(state.rest, R, 1.0, np.zeros(3))
+        x0, _, _ = posed_vertices(rig, state)
+        scale = float(height / np.ptp(x0[:, 1]))
+        # scaled about the origin, then the feet put on the scan's floor
+        return PoseState(state.rest, R, scale, np.array([0.0, q[:, 1].min() - scale * x0[:, 1].min(), 0.0]))
+
+    if landmarks is not None:
+        tmpl, scan = landmarks
+        s, R, _ = similarity_from_landmarks(scan, tmpl)
+        trans = tmpl.mean(0) - R @ scan.mean(0)
+        candidates = [(R, trans)]
+        scale = 1.0 / s
+    else:
+        candidates = []
+        for R in heading_candidates(p, up_known):
+            candidates.append((R, _place(p @ R.T, rest)))
+        scale = 1.0
+    scores, best = [], None
+    for R, t in candidates:
+        q = p @ R.T + t
+        tree = cKDTree(q)
+        state, score = _short_fit(q, n @ R.T, tree, template, start(q))
+        scores.append(score)
+        if best is None or score < best[0]:
+            best = (score, R, t, state)
+    score, R, t, state = best
+    q = p @ R.T + t
+    tree = cKDTree(q)
+    library = load_pose_library()
+    for name in START_POSES:
+        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, library.rotations(name, rig)))
+        if sc2 < score:
+            score, state = sc2, s2
+    return Alignment(R, t, scale, state, tuple(scores))

@@ -1,0 +1,131 @@
+"""Model fit: the shape coefficients of a body model fitted to the scan in vertex space.
+
+Stage 4 of the registration. The body is ``x = s · LBS(mean + Σ_k c_k B_k, FK(R)) + t`` with
+the pose R, scale s from the pose fit held: with the rotations fixed, posing is affine in the
+rest vertices (the joints are regressed linearly from them, FK and LBS are linear in the joints
+and the vertices), so ``x = s · (P_0 + Σ_k c_k P_k) + t`` with ``P_k`` the posed directions,
+exactly, and the fit is a linear least-squares problem in (c, t): point-to-plane residuals
+both ways (as the pose fit's), a prior ``c_k / σ_k`` (the directions' standard deviations).
+
+The default shape space (``phenotype_basis``) is the principal components of bodies drawn
+uniformly over MakeHuman's whole phenotype range (not the synthetic population's): the model
+the template's CC0 assets define. A user's ``BodyModel`` of the vertex encoding gives its own
+(``basis_from_model``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bodyspace.data.template import Template
+from bodyspace.mesh.solver import single_threaded_blas
+from bodyspace.register.correspondences import closest_pairs, vertex_normals
+from bodyspace.register.pose_fit import MIN_COS, PoseState, sample_vertices
+from bodyspace.rig.posing import pose_bodies
+from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
+
+__all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "BASIS_COMPONENTS"]
+
+# Components of the default shape space and the bodies its PCA is taken over.
+BASIS_COMPONENTS = 24
+BASIS_SAMPLES = 300
+# Weight of the prior c_k / σ_k against the RMS residual (metres).
+SHAPE_PRIOR = 0.0005
+
+
+@dataclass(frozen=True)
+class ShapeBasis:
+    """mean: (V, 3) rest body; components: (K, V, 3) unit-norm directions; sigma: (K,) SDs."""
+
+    mean: np.ndarray
+    components: np.ndarray
+    sigma: np.ndarray
+    name: str = "phenotype"
+
+    def body(self, coefficients: np.ndarray) -> np.ndarray:
+        """The rest body (V, 3) of coefficients (K,)."""
+        return self.mean + np.tensordot(coefficients, self.components, axes=1)
+
+
+_BASES: dict = {}
+
+
+def _phenotype_basis(template: Template, n_components: int, n_samples: int) -> ShapeBasis:
+    rng = np.random.default_rng(20261202)
+    p = rng.random((n_samples, len(PARAMETERS)))
+    race = rng.dirichlet([0.5, 0.5, 0.5], n_samples)
+    p[:, [PARAMETERS.index("african"), PARAMETERS.index("asian"), PARAMETERS.index("caucasian")]] = race
+    # Adults: ages 18-90 years (MakeHuman's age 0 is a baby).
+    p[:, PARAMETERS.index("age")] = years_to_age(rng.uniform(18.0, 90.0, n_samples))
+    bodies = PhenotypeModel(template).vertices(p).reshape(n_samples, -1)
+    mean = bodies.mean(axis=0)
+    centred = bodies - mean
+    # Through the (N, N) Gram matrix: N is far below 3V.
+    evals, evecs = np.linalg.eigh(centred @ centred.T)
+    k = int(n_components)
+    evals, evecs = evals[::-1][:k], evecs[:, ::-1][:, :k]
+    comps = (evecs.T @ centred) / np.sqrt(np.maximum(evals, 1e-300))[:, None]
+    V = template.n_vertices
+    return ShapeBasis(mean.reshape(V, 3), comps.reshape(k, V, 3), np.sqrt(np.maximum(evals, 0) / (n_samples - 1)))
+
+
+def phenotype_basis(template: Template, n_components: int = BASIS_COMPONENTS,
+                    n_samples: int = BASIS_SAMPLES) -> ShapeBasis:
+    """PCA of ``n_samples`` adults with phenotypes uniform over [0, 1] (race mix: Dirichlet,
+    age 18-90 years),
+    ``n_components`` kept (24 hold 99.9 % of the variance). Fixed seed; cached per template."""
+    key = (id(template), int(n_components), int(n_samples))
+    if key not in _BASES:
+        _BASES.clear()            # one template at a time: a basis is 24 bodies of memory
+        _BASES[key] = _phenotype_basis(template, int(n_components), int(n_samples))
+    return _BASES[key]
+
+
+def fit_shape(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, basis: ShapeBasis,
+              *, iterations: int = 3, max_distance: float = 0.05, scan_tree: cKDTree | None = None,
+              coefficients: np.ndarray | None = None, rng=0) -> tuple[PoseState, np.ndarray]:
+    """Fit the shape coefficients (and translation) with the pose held (module docstring).
+
+    points (P, 3), normals (P, 3) (any sign): the scan in the template's frame. state: the pose
+    fit's result (its ``rest`` is replaced). Returns the state with the fitted rest body and the
+    coefficients (K,).
+    """
+    rig = template.rigs["default"]
+    faces = template.faces
+    K = len(basis.components)
+    rng = np.random.default_rng(rng)
+    tree = scan_tree if scan_tree is not None else cKDTree(points)
+    # Posed directions: posing is affine in the rest body with the rotations held.
+    stack = np.concatenate([basis.mean[None], basis.mean[None] + basis.components])
+    posed = pose_bodies(stack, rig, state.rotations)
+    P0, Pk = posed[0], posed[1:] - posed[0]
+    tsample = sample_vertices(basis.mean, faces, 4000, rng)
+    ssample = rng.choice(len(points), size=min(6000, len(points)), replace=False)
+    c = np.zeros(K) if coefficients is None else np.asarray(coefficients, dtype=float).copy()
+    t = state.translation.copy()
+    s = state.scale
+    with single_threaded_blas():
+        for _ in range(int(iterations)):
+            y = P0 + np.tensordot(c, Pk, axes=1)
+            x = s * y + t
+            xn = vertex_normals(x, faces)
+            fwd = closest_pairs(x[tsample], xn[tsample], tree, normals, max_distance, MIN_COS, oriented=False)
+            bwd = closest_pairs(points[ssample], normals[ssample], cKDTree(x), xn, max_distance, MIN_COS,
+                                oriented=False)
+            rv = np.concatenate([tsample[fwd.query], bwd.match])
+            rp = points[np.concatenate([fwd.match, ssample[bwd.query]])]
+            nrm = np.concatenate([normals[fwd.match], xn[bwd.match]])
+            w = np.concatenate([np.full(len(fwd.query), 1 / np.sqrt(max(len(fwd.query), 1))),
+                                np.full(len(bwd.query), 1 / np.sqrt(max(len(bwd.query), 1)))])
+            # r = n · (s (P0 + Pk c) + t - p): linear in (c, t)
+            Jc = s * np.einsum("kvd,vd->vk", Pk[:, rv], nrm)
+            Jm = w[:, None] * np.concatenate([Jc, nrm], axis=1)
+            b = -w * (((s * P0[rv] - rp) * nrm).sum(1))       # (c, t) are solved for whole
+            H = Jm.T @ Jm
+            H[:K, :K] += np.diag((SHAPE_PRIOR / basis.sigma) ** 2)
+            sol = np.linalg.solve(H + 1e-12 * np.eye(K + 3), Jm.T @ b)
+            c, t = sol[:K], sol[K:]
+    return replace(state, rest=basis.body(c), translation=t), c

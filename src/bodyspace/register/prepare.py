@@ -1,0 +1,198 @@
+"""Read and prepare a raw scan: points (and faces if any), normals, units and up axis.
+
+Stage 1 of the registration (Hasler §2.2 starts from a point cloud). A scanner writes PLY, OBJ,
+STL or XYZ files, points with or without faces, in millimetres more often than metres, with any
+axis up. ``prepare_scan`` brings the points into metres with +Y up (the heading is left to the
+initial alignment, ``align.py``), estimates unoriented normals, and says what it assumed.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from bodyspace.errors import MeshError, ParameterError
+from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, to_internal
+
+__all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "MIN_POINTS", "SCAN_SUFFIXES"]
+
+SCAN_SUFFIXES = (".ply", ".obj", ".stl", ".xyz", ".txt", ".csv", ".npy", ".glb")
+# A scan with fewer points cannot hold a body's shape (100 points: ~10 cm apart on the skin).
+MIN_POINTS = 2000
+# Neighbours for the normal estimate (a local plane through each point and its neighbours): with
+# 2 mm noise at 5 mm spacing, 12 neighbours leave normals 15-25° off, too many for the 30° gate.
+NORMAL_NEIGHBOURS = 30
+# A point whose k-th neighbour is this many times farther than the median point's is isolated:
+# not on the body's surface (scanner outliers; the box's own floor or a wall stay, and are left
+# to the fit's gates). Measured on the test scans: 97-99 % of the outliers, < 0.1 % of the body.
+ISOLATION_NEIGHBOURS = 8
+ISOLATION_FACTOR = 3.0
+# Points are taken from a mesh's faces, area-uniform, when the mesh has fewer vertices than this
+# (a coarse mesh's vertices alone are too sparse for the correspondences).
+MESH_SAMPLES = 60_000
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """A scan in metres with +Y up (heading and position as scanned).
+
+    points: (P, 3) metres, +Y up; normals: (P, 3) unit, unoriented (sign arbitrary).
+    to_scan: (4, 4) homogeneous similarity mapping these coordinates back to the file's
+        (``points_file = (to_scan @ [p, 1])[:3]``).
+    units, up: what was used; up_known: False when the up axis was found (its sign is then left
+        to the alignment); assumed: sentences saying what was found rather than given.
+    faces: (F, 3) when the file was a mesh (indices into ``mesh_vertices``), else None.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    to_scan: np.ndarray
+    units: str
+    up: str
+    up_known: bool = True
+    assumed: list[str] = field(default_factory=list)
+    mesh_vertices: np.ndarray | None = None
+    faces: np.ndarray | None = None
+
+
+def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (P, 3) and faces (F, 3) or None from a scan file.
+
+    PLY/OBJ/STL/GLB through trimesh (point clouds and meshes); XYZ/TXT/CSV: one point a line,
+    the first three numbers; NPY: a (P, 3) array.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SCAN_SUFFIXES:
+        raise MeshError(f"{path}: unsupported scan format '{suffix}'; expected one of {', '.join(SCAN_SUFFIXES)}")
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file; expected a scan ({', '.join(SCAN_SUFFIXES)})")
+    faces = None
+    if suffix == ".npy":
+        points = np.load(path, allow_pickle=False)
+    elif suffix in (".xyz", ".txt", ".csv"):
+        try:
+            points = np.loadtxt(path, delimiter="," if suffix == ".csv" else None, usecols=(0, 1, 2), ndmin=2)
+        except ValueError as exc:
+            raise MeshError(f"{path}: could not read points ({exc}); expected one point a line, x y z "
+                            "first") from None
+    else:
+        try:
+            loaded = trimesh.load(path, process=False)
+        except Exception as exc:  # trimesh raises many kinds on a broken file
+            raise MeshError(f"{path}: could not read the scan ({type(exc).__name__}: {exc}); expected a "
+                            f"PLY/OBJ/STL/GLB point cloud or mesh") from None
+        if isinstance(loaded, trimesh.Scene):
+            geoms = list(loaded.dump()) if hasattr(loaded, "dump") else list(loaded.geometry.values())
+            if not geoms:
+                raise MeshError(f"{path}: the file holds no geometry; expected a point cloud or a mesh")
+            loaded = trimesh.util.concatenate(geoms) if len(geoms) > 1 else geoms[0]
+        points = np.asarray(loaded.vertices, dtype=float)
+        if getattr(loaded, "faces", None) is not None and len(loaded.faces):
+            faces = np.asarray(loaded.faces, dtype=np.int64)
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"{path}: points have shape {points.shape}; expected (P, 3)")
+    return points, faces
+
+
+def isolated_points(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> np.ndarray:
+    """(P,) bool: points far from the surface the others sample (dust, reflections, hair): the
+    distance to their ``k``-th neighbour is over ``ISOLATION_FACTOR`` times the median one."""
+    k = min(int(k), len(points) - 1)
+    if k < 1:
+        return np.zeros(len(points), dtype=bool)
+    d = cKDTree(points).query(points, k=k + 1)[0][:, -1]
+    return d > ISOLATION_FACTOR * np.median(d)
+
+
+def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+    """Unoriented unit normals (P, 3) of points (P, 3): the least direction of each point's
+    ``k`` nearest neighbours (a plane fitted to the local patch)."""
+    points = np.asarray(points, dtype=float)
+    k = min(int(k), len(points))
+    _, nb = cKDTree(points).query(points, k=k)
+    local = points[nb] - points[nb].mean(axis=1, keepdims=True)          # (P, k, 3)
+    cov = np.einsum("pki,pkj->pij", local, local)
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0]
+
+
+def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points area-uniform on a mesh, with a fixed seed (a scan reads the same each time)."""
+    rng = np.random.default_rng(0)
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not np.isfinite(area).all() or area.sum() <= 0:
+        return vertices
+    f = rng.choice(len(faces), size=n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
+    return np.einsum("nk,nkd->nd", w, tri[f])
+
+
+def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: str | None = None,
+                 up: str | None = None, name: str = "the scan") -> PreparedScan:
+    """Points (P, 3) in a file's frame → a ``PreparedScan`` in metres, +Y up.
+
+    faces: (F, 3) if the scan is a mesh (points are then also sampled on its faces).
+    units: "m", "cm", "mm" or "in", or None to find it from the size (the extent and the spread
+        of the points; refused when no unit makes a human-sized body).
+    up: one of ``UP_AXES``, or None: the axis along which the points spread most (a standing
+        body's height); its sign is found by the initial alignment (``align.py``), which tries
+        both, so the prepared scan may be upside down when ``up`` is not given.
+    Raises MeshError for an empty scan, fewer than ``MIN_POINTS`` points, or NaN.
+    """
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise MeshError(f"{name}: holds no points (shape {p.shape}); expected a point cloud or mesh of a body")
+    p = p[np.isfinite(p).all(axis=1)]
+    mesh_vertices = None
+    if faces is not None and len(faces):
+        faces = np.asarray(faces, dtype=np.int64)
+        mesh_vertices = p if len(p) == len(points) else None
+        if mesh_vertices is not None and len(p) < MESH_SAMPLES:
+            p = np.concatenate([p, _sample_faces(p, faces, MESH_SAMPLES - len(p))])
+    if len(p) < MIN_POINTS:
+        raise MeshError(f"{name}: has {len(p)} finite points; expected at least {MIN_POINTS} on a body "
+                        "(a full-body scan has 50,000 or more)")
+    assumed, up_known = [], True
+    isolated = isolated_points(p)
+    if isolated.any():
+        p = p[~isolated]
+        assumed.append(f"removed {int(isolated.sum())} isolated points ({100 * isolated.mean():.1f} %: far from the "
+                       "surface the others sample)")
+    if units is None:
+        centred = p - np.median(p, axis=0)
+        extent = float(np.max(np.percentile(centred, 99.5, axis=0) - np.percentile(centred, 0.5, axis=0)))
+        fits = plausible_units(extent)
+        if not fits:
+            raise MeshError(f"{name}: its points span {extent:.4g} units; no length unit makes that a human body "
+                            f"(0.5-3.2 m); give the unit with --units ({', '.join(MESH_UNITS)})")
+        units = fits[0]
+        assumed.append(f"units: {units} (the points span {extent:.4g} {units}; --units sets it)")
+    elif units not in MESH_UNITS:
+        raise ParameterError(f"units={units!r}; expected one of {', '.join(MESH_UNITS)}")
+    scale = MESH_UNITS[units]
+    if up is None:
+        centred = p - p.mean(axis=0)
+        _, _, vt = np.linalg.svd(centred[:: max(1, len(p) // 20000)], full_matrices=False)
+        axis = int(np.argmax(np.abs(vt[0])))
+        up = "xyz"[axis] if vt[0, axis] > 0 else "-" + "xyz"[axis]
+        assumed.append(f"up axis: {up.lstrip('-')} (the points spread most along it; which end is the head "
+                       "is found by the fit; --up sets it)")
+        up_known = False
+    elif up not in UP_AXES:
+        raise ParameterError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
+    rot = to_internal(np.eye(3), np.zeros((0, 3), dtype=np.int64), "m", up)[0].T     # the up axis onto +Y
+    q = (p * scale) @ rot.T
+    to_scan = np.eye(4)
+    to_scan[:3, :3] = rot.T / scale
+    normals = estimate_normals(q)
+    mv = None if mesh_vertices is None else (mesh_vertices * scale) @ rot.T
+    return PreparedScan(q, normals, to_scan, units, up, up_known, assumed, mv, faces if mv is not None else None)

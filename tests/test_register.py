@@ -1,0 +1,181 @@
+"""Registration of raw scans and landmarks for other topologies (issue 15).
+
+Every test runs on data the pipeline never saw: raw scans of edge-of-population bodies
+(``synth.scans``), in millimetres, Z up, turned, with noise, holes and outliers, and remeshed
+bodies of another topology (``synth.foreign``). Scans are small (12-20 k points) and the NICP
+coarse (2-3 stiffness levels) so the file stays fast; the full-size numbers are in
+benchmarks/bench_register.py and docs/registration.md.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from typer.testing import CliRunner
+
+from bodyspace.cli import app
+from bodyspace.errors import MeshError, RegistrationError
+from bodyspace.measure import evaluate
+from bodyspace.measure.definitions import load_landmarks, load_measurement_set
+from bodyspace.mesh.io import load_mesh
+from bodyspace.register.align import similarity_from_landmarks
+from bodyspace.register.correspondences import vertex_normals
+from bodyspace.register.nicp import nonrigid_icp, stiffness_schedule
+from bodyspace.register.pipeline import register_scan
+from bodyspace.register.pose_fit import fit_pose, posed_vertices, rest_state
+from bodyspace.register.prepare import MIN_POINTS, prepare_scan
+from bodyspace.rig.posing import count_folded_triangles, pose_bodies
+from bodyspace.studies.registration import registration_errors
+from bodyspace.synth.foreign import closest_points, foreign_body, from_frame
+from bodyspace.synth.poses import load_pose_library
+from bodyspace.synth.scans import raw_scan
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def scan(template, phenotype_model):
+    return raw_scan(template, phenotype_model, 7, pose="rest", n_points=15_000)
+
+
+def test_raw_scan_keeps_its_truth(scan, template):
+    """Points are in mm, Z up, turned; inliers lie next to their true template vertex; 2-5 % are
+    outliers; the holes removed points (fewer than sampled)."""
+    assert 0.02 * 0.9 <= np.mean(~scan.inliers) <= 0.05
+    inside = from_frame(scan.points[scan.inliers], **scan.frame)
+    d = np.linalg.norm(inside - scan.body[scan.truth_vertex[scan.inliers]], axis=1)
+    assert np.percentile(d, 95) < 0.02
+    assert scan.inliers.sum() < 15_000
+    assert np.ptp(scan.points[:, 2]) > 1000           # Z up, millimetres
+
+
+def test_prepare_finds_units_and_up_and_refuses_too_little(scan):
+    prep = prepare_scan(scan.points)
+    assert prep.units == "mm" and prep.up.lstrip("-") == "z" and not prep.up_known
+    assert 1.2 < np.ptp(prep.points[:, 1]) < 2.3        # metres, standing along Y
+    assert np.allclose(np.linalg.norm(prep.normals, axis=1), 1.0)
+    with pytest.raises(MeshError, match="no points"):
+        prepare_scan(np.zeros((0, 3)))
+    with pytest.raises(MeshError, match=f"at least {MIN_POINTS}"):
+        prepare_scan(scan.points[:100])
+
+
+def test_similarity_from_landmarks_recovers_a_similarity():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(13, 3))
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R *= np.sign(np.linalg.det(R))
+    s, R2, t2 = similarity_from_landmarks(src, 1.7 * src @ R.T + [1.0, 2.0, 3.0])
+    assert s == pytest.approx(1.7) and np.allclose(R2, R) and np.allclose(t2, [1.0, 2.0, 3.0])
+
+
+def test_pose_fit_recovers_a_library_pose(template, phenotype_model):
+    """Points of a foreign body in 'elbows_flexed' (a pose not among the alignment's starts):
+    the twist ICP from the A-pose brings the template within 25 mm on average (its shape is
+    the template's mean, not the body's: the rest is the model fit's)."""
+    rig = template.rigs["default"]
+    lib = load_pose_library()
+    body = pose_bodies(template.vertices, rig, lib.rotations("elbows_flexed", rig))
+    n = vertex_normals(body, template.faces)
+    start = rest_state(template, rig)
+    before = np.linalg.norm(posed_vertices(rig, start)[0] - body, axis=1).mean()
+    state, _ = fit_pose(body, n, template, start, iterations=25)
+    after = np.linalg.norm(posed_vertices(rig, state)[0] - body, axis=1).mean()
+    assert after < 0.4 * before and after < 0.025
+
+
+def test_nicp_closes_the_gap_without_folding(template, phenotype_model):
+    """Per-vertex affine NICP from the mean body onto another body's points: the distance to
+    the target surface halves at least, few triangles fold."""
+    other = phenotype_model.vertices({"weight": 0.8, "muscle": 0.7})[0]
+    pick = np.random.default_rng(1).choice(len(other), 9000, replace=False)
+    pts, nrm = other[pick], vertex_normals(other, template.faces)[pick]
+    start = template.vertices
+    res = nonrigid_icp(start, template.faces, template.vertices, pts, nrm, steps=3, inner=1)
+    before = closest_points(start, other, template.faces)[1].mean()
+    after = closest_points(res.vertices, other, template.faces)[1].mean()
+    assert after < 0.5 * before
+    # Not zero (the issue's target; docs/registration.md has the counts): under 1 % of the faces.
+    assert count_folded_triangles(res.vertices, template.faces) < 0.01 * len(template.faces)
+    assert stiffness_schedule(3)[0] == 3000.0
+
+
+def test_register_scan_end_to_end(scan, template):
+    """The pipeline on a raw scan (mm, Z up not given, turned): the fit is near the truth in
+    the scan's own frame, and its quality is accepted."""
+    reg = register_scan(scan.points, template=template, steps=2, pose_iterations=15)
+    e = registration_errors(reg.vertices, template.faces, scan)
+    assert e["correspondence_mm"] < 25.0
+    assert e["surface_mm"] < 6.0
+    assert reg.quality.accepted and reg.units == "mm"
+
+
+def test_register_refuses_two_people(scan, template):
+    """Two bodies side by side: the fit explains about half of the points and is refused."""
+    pts = np.concatenate([scan.points, scan.points + [900.0, 0.0, 0.0]])
+    with pytest.raises(RegistrationError, match="refused"):
+        register_scan(pts, template=template, units="mm", up="z", steps=1, pose_iterations=8)
+
+
+def test_cli_register_writes_outputs(scan, template, phenotype_model, tmp_path):
+    path = tmp_path / "scan.ply"
+    trimesh.PointCloud(scan.points).export(path)
+    lm = tmp_path / "lm.json"
+    lm.write_text(json.dumps(scan.landmark_file()))
+    out = tmp_path / "fit"
+    result = runner.invoke(app, ["register", str(path), "--landmarks", str(lm), "--up", "z", "--steps", "2",
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    names = {p.name for p in out.iterdir()}
+    assert {"registered.obj", "registered_standard.obj", "distance.csv", "pose.json", "measurements.json",
+            "measurements.csv", "summary.json", "distance.png"} <= names
+    v, f = load_mesh(out / "registered.obj")
+    assert registration_errors(v, f, scan)["correspondence_mm"] < 25.0
+    m = json.loads((out / "measurements.json").read_text())["measurements"]
+    truth = evaluate(load_measurement_set(), phenotype_model.vertices(scan.phenotype[None])[0], template.faces)
+    assert abs(m["stature"]["value"] - 100 * truth["stature"].value) < 2.5      # cm (measured: 1.0)
+    again = runner.invoke(app, ["register", str(path), "--out", str(out)])
+    assert again.exit_code == 2 and "--force" in again.output
+    bad = runner.invoke(app, ["register", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")])
+    assert bad.exit_code == 2 and "no such file" in bad.output
+
+
+def test_cli_landmarks_on_a_remeshed_body(template, phenotype_model, tmp_path):
+    """A body of another topology (5,000 vertices, mm, Z up, turned): the carried landmarks are
+    within 2 cm of the truth on average and ``measure --landmarks`` reads the file."""
+    body = foreign_body(template, phenotype_model, rng=3, pose="rest", target_vertices=5000)
+    mesh = tmp_path / "foreign.obj"
+    trimesh.Trimesh(body.vertices, body.faces, process=False).export(mesh)
+    out = tmp_path / "lm.json"
+    result = runner.invoke(app, ["landmarks", str(mesh), "--out", str(out), "--up", "z"])
+    assert result.exit_code == 0, result.output
+    lms, n = load_landmarks(out)
+    v, _ = load_mesh(mesh)
+    err = [np.linalg.norm(w @ v[ids] - body.true_landmarks[name]) for name, (ids, w) in lms.items()]
+    assert np.mean(err) < 20.0                                   # millimetres
+    measured = runner.invoke(app, ["measure", str(mesh), "--landmarks", str(out), "--units", "mm", "--up", "z",
+                                   "--json"])
+    assert measured.exit_code == 0, measured.output
+
+
+def _box_points(lo, hi, n, rng):
+    """``n`` points on the surface of an axis-aligned box (lo, hi), spread by area."""
+    lo, hi = np.array(lo, dtype=float), np.array(hi, dtype=float)
+    size = hi - lo
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+    face = rng.choice(6, n, p=np.repeat(areas, 2) / (2 * areas.sum()))
+    p = lo + rng.random((n, 3)) * size
+    axis, side = face // 2, face % 2
+    p[np.arange(n), axis] = np.where(side, hi[axis], lo[axis])
+    return p
+
+
+def test_register_refuses_a_chair(template):
+    """A chair (seat, back, four legs; 0.95 m tall, in mm): refused (measured quality 0.35)."""
+    rng = np.random.default_rng(0)
+    parts = [([0, 0.42, 0], [0.45, 0.47, 0.45], 6000), ([0, 0.47, 0.40], [0.45, 0.95, 0.45], 5000)]
+    parts += [([x, 0, z], [x + 0.04, 0.42, z + 0.04], 1500) for x in (0, 0.41) for z in (0, 0.41)]
+    pts = np.concatenate([_box_points(lo, hi, n, rng) for lo, hi, n in parts]) * 1000
+    with pytest.raises(RegistrationError, match="refused"):
+        register_scan(pts, template=template, units="mm", up="y", steps=2, pose_iterations=8)
