@@ -2,9 +2,11 @@
 capture clip on a body (Rupprecht §3.3.3).
 
 The body is a model's (``--set stature=185cm ...`` through the semantic model, as ``generate``
-does; without ``--set`` the model's mean body) or a mesh of the template topology (the template
-itself, a ``generate`` or ``sample`` output). Its skeleton is the CC0 rig regressed on it
-(``--rig``). The clip is matched to the rig by structure (``motion.matching``), retargeted
+does; without ``--set`` the model's mean body) or a mesh: of the template topology (the template
+itself, a ``generate`` or ``sample`` output: the CC0 rig regressed on it, MakeHuman's weights), or
+any closed humanoid mesh in an A- or T-pose (the rig embedded into it and bone-heat weights, as
+``bodyspace rig`` does: ``cli.export.skeleton_and_weights``; the outputs are in metres, +Y up).
+The clip is matched to the rig by structure (``motion.matching``), retargeted
 (``motion.retarget``), its feet locked where the source's are planted (``motion.ik``; ``--no-ik``
 leaves them), skinned (LBS with the rig's weights), and written as a rigged glTF with the
 animation, a BVH of the clip on the body's skeleton, or an ``.npz`` of the posed meshes. A table
@@ -31,6 +33,7 @@ from bodyspace.cli.common import (
     out_console,
     progress,
 )
+from bodyspace.cli.export import skeleton_and_weights
 from bodyspace.cli.motion import BvhUnitOption
 from bodyspace.cli.semantics import ClampOption, DatabaseOption, RefitOption, SetOption, load_semantics, parse_targets
 from bodyspace.data.template import RIG_NAMES, load_template
@@ -47,7 +50,6 @@ from bodyspace.motion.matching import graph_from_motion, graph_from_skeleton, lo
 from bodyspace.motion.retarget import retarget, to_bvh
 from bodyspace.report.animation import animated_gif, filmstrip
 from bodyspace.rig.kinematics import linear_blend_skinning
-from bodyspace.rig.skeleton import body_skeleton
 
 OUT_SUFFIXES = (".glb", ".bvh", ".npz")
 _FILMSTRIP_PANELS = 8
@@ -91,17 +93,16 @@ def _body(body: Path, sets, database, refit, clamp, seed) -> tuple[np.ndarray, n
 
 
 def _skeleton(vertices, faces, rig_name: str, where: str):
+    """``(vertices, skeleton, weights, how)``: the template's rig and weights on a body of its
+    topology (in metres, +Y up, checked), else the rig embedded into the mesh with bone-heat
+    weights (``skeleton_and_weights``: the vertices come back in metres, +Y up)."""
     template = load_template()
-    if vertices.shape != template.vertices.shape or not np.array_equal(faces, template.faces):
-        raise ParameterError(f"{where}: {len(vertices)} vertices / {len(faces)} faces; the CC0 rigs are defined on "
-                             f"the template topology ({len(template.vertices)} vertices, {len(template.faces)} faces); "
-                             "a mesh of another topology needs skeleton embedding (not part of this command yet)")
-    size = float(np.ptp(vertices[:, 1]))
-    if not 0.5 < size < 2.8:
-        raise ParameterError(f"{where}: the body is {size:g} units tall; expected metres with +Y up (a body 0.5 to "
-                             "2.8 m tall): scale it (centimetres x 0.01) and turn it first")
-    rig = template.rigs[rig_name]
-    return rig, body_skeleton(rig, vertices, rest_vertices=template.vertices)
+    if vertices.shape == template.vertices.shape and np.array_equal(faces, template.faces):
+        size = float(np.ptp(vertices[:, 1]))
+        if not 0.5 < size < 2.8:
+            raise ParameterError(f"{where}: the body is {size:g} units tall; expected metres with +Y up (a body 0.5 "
+                                 "to 2.8 m tall): scale it (centimetres x 0.01) and turn it first")
+    return skeleton_and_weights(vertices, faces, rig_name, where)
 
 
 def _facing_front(posed: np.ndarray, root_rotations: np.ndarray) -> np.ndarray:
@@ -127,8 +128,9 @@ def _summary_table(rows: list[tuple[str, str, str, str]]) -> Table:
 
 
 def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace build; a body is generated with "
-                                                  "--set) or a body mesh of the template topology (.obj, .ply, "
-                                                  ".glb; metres, +Y up)."),
+                                                  "--set), a body mesh of the template topology (.obj, .ply, "
+                                                  ".glb; metres, +Y up), or any closed humanoid mesh in an A- or "
+                                                  "T-pose (rigged by embedding, as bodyspace rig)."),
             motion: Path = typer.Option(..., "--motion", help="The motion capture clip (.bvh)."),
             out: Path = typer.Option(..., "--out", help="walk.glb (rigged glTF with the animation), walk.bvh (the clip "
                                                         "on the body's skeleton) or walk.npz (posed meshes, "
@@ -176,7 +178,9 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
     with progress(f"animating {motion.name}") as bar:
         bar("the body", 0.02)
         vertices, faces, said_body = _body(body, sets, database, refit, clamp, seed)
-        rig, skeleton = _skeleton(vertices, faces, rig_name, str(body))
+        vertices, skeleton, weights, how = _skeleton(vertices, faces, rig_name, str(body))
+        if how != "template topology":
+            said_body = f"{said_body} ({how})"
         bar("matching the skeletons", 0.15)
         source_graph = graph_from_motion(clip)
         target_graph = graph_from_skeleton(skeleton)
@@ -188,13 +192,13 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
         final = retargeted
         if not no_ik:
             bar("locking the feet", 0.4)
-            final, _ = lock_feet(retargeted, sole=sole_points(retargeted, rig.weights, vertices))
+            final, _ = lock_feet(retargeted, sole=sole_points(retargeted, weights, vertices))
         bar("skinning", 0.5)
-        posed_before = linear_blend_skinning(vertices, rig.weights, retargeted.transforms(), dtype=np.float32)
-        posed = posed_before if no_ik else linear_blend_skinning(vertices, rig.weights, final.transforms(),
+        posed_before = linear_blend_skinning(vertices, weights, retargeted.transforms(), dtype=np.float32)
+        posed = posed_before if no_ik else linear_blend_skinning(vertices, weights, final.transforms(),
                                                                  dtype=np.float32)
         bar("arms and torso", 0.6)
-        arm, torso = arm_torso_regions(skeleton, rig.weights, match.target_landmarks, vertices)
+        arm, torso = arm_torso_regions(skeleton, weights, match.target_landmarks, vertices)
         crossing = arm_torso_intersections(posed, faces, arm, torso,
                                            progress=lambda m, f: bar(f"arms and torso: {m}", 0.6 + 0.15 * f))
         bar("writing", 0.75)
@@ -203,7 +207,7 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
         extras = {"clip": motion.name, "body": said_body, "rig": rig_name, "frames": clip.n_frames,
                   "frame_time_s": clip.frame_time, "leg_ratio": retargeted.leg_ratio, "foot_ik": not no_ik}
         if suffix == ".glb":
-            write_gltf(out, vertices, faces, skeleton, rig.weights, extras={"rig": rig_name, "motion": extras},
+            write_gltf(out, vertices, faces, skeleton, weights, extras={"rig": rig_name, "motion": extras},
                        animation=SkeletonAnimation(transforms, clip.frame_time, name=clip.name))
         elif suffix == ".bvh":
             write_bvh(out, to_bvh(final))
@@ -235,7 +239,7 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
     before = skating(fb.target, fb.contacts, clip.frame_time)
     after = skating(ff.target, ff.contacts, clip.frame_time)
     pen_src = penetration(fb.source[..., 1] - np.percentile(fb.source[..., 1], 5, axis=0))
-    feet_v = foot_vertices(retargeted, rig.weights)
+    feet_v = foot_vertices(retargeted, weights)
     rest_v = np.setdiff1d(np.arange(len(vertices)), feet_v)
     soles = [penetration(p[:, feet_v, 1]) for p in (posed_before, posed)]
     others = [penetration(p[:, rest_v, 1]) for p in (posed_before, posed)]
