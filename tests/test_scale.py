@@ -1,0 +1,65 @@
+"""Scale on one machine (issue 16): a database measured into one CSV row per scan."""
+
+import csv
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bodyspace.cli import app
+from bodyspace.measure import evaluate, load_measurement_set
+from bodyspace.synth.population import build_population
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def small_db(template, tmp_path_factory):
+    return build_population(template, tmp_path_factory.mktemp("scale") / "db", 6, 2, rng=11, chunk=4)
+
+
+def _rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_measure_database_one_row_per_scan(small_db, tmp_path):
+    """Every scan measured, in order, with its subject and pose; rest scans measure as the mesh
+    does, posed scans are unposed first and measure close to their subject's rest scan."""
+    out = tmp_path / "m.csv"
+    result = runner.invoke(app, ["measure", str(small_db.folder), "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "18 scans x" in result.output and "unposed first" in result.output
+    rows = _rows(out)
+    assert [r["scan"] for r in rows] == [str(i) for i in range(18)]
+    assert [r["subject"] for r in rows] == small_db.scans["subject"].tolist()
+    assert [r["pose"] for r in rows] == small_db.scans["pose"].tolist()
+    mset = load_measurement_set()
+    rest = np.flatnonzero(small_db.scans["pose"] == "rest")
+    row = small_db.scan_subject_index()
+    for i in rest[:2]:
+        male = float(small_db.subjects["sex"][row[i]] == "male")
+        alone = evaluate(mset, small_db.mesh(i), small_db.faces, age_years=small_db.subjects["age_years"][row[i]],
+                         male=male)
+        assert float(rows[i]["waist_girth_cm"]) == pytest.approx(alone["waist_girth"].value * 100, abs=1e-3)
+        assert float(rows[i]["mass_kg"]) == pytest.approx(alone["mass"].value, abs=1e-3)
+        assert rows[i]["unposed_deg"] == "0.0"
+    for i in np.flatnonzero(small_db.scans["pose"] != "rest"):
+        same = rest[np.flatnonzero(small_db.scans["subject"][rest] == small_db.scans["subject"][i])[0]]
+        assert float(rows[i]["unposed_deg"]) > 5
+        assert abs(float(rows[i]["stature_cm"]) - float(rows[same]["stature_cm"])) < 2.0
+
+
+def test_measure_database_as_posed_and_refusals(small_db, tmp_path):
+    out = tmp_path / "posed.csv"
+    result = runner.invoke(app, ["measure", str(small_db.folder), "--csv", str(out), "--as-posed"])
+    assert result.exit_code == 0, result.output
+    rows = _rows(out)
+    assert len(rows) == 18 and "unposed_deg" not in rows[0]
+    # Refused, in the words of the flags: no file, JSON, units, an existing file.
+    for args, words in ((["--csv"], "--csv FILE"), (["--json"], "--json does not apply"),
+                        (["--csv", str(tmp_path / "u.csv"), "--units", "cm"], "--units does not apply"),
+                        (["--csv", str(out)], "already exists")):
+        result = runner.invoke(app, ["measure", str(small_db.folder)] + args)
+        assert result.exit_code == 2 and words in result.output and "Traceback" not in result.output, args
+    assert not (tmp_path / "u.csv").exists()
