@@ -63,3 +63,42 @@ def test_measure_database_as_posed_and_refusals(small_db, tmp_path):
         result = runner.invoke(app, ["measure", str(small_db.folder)] + args)
         assert result.exit_code == 2 and words in result.output and "Traceback" not in result.output, args
     assert not (tmp_path / "u.csv").exists()
+
+
+def test_krylov_pca_reads_codes_from_disk_like_memory(tmp_path, monkeypatch):
+    """The Krylov PCA of codes in a RowFile (read in blocks of a few rows) is the in-memory one:
+    same captured variance, same components."""
+    from bodyspace.rowfile import RowFile
+    from bodyspace.shape import ShapeSpace
+    from bodyspace.shape import solvers
+
+    rng = np.random.default_rng(0)
+    scales = 1.0 / (1 + np.arange(40)) ** 1.5
+    codes = ((rng.standard_normal((120, 40)) * scales) @ rng.standard_normal((40, 900))
+             + 0.01 * rng.standard_normal((120, 900)) + 3.0).astype(np.float32)
+    on_disk = RowFile.create(tmp_path / "codes.npy", codes.shape, np.float32)
+    for s in range(0, len(codes), 7):
+        on_disk.write(s, codes[s:s + 7])
+    np.testing.assert_array_equal(np.load(tmp_path / "codes.npy"), codes)
+    monkeypatch.setattr(solvers, "DISK_BLOCK_BYTES", 4 * 900 * 5)  # blocks of 5 rows: 24 of them
+    memory = ShapeSpace(n_components=8, solver="krylov", rng=3).fit(codes)
+    disk = ShapeSpace(n_components=8, solver="krylov", rng=3).fit(on_disk)
+    np.testing.assert_allclose(disk.mean_, memory.mean_, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(disk.explained_variance_ratio_, memory.explained_variance_ratio_, rtol=1e-4)
+    np.testing.assert_allclose(np.abs(np.sum(disk.components_ * memory.components_, axis=1)), 1.0, atol=1e-4)
+    exact = ShapeSpace(n_components=8, solver="full").fit(codes.astype(np.float64))
+    np.testing.assert_allclose(disk.explained_variance_ratio_.sum(), exact.explained_variance_ratio_.sum(), rtol=1e-3)
+
+
+def test_build_with_codes_on_disk_matches_memory(small_db, tmp_path):
+    """BodyModel.fit with the codes on disk (out of core) captures the variance the in-memory
+    Krylov fit does, and leaves no code file behind."""
+    from bodyspace.model import BodyModel
+
+    kw = dict(encoding="vertex", selection="all", n_components=5, pca_solver="krylov", scratch=tmp_path)
+    disk = BodyModel.fit(small_db, codes_on_disk=True, **kw)
+    memory = BodyModel.fit(small_db, codes_on_disk=False, **kw)
+    assert disk.provenance["codes_on_disk"] and not memory.provenance["codes_on_disk"]
+    np.testing.assert_allclose(disk.space.explained_variance_ratio_, memory.space.explained_variance_ratio_,
+                               rtol=1e-4)
+    assert list(tmp_path.iterdir()) == []

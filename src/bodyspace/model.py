@@ -56,6 +56,7 @@ from __future__ import annotations
 import json
 import numbers
 import os
+import tempfile
 import time
 import warnings
 import zipfile
@@ -65,7 +66,7 @@ from typing import Callable
 
 import numpy as np
 
-from bodyspace.atomic import atomic_path
+from bodyspace.atomic import atomic_path, remove_leftovers, temporary_name
 from bodyspace.data.database import rest_pose_name, rest_pose_rows
 from bodyspace.data.template import load_template
 from bodyspace.encoding import ENCODERS
@@ -90,6 +91,7 @@ from bodyspace.shape.pca import (
     SOLVERS,
     resolve_solver,
 )
+from bodyspace.rowfile import RowFile
 from bodyspace.shape.solvers import KRYLOV_DEPTH
 from bodyspace.units import format_value
 from bodyspace.validation import as_seed
@@ -223,7 +225,8 @@ class BodyModel:
     def fit(cls, db, encoding: str = "rre", selection="rest", n_components: int | float | None = None, *,
             template=None, on_flipped: str = "accept", pca_solver: str = "auto", rng=0,
             n_jobs: int | None = None, template_id: str | None = None, landmarks=None,
-            progress: Callable[[str, float], None] | None = None) -> "BodyModel":
+            progress: Callable[[str, float], None] | None = None, scratch: str | os.PathLike | None = None,
+            codes_on_disk: bool | None = None) -> "BodyModel":
         """Encode the selected scans of ``db`` (a ``ScanDatabase``) and fit the shape space.
 
         Args:
@@ -255,6 +258,12 @@ class BodyModel:
                 (``measure.landmark_check.check_set_on_bodies``): ids on the mesh, every
                 measurement defined and of a human size.
             progress: ``progress(message, fraction)``.
+            scratch: folder of the temporary code file of an out-of-core fit (default: the
+                system's temporary folder, ``TMPDIR``); it needs N x D x 4 bytes free.
+            codes_on_disk: where the codes of a Krylov fit are kept: None (default) or True on
+                disk (``rowfile.RowFile``, read in blocks: memory does not grow with N), False
+                in memory (N x D float32; faster when they fit). The exact solver keeps them in
+                memory (it is chosen only up to ``FULL_PCA_MAX_BYTES``).
         """
         report = progress or (lambda msg, frac: None)
         if encoding not in ENCODINGS:
@@ -297,21 +306,40 @@ class BodyModel:
         d = encoder.n_features_
         space = ShapeSpace(encoder, n_components, solver=pca_solver, copy=False, rng=rng, n_jobs=n_jobs)
         solver = resolve_solver(pca_solver, n, d, n_components)
-        codes = np.empty((n, d), dtype=np.float64 if solver == "full" else np.float32)
+        # Beyond the exact solver's size the codes go to a file (a RowFile in ``scratch``) that
+        # the Krylov solver reads in blocks: memory stays bounded whatever the number of scans.
+        out_of_core = solver == "krylov" and codes_on_disk is not False
+        codes_path = None
+        if out_of_core:
+            folder = Path(scratch if scratch is not None else tempfile.gettempdir())
+            remove_leftovers(folder)  # the code files of killed builds
+            codes_path = temporary_name(folder / "codes.npy")
+            codes = RowFile.create(codes_path, (n, d), np.float32)
+            buffer = np.empty((ENCODE_BATCH, d), dtype=np.float32)
+        else:
+            codes = np.empty((n, d), dtype=np.float64 if solver == "full" else np.float32)
         flipped = np.zeros(n, dtype=np.int64)
-        t = time.perf_counter()
-        for s, x in db.iter_chunks(rows, ENCODE_BATCH):
-            encoder.encode(x, out=codes[s:s + len(x)])
-            if encoder.last_flipped_ is not None:
-                flipped[s:s + len(x)] = encoder.last_flipped_
-            report(f"encoded {s + len(x)}/{n} scans", 0.05 + 0.75 * (s + len(x)) / n)
-        timings["encode_s"] = time.perf_counter() - t
+        try:
+            t = time.perf_counter()
+            for s, x in db.iter_chunks(rows, ENCODE_BATCH):
+                if out_of_core:
+                    encoder.encode(x, out=buffer[:len(x)])
+                    codes.write(s, buffer[:len(x)])
+                else:
+                    encoder.encode(x, out=codes[s:s + len(x)])
+                if encoder.last_flipped_ is not None:
+                    flipped[s:s + len(x)] = encoder.last_flipped_
+                report(f"encoded {s + len(x)}/{n} scans", 0.05 + 0.75 * (s + len(x)) / n)
+            timings["encode_s"] = time.perf_counter() - t
 
-        # 3. PCA
-        t = time.perf_counter()
-        report(f"PCA of {n} codes of length {d}", 0.82)
-        space.fit(codes)
-        del codes
+            # 3. PCA
+            t = time.perf_counter()
+            report(f"PCA of {n} codes of length {d}" + (f" (on disk, {codes_path})" if out_of_core else ""), 0.82)
+            space.fit(codes)
+        finally:
+            del codes
+            if codes_path is not None:
+                codes_path.unlink(missing_ok=True)
         # float32-exact components: what the file keeps, so a saved model loads bit-exactly.
         space.components_ = _float32_exact(space.components_)
         timings["pca_s"] = time.perf_counter() - t
@@ -330,6 +358,7 @@ class BodyModel:
             "flipped_scans": int(np.count_nonzero(flipped)) if checked else None,
             "flipped_triangles_max": int(flipped.max()) if checked else None,
             "pca_solver": space.solver_,
+            "codes_on_disk": bool(out_of_core),
             "pca_method": "gram_eigh" if space.solver_ == "full" else f"block_krylov(depth={KRYLOV_DEPTH})",
             "total_variance": space.total_variance_,
             "timings_s": {key: round(v, 3) for key, v in timings.items()},

@@ -60,6 +60,10 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                                         "measurement set it gives. Default: DATABASE/landmarks.json "
                                                         "if present, else the built-in set for the template's "
                                                         "topology."),
+          scratch: Optional[Path] = typer.Option(None, "--scratch", help="Folder for the temporary code file of a "
+                                                 "large build (the codes of every scan, N x D x 4 bytes, read in "
+                                                 "blocks by the PCA so memory does not grow with N). Default: the "
+                                                 "system's temporary folder (TMPDIR)."),
           force: bool = ForceOption):
     """Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
@@ -68,10 +72,12 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     if landmarks is not None and not landmarks.is_file():
         raise ParameterError(f"--landmarks {landmarks}: no such file; expected a landmark file (JSON, "
                              "docs/measurements.md)")
+    if scratch is not None and not scratch.is_dir():
+        raise ParameterError(f"--scratch {scratch}: not a folder; give an existing folder with room for the codes")
     db = ScanDatabase.load(database)
-    with progress("build") as cb:
+    with progress("build", eta=True) as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
-                              progress=cb)
+                              progress=cb, scratch=scratch)
     model.save(out)
     folded = model.provenance.get("flipped_scans")
     if folded:

@@ -32,7 +32,7 @@ from typing import Iterator, Mapping
 import numpy as np
 
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
-from bodyspace.data.rowfile import npy_layout, read_rows
+from bodyspace.rowfile import npy_layout, read_rows
 from bodyspace.errors import BodyspaceError, DatabaseError
 from bodyspace.measure.conventions import BODY_EXTENT_M
 from bodyspace.mesh.io import load_mesh

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
+from bodyspace.rowfile import RowFile
 from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full
 from bodyspace.shape.vertex_fit import fit_coefficients
 from bodyspace.validation import as_generator
@@ -100,6 +101,12 @@ class ShapeSpace:
     def _code_matrix(self, x, name: str) -> np.ndarray:
         """Codes (N, D) of codes or meshes (N, V, 3), any float dtype kept (a float32 memmap is
         not copied); checked against the fitted length."""
+        if isinstance(x, RowFile):  # codes on disk: checked by their header, read in blocks
+            if x.ndim != 2 or x.dtype.kind != "f":
+                raise ParameterError(f"{name}: {x!r}, expected float codes (N, D) on disk")
+            if hasattr(self, "n_features_in_") and x.shape[1] != self.n_features_in_:
+                raise ParameterError(f"{name}: codes have length {x.shape[1]}, expected {self.n_features_in_}")
+            return x
         if not isinstance(x, np.ndarray):
             x = np.asarray(x)
         if x.ndim == 3:  # meshes (N, V, 3)
@@ -138,6 +145,8 @@ class ShapeSpace:
             delattr(self, name)  # a refit may change the code length
         x = self._code_matrix(X, "X")
         if select is not None:
+            if isinstance(x, RowFile):
+                raise ParameterError("select: not with codes on disk (a RowFile); write only the selected codes")
             x = x[np.asarray(select)]
         n, d = x.shape
         if n < 2:
@@ -160,6 +169,8 @@ class ShapeSpace:
 
     def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
         """Exact PCA in float64 (Gram matrix eigen-decomposition, ``solvers.pca_full``)."""
+        if isinstance(x, RowFile):  # the exact solver needs the codes in memory (at most FULL_PCA_MAX_BYTES)
+            x = x.read(0, n).astype(np.float64, copy=False)
         own = x.dtype == np.float64 and not self.copy
         x = x if own else np.array(x, dtype=np.float64)
         mean = x.mean(axis=0)
@@ -173,7 +184,7 @@ class ShapeSpace:
     def _fit_truncated(self, x: np.ndarray, n: int, d: int) -> None:
         """Leading components by the randomized block Krylov method (``solvers.pca_block_krylov``),
         on x as it is (float32 ok, never copied); mean and total variance accumulated in float64."""
-        if x.dtype not in (np.float32, np.float64):
+        if x.dtype not in (np.float32, np.float64) and not isinstance(x, RowFile):
             x = x.astype(np.float64)
         mean, scatter = mean_and_scatter(x)
         if not (np.isfinite(mean).all() and np.isfinite(scatter)):

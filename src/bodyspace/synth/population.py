@@ -33,7 +33,7 @@ from bodyspace.data.database import (
     ScanDatabase,
     write_database_tables,
 )
-from bodyspace.data.rowfile import create_rows, write_rows
+from bodyspace.rowfile import create_rows, write_rows
 from bodyspace.data.template import Template
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure.composition import mass_from_volume

@@ -88,3 +88,44 @@ def read_rows(path: str | os.PathLike, start: int, stop: int, layout=None) -> np
     finally:
         os.close(fd)
     return out
+
+
+class RowFile:
+    """An (N, ...) .npy file on disk read in row blocks: what out-of-core code passes around
+    instead of an array (``shape.solvers`` accept it wherever they take codes).
+
+    ``RowFile.create(path, shape, dtype)`` makes the file; ``write(start, rows)`` fills it;
+    ``read(start, stop)`` and ``blocks(size)`` read it back without mapping it.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.layout = npy_layout(self.path)
+        self.shape, self.dtype = self.layout[0], self.layout[1]
+        self.ndim = len(self.shape)
+
+    @classmethod
+    def create(cls, path: str | os.PathLike, shape: tuple[int, ...], dtype=np.float32) -> "RowFile":
+        create_rows(path, shape, dtype)
+        return cls(path)
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64)) * self.dtype.itemsize
+
+    def write(self, start: int, rows: np.ndarray) -> None:
+        write_rows(self.path, start, rows)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        return read_rows(self.path, start, stop, self.layout)
+
+    def blocks(self, size: int):
+        """``(start, rows (n, ...))`` over the file in blocks of ``size`` rows."""
+        for start in range(0, len(self), size):
+            yield start, self.read(start, start + size)
+
+    def __repr__(self) -> str:
+        return f"RowFile({str(self.path)!r}, shape={self.shape}, dtype={self.dtype})"
