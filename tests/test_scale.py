@@ -102,3 +102,18 @@ def test_build_with_codes_on_disk_matches_memory(small_db, tmp_path):
     np.testing.assert_allclose(disk.space.explained_variance_ratio_, memory.space.explained_variance_ratio_,
                                rtol=1e-4)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_build_after_a_killed_build_starts_cleanly(small_db, tmp_path):
+    """What a killed build leaves (its temporary code file, named with the dead process's id) is
+    removed by the next build, which says it started cleanly."""
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    leftover = scratch / ".codes.npy.bodyspace-999999999-0badc0de.part"
+    leftover.write_bytes(b"\x93NUMPY partial")
+    out = tmp_path / "m.npz"
+    result = runner.invoke(app, ["build", str(small_db.folder), "--out", str(out), "--encoding", "vertex",
+                                 "--scratch", str(scratch)])
+    assert result.exit_code == 0, result.output
+    assert "started cleanly (removed the code file of an interrupted build" in result.output
+    assert out.is_file() and not leftover.exists()

@@ -3,12 +3,14 @@ random bodies from it."""
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
+from bodyspace.atomic import remove_leftovers
 from bodyspace.cli.common import (
     MESH_SUFFIXES,
     ForceOption,
@@ -75,6 +77,11 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     if scratch is not None and not scratch.is_dir():
         raise ParameterError(f"--scratch {scratch}: not a folder; give an existing folder with room for the codes")
     db = ScanDatabase.load(database)
+    # A killed build leaves at most its temporary code file (the model is written at the end, by
+    # rename): removed here, and the build starts cleanly.
+    leftovers = [p for p in remove_leftovers(scratch or tempfile.gettempdir()) if p.name.startswith(".codes.npy.")]
+    console.print("started cleanly" + (f" (removed the code file of an interrupted build: {leftovers[0]})"
+                                       if leftovers else ""), highlight=False, soft_wrap=True)
     with progress("build", eta=True) as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
                               progress=cb, scratch=scratch)
