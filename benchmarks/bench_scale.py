@@ -41,7 +41,7 @@ def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
     the child reaped with ``os.wait4`` to read its own rusage."""
     t = time.perf_counter()
     with tempfile.TemporaryFile("w+") as log:
-        child = subprocess.Popen([sys.executable, "-m", "bodyspace", *args], stdout=log, stderr=log,
+        child = subprocess.Popen([sys.executable, "-c", _WRAPPER, *args], stdout=log, stderr=log,
                                  env={**os.environ, "COLUMNS": "200"})
         _, status, usage = os.wait4(child.pid, 0)
         child.returncode = os.waitstatus_to_exitcode(status)
@@ -51,7 +51,25 @@ def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
     if child.returncode:
         raise SystemExit(f"bodyspace {' '.join(args)} failed:\n{text[-2000:]}")
     lines = [ln for ln in text.strip().splitlines() if ln.startswith(("wrote", "1 ", "no subject")) or "redrawn" in ln]
-    return wall, usage.ru_maxrss / 2**20, " | ".join(lines)[-300:]
+    workers = [int(ln.split()[-1]) for ln in text.splitlines() if ln.startswith("bench-workers-peak-kb")]
+    return wall, max([usage.ru_maxrss] + workers) / 2**20, " | ".join(lines)[-300:]
+
+
+# The command as `python -m bodyspace ARGS` runs it, then the peak RSS of its own worker processes
+# (measure's forked pool; reaped before it exits, so RUSAGE_CHILDREN holds their largest).
+_WRAPPER = """
+import resource, sys
+from bodyspace.cli import main
+sys.argv = ["bodyspace"] + sys.argv[1:]
+try:
+    main()
+except SystemExit as exc:
+    code = exc.code
+else:
+    code = 0
+print("bench-workers-peak-kb", resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr)
+sys.exit(code)
+"""
 
 
 def disk_gb(path: Path) -> float:
