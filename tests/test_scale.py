@@ -104,16 +104,35 @@ def test_build_with_codes_on_disk_matches_memory(small_db, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_build_after_a_killed_build_starts_cleanly(small_db, tmp_path):
-    """What a killed build leaves (its temporary code file, named with the dead process's id) is
-    removed by the next build, which says it started cleanly."""
-    scratch = tmp_path / "scratch"
-    scratch.mkdir()
-    leftover = scratch / ".codes.npy.bodyspace-999999999-0badc0de.part"
-    leftover.write_bytes(b"\x93NUMPY partial")
-    out = tmp_path / "m.npz"
-    result = runner.invoke(app, ["build", str(small_db.folder), "--out", str(out), "--encoding", "vertex",
-                                 "--scratch", str(scratch)])
-    assert result.exit_code == 0, result.output
-    assert "started cleanly (removed the code file of an interrupted build" in result.output
-    assert out.is_file() and not leftover.exists()
+def test_build_resumes_encoding_after_an_interruption(small_db, tmp_path, monkeypatch):
+    """An out-of-core build stopped while encoding continues from its last complete chunk and
+    fits what an uninterrupted build fits; a build of other inputs starts cleanly and removes the
+    stale codes; a finished build leaves nothing in the scratch folder."""
+    from bodyspace import model as model_module
+    from bodyspace.model import BodyModel
+
+    monkeypatch.setattr(model_module, "ENCODE_BATCH", 4)
+    kw = dict(encoding="vertex", selection="all", n_components=5, pca_solver="krylov", scratch=tmp_path)
+
+    def stop_after_8(message, fraction):
+        if message.startswith("encoded 8/"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        BodyModel.fit(small_db, progress=stop_after_8, **kw)
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".lock", ".npy"]
+    lines = []
+    resumed = BodyModel.fit(small_db, log=lines.append, **kw)
+    assert len(lines) == 1 and lines[0].startswith("encoding: resumed an interrupted run from its last complete "
+                                                   "chunk: 8 of 18 rows were already computed")
+    assert list(tmp_path.iterdir()) == []
+    whole = BodyModel.fit(small_db, **kw)
+    np.testing.assert_allclose(resumed.space.explained_variance_, whole.space.explained_variance_, rtol=1e-6)
+    np.testing.assert_allclose(resumed.space.components_, whole.space.components_, atol=1e-6)
+
+    with pytest.raises(KeyboardInterrupt):
+        BodyModel.fit(small_db, progress=stop_after_8, **kw)
+    lines = []
+    BodyModel.fit(small_db, log=lines.append, **{**kw, "selection": "rest", "n_components": 3})
+    assert lines[0].startswith("encoding: started cleanly (removed an interrupted run of other inputs")
+    assert list(tmp_path.iterdir()) == []

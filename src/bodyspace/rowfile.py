@@ -13,12 +13,14 @@ that reads .npy reads it, memory-mapped or not.
 
 from __future__ import annotations
 
+import fcntl
+import json
 import os
 from pathlib import Path
 
 import numpy as np
 
-from bodyspace.errors import DatabaseError
+from bodyspace.errors import DatabaseError, OutputError
 
 
 def create_rows(path: str | os.PathLike, shape: tuple[int, ...], dtype=np.float32) -> int:
@@ -129,3 +131,99 @@ class RowFile:
 
     def __repr__(self) -> str:
         return f"RowFile({str(self.path)!r}, shape={self.shape}, dtype={self.dtype})"
+
+
+class CheckpointedRows:
+    """A ``RowFile`` filled in row order, chunk by chunk, that a killed run continues.
+
+    ``FOLDER/.NAME-KEY.npy`` holds the rows, ``FOLDER/.NAME-KEY.json`` how many are complete
+    (written after the rows are synced, atomically) and what the caller keeps beside them; KEY
+    names what the rows are computed from, so a run of other inputs never continues them. While a
+    run works, it holds an ``flock`` on ``.NAME-KEY.lock``: a second run of the same work is
+    refused, and files of this NAME whose lock is free (an earlier, interrupted run of other
+    inputs) are removed when a run starts, so one folder keeps at most one interrupted run a NAME.
+    """
+
+    def __init__(self, folder: str | os.PathLike, name: str, key: str, shape: tuple[int, ...], dtype=np.float32):
+        self.folder, self.name, self.key = Path(folder), name, key
+        self.shape, self.dtype = tuple(int(s) for s in shape), np.dtype(dtype)
+        stem = self.folder / f".{name}-{key[:16]}"
+        self.path, self.state_path, self.lock_path = (stem.with_suffix(".npy"), stem.with_suffix(".json"),
+                                                      stem.with_suffix(".lock"))
+        self.rows: RowFile | None = None
+        self._lock = None
+
+    def open(self) -> tuple[int, dict, str]:
+        """Take the lock and open the rows: ``(rows complete, what the caller stored, a sentence
+        for the user: resumed or started cleanly)``."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._lock = open(self.lock_path, "w")
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock.close()
+            self._lock = None
+            raise OutputError(f"{self.path}: another bodyspace run is computing these rows now; wait for it to "
+                              "finish") from None
+        removed = self._remove_interrupted_others()
+        state = None
+        try:
+            state = json.loads(self.state_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            pass
+        if (state is not None and state.get("key") == self.key and self.path.is_file()
+                and npy_layout(self.path)[:2] == (self.shape, self.dtype) and 0 < int(state.get("done", 0))):
+            self.rows = RowFile(self.path)
+            done = min(int(state["done"]), self.shape[0])
+            return done, state.get("extra", {}), (f"resumed an interrupted run from its last complete chunk: {done} "
+                                                  f"of {self.shape[0]} rows were already computed ({self.path})")
+        self.rows = RowFile.create(self.path, self.shape, self.dtype)
+        self.state_path.unlink(missing_ok=True)
+        return 0, {}, "started cleanly" + (f" (removed an interrupted run of other inputs: {removed[0]})"
+                                           if removed else "")
+
+    def commit(self, done: int, extra: dict | None = None) -> None:
+        """Rows ``0..done`` are complete: sync them, then record it (atomically)."""
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        tmp = self.state_path.with_name(self.state_path.name + f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps({"key": self.key, "done": int(done), "extra": extra or {}}), encoding="utf-8")
+        os.replace(tmp, self.state_path)
+
+    def close(self, remove: bool) -> None:
+        """Release the lock; ``remove`` the files (the work is done) or keep them to resume."""
+        if remove:
+            for path in (self.path, self.state_path):
+                path.unlink(missing_ok=True)
+        if self._lock is not None:
+            if remove:
+                self.lock_path.unlink(missing_ok=True)
+            fcntl.flock(self._lock, fcntl.LOCK_UN)
+            self._lock.close()
+            self._lock = None
+
+    def _remove_interrupted_others(self) -> list[Path]:
+        """Files of this NAME with another KEY whose lock nobody holds; returns the rows removed."""
+        removed = []
+        for lock_path in self.folder.glob(f".{self.name}-*.lock"):
+            if lock_path == self.lock_path:
+                continue
+            try:
+                handle = open(lock_path, "r+")
+            except OSError:
+                continue
+            with handle:
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    continue  # a run is working on it
+                for path in (lock_path.with_suffix(".npy"), lock_path.with_suffix(".json")):
+                    if path.exists():
+                        path.unlink()
+                        if path.suffix == ".npy":
+                            removed.append(path)
+                lock_path.unlink(missing_ok=True)
+        return removed

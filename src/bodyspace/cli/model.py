@@ -3,14 +3,12 @@ random bodies from it."""
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
-from bodyspace.atomic import remove_leftovers
 from bodyspace.cli.common import (
     MESH_SUFFIXES,
     ForceOption,
@@ -62,9 +60,10 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                                         "measurement set it gives. Default: DATABASE/landmarks.json "
                                                         "if present, else the built-in set for the template's "
                                                         "topology."),
-          scratch: Optional[Path] = typer.Option(None, "--scratch", help="Folder for the temporary code file of a "
-                                                 "large build (the codes of every scan, N x D x 4 bytes, read in "
-                                                 "blocks by the PCA so memory does not grow with N). Default: the "
+          scratch: Optional[Path] = typer.Option(None, "--scratch", help="Folder for the code file of a large build "
+                                                 "(the codes of every scan, N x D x 4 bytes, read in blocks by the "
+                                                 "PCA so memory does not grow with N; kept when the build is "
+                                                 "killed, so the same command continues it). Default: the "
                                                  "system's temporary folder (TMPDIR)."),
           force: bool = ForceOption):
     """Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."""
@@ -77,14 +76,10 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     if scratch is not None and not scratch.is_dir():
         raise ParameterError(f"--scratch {scratch}: not a folder; give an existing folder with room for the codes")
     db = ScanDatabase.load(database)
-    # A killed build leaves at most its temporary code file (the model is written at the end, by
-    # rename): removed here, and the build starts cleanly.
-    leftovers = [p for p in remove_leftovers(scratch or tempfile.gettempdir()) if p.name.startswith(".codes.npy.")]
-    console.print("started cleanly" + (f" (removed the code file of an interrupted build: {leftovers[0]})"
-                                       if leftovers else ""), highlight=False, soft_wrap=True)
     with progress("build", eta=True) as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
-                              progress=cb, scratch=scratch)
+                              progress=cb, scratch=scratch,
+                              log=lambda line: console.print(line, highlight=False, soft_wrap=True))
     model.save(out)
     folded = model.provenance.get("flipped_scans")
     if folded:
