@@ -329,6 +329,7 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
     ages, males = _scan_demographics(db)
     _DB_JOB.update(db=db, mset=mset, rig=template.rigs["default"] if unposable else None, ages=ages, males=males)
     n = db.n_scans
+    chunk = max(1, min(chunk, -(-n // (2 * workers))))  # a small database still keeps both workers busy
     starts = list(range(0, n, chunk))
     measured = undefined = 0
     started = time.perf_counter()
