@@ -37,7 +37,7 @@ POSES = 4  # scans per subject: rest + 4 poses
 
 
 def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
-    """(wall s, peak RSS GB of the child alone, its summary lines) of ``python -m bodyspace ARGS``,
+    """(wall s, CPU s, peak RSS GB, its summary lines) of ``python -m bodyspace ARGS``,
     the child reaped with ``os.wait4`` to read its own rusage."""
     t = time.perf_counter()
     with tempfile.TemporaryFile("w+") as log:
@@ -51,12 +51,14 @@ def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
     if child.returncode:
         raise SystemExit(f"bodyspace {' '.join(args)} failed:\n{text[-2000:]}")
     lines = [ln for ln in text.strip().splitlines() if ln.startswith(("wrote", "1 ", "no subject")) or "redrawn" in ln]
-    workers = [int(ln.split()[-1]) for ln in text.splitlines() if ln.startswith("bench-workers-peak-kb")]
-    return wall, max([usage.ru_maxrss] + workers) / 2**20, " | ".join(lines)[-300:]
+    workers = [ln.split()[1:] for ln in text.splitlines() if ln.startswith("bench-workers")]
+    peak_kb = max([usage.ru_maxrss] + [int(w[0]) for w in workers])
+    cpu = usage.ru_utime + usage.ru_stime + sum(float(w[1]) for w in workers)
+    return wall, cpu, peak_kb / 2**20, " | ".join(lines)[-300:]
 
 
-# The command as `python -m bodyspace ARGS` runs it, then the peak RSS of its own worker processes
-# (measure's forked pool; reaped before it exits, so RUSAGE_CHILDREN holds their largest).
+# The command as `python -m bodyspace ARGS` runs it, then the peak RSS and CPU seconds of its own
+# worker processes (measure's forked pool; reaped before it exits, so RUSAGE_CHILDREN has them).
 _WRAPPER = """
 import resource, sys
 from bodyspace.cli import main
@@ -67,7 +69,8 @@ except SystemExit as exc:
     code = exc.code
 else:
     code = 0
-print("bench-workers-peak-kb", resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr)
+workers = resource.getrusage(resource.RUSAGE_CHILDREN)
+print("bench-workers", workers.ru_maxrss, workers.ru_utime + workers.ru_stime, file=sys.stderr)
 sys.exit(code)
 """
 
@@ -150,23 +153,23 @@ def main() -> None:
                 continue
             if output.is_file():
                 output.unlink()  # CSV files carry no signature for --force
-            wall, peak, said = _spawn_measured(cli)
+            wall, cpu, peak, said = _spawn_measured(cli)
             scans = subjects * (1 + POSES)
-            rows.append((stage, scans, wall, peak, disk_gb(output), said))
-            stats.setdefault(stage, []).append((scans, wall, peak))
-            print(f"| {stage} | {scans:,} | {wall:.1f} s | {scans / wall:,.0f} scans/s | {peak:.2f} GB | "
+            rows.append((stage, scans, wall, cpu, peak, disk_gb(output), said))
+            stats.setdefault(stage, []).append((scans, wall, cpu, peak))
+            print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
                   f"{disk_gb(output):.2f} GB | {said} |", flush=True)
-    print("\n| work | scans | wall | rate | peak RSS | disk | output |")
-    print("|---|---|---|---|---|---|---|")
-    for stage, scans, wall, peak, disk, said in rows:
-        print(f"| {stage} | {scans:,} | {wall:.1f} s | {scans / wall:,.0f} scans/s | {peak:.2f} GB | {disk:.2f} GB | "
-              f"{said} |")
-    print("\n| work | time growth | peak memory growth |")
-    print("|---|---|---|")
+    print("\n| work | scans | wall | CPU | rate (wall) | peak RSS | disk | output |")
+    print("|---|---|---|---|---|---|---|---|")
+    for stage, scans, wall, cpu, peak, disk, said in rows:
+        print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
+              f"{disk:.2f} GB | {said} |")
+    print("\n| work | wall growth | CPU growth | peak memory growth |")
+    print("|---|---|---|---|")
     for stage, points in stats.items():
         ns = [p[0] for p in points]
-        print(f"| {stage} | {fitted_growth(ns, [p[1] for p in points])} | "
-              f"{fitted_growth(ns, [p[2] for p in points])} |")
+        print(f"| {stage} | {fitted_growth(ns, [p[1] for p in points])} | {fitted_growth(ns, [p[2] for p in points])} "
+              f"| {fitted_growth(ns, [p[3] for p in points])} |")
     if "pca" not in args.skip and args.pca_scans:
         folder = work / f"db{args.pca_scans}"
         if folder.exists():
