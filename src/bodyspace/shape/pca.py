@@ -176,10 +176,15 @@ class ShapeSpace:
         mean = x.mean(axis=0)
         if not np.isfinite(mean).all():  # a NaN or infinity anywhere reaches its column's mean
             raise ParameterError("X: contains NaN or infinity")
-        s, vt = pca_full(x, mean)                       # centres x in place
-        total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
-        var = s ** 2 / (n - 1)
-        self._set(mean, s, vt, var, total, n, d, self._n_keep(var, total, n, d))
+        kept = {}
+
+        def n_keep(s):  # called by pca_full once x is centred: only the kept components are formed
+            kept["total"] = float(np.einsum("ij,ij->", x, x)) / (n - 1)
+            kept["k"] = self._n_keep(s ** 2 / (n - 1), kept["total"], n, d)
+            return kept["k"]
+
+        s, vt = pca_full(x, mean, n_keep)               # centres x in place
+        self._set(mean, s, vt, s ** 2 / (n - 1), kept["total"], n, d, kept["k"])
 
     def _fit_truncated(self, x: np.ndarray, n: int, d: int) -> None:
         """Leading components by the randomized block Krylov method (``solvers.pca_block_krylov``),

@@ -68,13 +68,23 @@ def _sign_flip(vt: np.ndarray) -> np.ndarray:
     return vt * signs[:, None]
 
 
-def pca_full(x: np.ndarray, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pca_full(x: np.ndarray, mean: np.ndarray, n_keep=None) -> tuple[np.ndarray, np.ndarray]:
     """Exact PCA of float64 codes x (N, D) around ``mean`` (D,); x is centred in place.
 
-    Returns ``(singular_values (K,), components (K, D))``, K = numerical rank.
+    Returns ``(singular_values (K,), components (k, D))``, K = numerical rank; ``n_keep(s)``
+    (called with the K singular values, x already centred) says how many components k to form
+    (default all K): only those are computed, so the output is not a second (N, D) matrix.
     """
     x -= mean
-    _, s, vt = _svd_wide(x)
+    g = x @ x.T  # as _svd_wide, with only the kept rows of vt formed
+    lam, u = np.linalg.eigh(g)
+    del g
+    lam, u = lam[::-1], u[:, ::-1]
+    rank = lam > 1e-10 * max(lam[0], 1e-300)
+    lam, u = lam[rank], u[:, rank]
+    s = np.sqrt(lam)
+    k = len(s) if n_keep is None else int(n_keep(s))
+    vt = (u[:, :k].T @ x) / s[:k, None]
     return s, _sign_flip(vt)
 
 
