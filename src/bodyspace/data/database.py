@@ -32,7 +32,7 @@ from typing import Iterator, Mapping
 import numpy as np
 
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
-from bodyspace.rowfile import npy_layout, read_rows
+from bodyspace.rowfile import create_rows, npy_layout, read_rows, write_rows
 from bodyspace.errors import BodyspaceError, DatabaseError
 from bodyspace.measure.conventions import BODY_EXTENT_M
 from bodyspace.mesh.io import load_mesh
@@ -401,7 +401,8 @@ def validate_database(vertices, faces, subjects: Mapping, scans: Mapping, meta: 
     Returns (vertices, faces, subject table, scan table, meta with counts, rotations). A memmap
     ``vertices`` stays a view of its file.
     """
-    vertices = np.asarray(vertices)
+    if not isinstance(vertices, np.ndarray):  # a memmap stays one: check_vertices reads it by pread
+        vertices = np.asarray(vertices)
     faces = np.asarray(faces)
     check_vertices(vertices, "vertices")
     check_faces(faces, vertices.shape[1], "faces")
@@ -446,13 +447,11 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
         if len(vertices) == 0:
             np.save(tmp / VERTICES_FILE, np.zeros(vertices.shape, dtype=np.float32), allow_pickle=False)
         else:
-            # Chunked copy: a memmap input (e.g. a loaded database) is never read into memory whole.
-            stored = np.lib.format.open_memmap(tmp / VERTICES_FILE, mode="w+", dtype=np.float32,
-                                               shape=vertices.shape)
-            for start in range(0, len(vertices), _CHECK_CHUNK):
-                stored[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK]
-            stored.flush()
-            del stored
+            # Chunked copy with file reads and writes (rowfile), not through maps: neither a memmap
+            # input (a loaded database) nor the output is ever held in memory whole.
+            create_rows(tmp / VERTICES_FILE, vertices.shape, np.float32)
+            for start, block in iter_blocks(vertices, _CHECK_CHUNK):
+                write_rows(tmp / VERTICES_FILE, start, block)
         np.save(tmp / FACES_FILE, faces.astype(np.int32), allow_pickle=False)
         if rotations is not None:
             np.save(tmp / ROTATIONS_FILE, rotations.astype(np.float32), allow_pickle=False)
@@ -1192,9 +1191,7 @@ class ScanDatabase:
         else:
             raise DatabaseError(f"select: got dtype {selection.dtype}, expected a bool mask or integer indices")
         # Sorted indices let a memmap read contiguous runs; the order is restored afterwards.
-        order = np.argsort(indices, kind="stable")
-        vertices = np.empty((len(indices),) + self.vertices.shape[1:], dtype=self.vertices.dtype)
-        vertices[order] = self.vertices[indices[order]]
+        vertices = self.read(indices, dtype=self.vertices.dtype)  # sorted runs, by pread from a file
         scan_subjects = self.scans["subject"][indices]
         keep = np.isin(self.subjects[SUBJECT_ID_COLUMN], scan_subjects)
         subjects = {name: values[keep] for name, values in self.subjects.items()}
