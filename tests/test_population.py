@@ -10,7 +10,17 @@ from bodyspace.measure.composition import (
     body_fat_percent,
     mass_from_volume,
 )
-from bodyspace.synth.population import build_population, load_survey, sample_subjects
+from bodyspace.synth.population import (
+    MOMENT_TOL,
+    build_population,
+    describe_redraws,
+    draw_subjects,
+    load_survey,
+    redraw_report,
+    sample_subjects,
+    solve_subjects,
+    target_moments,
+)
 
 
 def test_composition_formulas():
@@ -36,6 +46,53 @@ def test_subjects_match_survey_moments(phenotype_model):
         assert abs(subjects.bmi[k].mean() - survey[sex]["bmi_mean"]) < 0.5
         assert abs(subjects.bmi[k].std() - survey[sex]["bmi_sd"]) < 0.5
     assert (subjects.age_years >= 18).all() and (subjects.age_years <= 50).all()
+
+
+def test_unreachable_subject_is_redrawn_deterministically(phenotype_model):
+    """A target the body model cannot reach (a woman of BMI 40: MakeHuman's heaviest woman is ~33)
+    is redrawn from the seed; the others are solved as drawn, and the output says what moved."""
+    def forced():
+        draw = draw_subjects(12, rng=4)
+        draw.target_bmi[woman] = 40.0
+        draw.drawn_moments = target_moments(draw.male, draw.target_stature_m, draw.target_bmi)
+        return draw, solve_subjects(phenotype_model, draw, np.arange(12))
+
+    plain = draw_subjects(12, rng=4)
+    woman = int(np.flatnonzero(~plain.male)[1])
+    draw, (h, _, _, bmi, _) = forced()
+    report = redraw_report(draw)
+    assert report["redrawn"] == 1 and report["subjects"] == [woman] and draw.redrawn[woman] >= 1
+    # The replacement is reachable and reached; it is a woman with a survey-like BMI.
+    assert not draw.male[woman] and draw.target_bmi[woman] < 35
+    assert np.abs(h - draw.target_stature_m).max() < 2e-4 and np.abs(bmi - draw.target_bmi).max() < 1e-2
+    # Everyone else keeps the targets drawn for them.
+    others = np.arange(12) != woman
+    np.testing.assert_array_equal(draw.target_bmi[others], plain.target_bmi[others])
+    np.testing.assert_array_equal(draw.target_stature_m[others], plain.target_stature_m[others])
+    # Deterministic: the same seed gives the same replacement.
+    again, _ = forced()
+    np.testing.assert_array_equal(again.phenotypes, draw.phenotypes)
+    # The report's moments are those of the targets, before and after; the men did not move.
+    after = target_moments(draw.male, draw.target_stature_m, draw.target_bmi)
+    assert report["moments"]["female"]["bmi_mean"] == [draw.drawn_moments["female"]["bmi_mean"],
+                                                       after["female"]["bmi_mean"]]
+    assert all(b == a for b, a in report["moments"]["male"].values())
+    line = describe_redraws(report)
+    assert line.startswith("1 subject(s) redrawn") and "female stature mean" in line
+
+
+def test_redraw_keeps_moments_of_a_large_population(phenotype_model):
+    """In a population of 1,000 women one redraw moves the moments by less than the survey bar
+    (MOMENT_TOL: 0.1 cm, 0.05 BMI): of the reachable candidates the least-moving one is chosen."""
+    draw = draw_subjects(2000, rng=5)
+    woman = int(np.flatnonzero(~draw.male)[0])
+    draw.target_bmi[woman] = 36.0
+    draw.drawn_moments = target_moments(draw.male, draw.target_stature_m, draw.target_bmi)
+    solve_subjects(phenotype_model, draw, np.array([woman]))
+    report = redraw_report(draw)
+    assert report["subjects"] == [woman]
+    for name, (before, after) in report["moments"]["female"].items():
+        assert abs(after - before) < MOMENT_TOL[name], name
 
 
 def test_build_population_folder(template, tmp_path):
@@ -70,3 +127,63 @@ def test_build_population_refuses_existing_and_bad_counts(template, tmp_path):
     (tmp_path / "y").mkdir()
     with pytest.raises(Exception, match="already exists"):
         build_population(template, tmp_path / "y", n_subjects=1, n_poses=0)
+
+
+def _population_bytes(folder):
+    return {name: (folder / name).read_bytes() for name in ("vertices.npy", "rotations.npy", "subjects.csv",
+                                                             "scans.csv", "faces.npy")}
+
+
+def test_build_population_resumes_after_a_kill(template, tmp_path):
+    """A run killed (SIGKILL) after some chunks is resumed from its last complete chunk and
+    writes the same database as an uninterrupted run; the folder never exists half-written."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from bodyspace.synth.population import STATE_FILE, unfinished_folder
+
+    whole = tmp_path / "whole"
+    build_population(template, whole, n_subjects=10, n_poses=1, rng=9, chunk=2)
+    out = tmp_path / "killed"
+    work = unfinished_folder(out)
+    # The child runs the same population slowed down after each chunk so the kill lands between chunks.
+    code = ("import time, sys; from bodyspace.data.template import load_template; "
+            "from bodyspace.synth.population import build_population; "
+            f"build_population(load_template(), {str(out)!r}, 10, 1, rng=9, chunk=2, "
+            "progress=lambda m, f: time.sleep(0.5) if m.startswith('wrote') else None)")
+    child = subprocess.Popen([sys.executable, "-c", code], env=dict(os.environ))
+    deadline = time.time() + 120
+    while time.time() < deadline and not (work / STATE_FILE).is_file():
+        time.sleep(0.05)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    assert (work / STATE_FILE).is_file() and not out.exists()
+    lines = []
+    build_population(template, out, n_subjects=10, n_poses=1, rng=9, chunk=2, log=lines.append)
+    assert lines[0].startswith("resumed an interrupted run from its last complete chunk")
+    assert not work.exists()
+    assert _population_bytes(out) == _population_bytes(whole)
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in whole.iterdir())
+
+
+def test_build_population_starts_cleanly_over_another_request(template, tmp_path):
+    """An unfinished run of other parameters is not resumed: it is removed and the run says so."""
+    from bodyspace.synth.population import unfinished_folder
+
+    out = tmp_path / "db"
+
+    def stop_after_first_chunk(message, fraction):
+        if message.startswith("wrote"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_population(template, out, n_subjects=6, n_poses=0, rng=1, chunk=2, progress=stop_after_first_chunk)
+    assert unfinished_folder(out).is_dir() and not out.exists()
+    lines = []
+    db = build_population(template, out, n_subjects=6, n_poses=0, rng=2, chunk=2, log=lines.append)
+    assert lines[0].startswith("started cleanly (removed the unfinished run") and "another request" in lines[0]
+    assert db.n_scans == 6 and not unfinished_folder(out).exists()
+    assert lines[1].startswith("no subject redrawn")

@@ -170,20 +170,27 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False, kind: str = "fo
     os.mkdir(tmp, 0o777)
     try:
         yield tmp
-        entries = sorted(e for e in os.listdir(tmp) if e != MARKER)
-        marker = {"written_by": WRITTEN_BY, "kind": kind, "entries": entries}
-        (tmp / MARKER).write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
-        if path.exists():
-            check_replaceable_folder(path, kind, flag)  # again: it may have changed while we worked
-            old = temporary_name(path)
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        install_folder(tmp, path, kind, flag)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def install_folder(tmp: Path, path: Path, kind: str, flag: str = "overwrite=True") -> None:
+    """Mark the complete folder ``tmp`` as a bodyspace ``kind`` folder listing its entries and
+    rename it onto ``path``, replacing an existing ``path`` only if ``check_replaceable_folder``
+    accepts it (the caller checked ``overwrite`` before the work)."""
+    entries = sorted(e for e in os.listdir(tmp) if e != MARKER)
+    marker = {"written_by": WRITTEN_BY, "kind": kind, "entries": entries}
+    (tmp / MARKER).write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
+    if path.exists():
+        check_replaceable_folder(path, kind, flag)  # again: it may have changed while we worked
+        old = temporary_name(path)
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
 
 
 def write_json(path: str | os.PathLike, obj) -> None:

@@ -53,9 +53,11 @@ them; the demo's 144 scans use 64 (it halves the fit's encoding work).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import numbers
 import os
+import tempfile
 import time
 import warnings
 import zipfile
@@ -92,6 +94,7 @@ from bodyspace.shape.pca import (
     SOLVERS,
     resolve_solver,
 )
+from bodyspace.rowfile import CheckpointedRows
 from bodyspace.shape.solvers import KRYLOV_DEPTH
 from bodyspace.units import format_value
 from bodyspace.validation import as_seed
@@ -151,6 +154,26 @@ def request_tolerance(semantics, name: str) -> float:
 
 def _float32_exact(a: np.ndarray) -> np.ndarray:
     return np.asarray(a, dtype=np.float32).astype(np.float64)
+
+
+def _codes_key(db, rows: np.ndarray, encoding: str, encoder) -> str:
+    """What a build's codes are computed from, hashed: the database (its folder, meta and the
+    size and time of its vertex file), the selected rows, the encoding and the fitted encoder's
+    state. Equal keys: the codes of an interrupted build can be continued."""
+    digest = hashlib.sha256()
+    source = {"folder": None if db.folder is None else str(Path(db.folder).resolve()), "meta": db.meta,
+              "encoding": encoding}
+    if db.folder is not None:
+        stat = (Path(db.folder) / "vertices.npy").stat()
+        source["vertices"] = [stat.st_size, stat.st_mtime_ns]
+    else:
+        digest.update(np.ascontiguousarray(db.vertices[:: max(1, len(db.vertices) // 64)]).tobytes())
+    digest.update(json.dumps(source, sort_keys=True, default=str).encode())
+    digest.update(np.ascontiguousarray(rows, dtype=np.int64).tobytes())
+    for name, array in sorted(encoder.to_arrays().items()):
+        digest.update(name.encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
 
 
 class BodyModel:
@@ -225,7 +248,9 @@ class BodyModel:
     def fit(cls, db, encoding: str = "rre", selection="rest", n_components: int | float | None = None, *,
             template=None, on_flipped: str = "accept", pca_solver: str = "auto", rng=0,
             n_jobs: int | None = None, template_id: str | None = None, landmarks=None,
-            basis: str = "code", progress: Callable[[str, float], None] | None = None) -> "BodyModel":
+            basis: str = "code", progress: Callable[[str, float], None] | None = None,
+            scratch: str | os.PathLike | None = None, codes_on_disk: bool | None = None,
+            log: Callable[[str], None] | None = None) -> "BodyModel":
         """Encode the selected scans of ``db`` (a ``ScanDatabase``) and fit the shape space.
 
         Args:
@@ -261,8 +286,17 @@ class BodyModel:
                 the first components move whole limbs; exact solver only; the scans are read
                 once more for it).
             progress: ``progress(message, fraction)``.
+            scratch: folder of the temporary code file of an out-of-core fit (default: the
+                system's temporary folder, ``TMPDIR``); it needs N x D x 4 bytes free.
+            codes_on_disk: where the codes of a Krylov fit are kept: None (default) or True on
+                disk (``rowfile.CheckpointedRows``, read in blocks: memory does not grow with N;
+                a killed fit continues encoding where it stopped), False in memory (N x D
+                float32; faster when they fit). The exact solver keeps them in memory (it is
+                chosen only up to ``FULL_PCA_MAX_BYTES``).
+            log: ``log(line)`` gets what the user should read (the encoding resumed or started cleanly).
         """
         report = progress or (lambda msg, frac: None)
+        say = log or (lambda line: None)
         if encoding not in ENCODINGS:
             raise ParameterError(f"encoding={encoding!r}, expected one of {', '.join(ENCODINGS)}")
         if on_flipped not in ON_FLIPPED:
@@ -304,21 +338,49 @@ class BodyModel:
         space = ShapeSpace(encoder, n_components, solver=pca_solver, copy=False, rng=rng, n_jobs=n_jobs,
                            basis=basis)
         solver = resolve_solver(pca_solver, n, d, n_components)
-        codes = np.empty((n, d), dtype=np.float64 if solver == "full" else np.float32)
+        # Beyond the exact solver's size the codes go to a file (a RowFile in ``scratch``) that
+        # the Krylov solver reads in blocks: memory stays bounded whatever the number of scans.
+        out_of_core = solver == "krylov" and codes_on_disk is not False
         flipped = np.zeros(n, dtype=np.int64)
-        t = time.perf_counter()
-        for s, x in db.iter_chunks(rows, ENCODE_BATCH):
-            encoder.encode(x, out=codes[s:s + len(x)])
-            if encoder.last_flipped_ is not None:
-                flipped[s:s + len(x)] = encoder.last_flipped_
-            report(f"encoded {s + len(x)}/{n} scans", 0.05 + 0.75 * (s + len(x)) / n)
-        timings["encode_s"] = time.perf_counter() - t
+        done, store = 0, None
+        if out_of_core:
+            # The codes of every scan, checkpointed chunk by chunk: a killed build continues
+            # encoding where it stopped (same database, selection and encoder), or starts cleanly.
+            store = CheckpointedRows(scratch if scratch is not None else tempfile.gettempdir(), "bodyspace-codes",
+                                     _codes_key(db, rows, encoding, encoder), (n, d), np.float32)
+            done, extra, said = store.open()
+            say(f"encoding: {said}")
+            flipped[:done] = np.asarray(extra.get("flipped", []), dtype=np.int64)[:done]
+            codes = store.rows
+            buffer = np.empty((ENCODE_BATCH, d), dtype=np.float32)
+        else:
+            codes = np.empty((n, d), dtype=np.float64 if solver == "full" else np.float32)
+        complete = False
+        try:
+            t = time.perf_counter()
+            for s, x in db.iter_chunks(rows[done:], ENCODE_BATCH):
+                s += done
+                if out_of_core:
+                    encoder.encode(x, out=buffer[:len(x)])
+                    codes.write(s, buffer[:len(x)])
+                else:
+                    encoder.encode(x, out=codes[s:s + len(x)])
+                if encoder.last_flipped_ is not None:
+                    flipped[s:s + len(x)] = encoder.last_flipped_
+                if store is not None:
+                    store.commit(s + len(x), {"flipped": flipped[:s + len(x)].tolist()})
+                report(f"encoded {s + len(x)}/{n} scans", 0.05 + 0.75 * (s + len(x)) / n)
+            timings["encode_s"] = time.perf_counter() - t
 
-        # 3. PCA
-        t = time.perf_counter()
-        report(f"PCA of {n} codes of length {d}", 0.82)
-        space.fit(codes, vertices=db.read(rows) if basis == "vertex" and not encoder.is_linear else None)
-        del codes
+            # 3. PCA
+            t = time.perf_counter()
+            report(f"PCA of {n} codes of length {d}" + (f" (on disk, {codes.path})" if out_of_core else ""), 0.82)
+            space.fit(codes, vertices=db.read(rows) if basis == "vertex" and not encoder.is_linear else None)
+            complete = True
+        finally:
+            del codes
+            if store is not None:
+                store.close(remove=complete)
         # float32-exact components: what the file keeps, so a saved model loads bit-exactly.
         space.components_ = _float32_exact(space.components_)
         timings["pca_s"] = time.perf_counter() - t
@@ -337,6 +399,7 @@ class BodyModel:
             "flipped_scans": int(np.count_nonzero(flipped)) if checked else None,
             "flipped_triangles_max": int(flipped.max()) if checked else None,
             "pca_solver": space.solver_,
+            "codes_on_disk": bool(out_of_core),
             "pca_method": "gram_eigh" if space.solver_ == "full" else f"block_krylov(depth={KRYLOV_DEPTH})",
             "total_variance": space.total_variance_,
             "timings_s": {key: round(v, 3) for key, v in timings.items()},

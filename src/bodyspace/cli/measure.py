@@ -6,6 +6,10 @@ from __future__ import annotations
 import csv
 import io
 import json
+import multiprocessing
+import time
+from collections import deque
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -15,7 +19,9 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from bodyspace.cli.common import ForceOption, check_file_output
+from bodyspace.atomic import atomic_path
+from bodyspace.cli.common import ForceOption, check_file_output, console, progress
+from bodyspace.data.database import META_FILE, ScanDatabase
 from bodyspace.data.template import load_template
 from bodyspace.errors import BodyspaceError, MeasurementError, MeshError
 from bodyspace.measure import (
@@ -45,7 +51,10 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             json_out: bool = typer.Option(False, "--json", help="Print JSON: name → {value, unit, note?} (several meshes: mesh → name → ...); "
                                           "an undefined value is null and its note says why. Not with --csv."),
             csv_out: bool = typer.Option(False, "--csv", help="Print CSV: mesh,name,value,unit,note "
-                                         "(note: why a value is empty). Not with --json."),
+                                         "(note: why a value is empty). Not with --json. A scan database "
+                                         "(bodyspace population / import) is measured into a file instead: "
+                                         "bodyspace measure DB --csv FILE.csv writes one row per scan with its "
+                                         "subject and pose, streamed in chunks."),
             png: Optional[Path] = typer.Option(None, "--png", help="Draw the measured lines (front and side) to "
                                                "this PNG file (refused if it exists, unless --force)."),
             units: Optional[str] = typer.Option(None, "--units", help="The meshes' length unit: m, cm, mm or in "
@@ -61,6 +70,17 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
                                           "to the rest pose (docs/unposing.md) and measured standing."),
             force: bool = ForceOption):
     """Measure body meshes: ISO 8559-1 girths and lengths, Rupprecht's six, volume, mass, BMI."""
+    if meshes and is_database(meshes[0]):
+        try:
+            # `measure DB --csv FILE.csv`: --csv is a flag (meshes print CSV), so FILE.csv arrives
+            # as a second argument.
+            csv_file = _database_csv_file(meshes, csv_out)
+            measure_database(meshes[0], csv_file, landmarks=landmarks, model=model, json_out=json_out, png=png,
+                             units=units, up=up, flip_winding=flip_winding, as_posed=as_posed, force=force)
+        except BodyspaceError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=2)
+        return
     try:
         _check_outputs(json_out, csv_out, png, force, meshes)
         if model is not None and landmarks is not None:
@@ -234,3 +254,192 @@ def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
     console.print(table)
     for why, k in reasons.items():
         console.print(f"[{k}] {why}", markup=False, highlight=False)
+
+
+# ----------------------------------------------------------------------------- a scan database
+# Scans per chunk of `measure DB --csv FILE`: read, unposed and measured together in one worker
+# (about 60 MB of float64 vertices and the unposing's temporaries), written in scan order.
+DB_CHUNK = 128
+DB_WORKERS = 2
+# The CSV column suffix of each display unit (the label convention of scan databases: the unit
+# ends the name, so the file can be read back as labels).
+_UNIT_SUFFIX = {"cm": "cm", "kg": "kg", "m^3": "m3", "m^2": "m2", "kg/m^2": "kg_m2", "%": "percent", "deg": "deg",
+                "1": "1"}
+# What forked workers inherit (set before the pool forks, so no chunk of vertices is pickled).
+_DB_JOB: dict = {}
+
+
+def is_database(path: Path) -> bool:
+    """A scan database folder (it holds the database's meta.json), not a mesh file."""
+    return path.is_dir() and (path / META_FILE).is_file()
+
+
+def _database_csv_file(arguments: list[Path], csv_flag: bool) -> Path | None:
+    """The CSV file of ``measure DB --csv FILE.csv`` (the arguments after the database), or None
+    when none was given; anything else beside a database is refused."""
+    folder, rest = arguments[0], arguments[1:]
+    if not rest:
+        return None
+    if len(rest) == 1 and rest[0].suffix.lower() == ".csv" and csv_flag:
+        return rest[0]
+    raise MeasurementError(f"{folder} is a scan database and is measured alone into a CSV file (bodyspace measure "
+                           f"{folder} --csv FILE.csv); found {' '.join(map(str, rest))} beside it"
+                           + ("" if csv_flag else " without --csv"))
+
+
+def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | None, model: Path | None,
+                     json_out: bool, png: Path | None, units: str | None, up: str | None, flip_winding: bool,
+                     as_posed: bool, force: bool, chunk: int = DB_CHUNK, workers: int = DB_WORKERS) -> None:
+    """``bodyspace measure DB --csv FILE``: every scan of a database, one CSV row per scan.
+
+    Columns: scan, subject, pose, unposed_deg (the largest turn undone, empty for scans measured as
+    they are), one column per measurement named with its unit (``chest_girth_cm``), and note
+    (why a value is empty). Chunks of ``chunk`` scans are read from the file, unposed (unless
+    ``--as-posed``; scans whose recorded rotations are all zero are standing already) and measured
+    in ``workers`` forked processes, and written in scan order to a temporary file renamed onto
+    FILE at the end: memory does not grow with the database, and a killed run leaves no FILE.
+    """
+    for given, flag in ((json_out, "--json"), (png is not None, "--png"), (units is not None, "--units"),
+                        (up is not None, "--up"), (flip_winding, "--flip-winding")):
+        if given:
+            why = ("a database is in metres, +Y up, with its faces checked when it was written"
+                   if flag in ("--units", "--up", "--flip-winding") else "a database is measured into a CSV file")
+            raise MeasurementError(f"{folder} is a scan database; {flag} does not apply ({why}); "
+                                   f"run bodyspace measure {folder} --csv FILE")
+    if csv_out is None:
+        raise MeasurementError(f"{folder} is a scan database: its scans are measured into a CSV file, one row per "
+                               f"scan; give the file with --csv FILE (e.g. bodyspace measure {folder} --csv "
+                               "measurements.csv)")
+    out = csv_out
+    check_file_output(out, "--csv", force, (".csv",), example="measurements.csv")
+    if model is not None and landmarks is not None:
+        raise MeasurementError("--model and --landmarks were both given; give one (the model's measurement "
+                               "set, or a landmark file)")
+    db = ScanDatabase.load(folder, check_values=False)
+    landmarks = landmarks if landmarks is not None or model is not None else db.landmarks_path
+    mset = load_measurement_set() if model is None else model_measurement_set(model)
+    if landmarks is not None:
+        lms, nv = load_landmarks(landmarks)
+        mset = with_landmarks(mset, lms, nv, str(landmarks))
+    _check_vertex_count(folder / "vertices.npy", db.n_vertices, mset, landmarks, model)
+    check_compatible(mset, db.read([0])[0], db.faces, str(folder))
+    template = load_template()
+    unposable = not as_posed and fits_template(db.read([0])[0], db.faces, template)
+    columns, names = _database_columns(mset, unposable)
+    ages, males = _scan_demographics(db)
+    _DB_JOB.update(db=db, mset=mset, rig=template.rigs["default"] if unposable else None, ages=ages, males=males)
+    n = db.n_scans
+    chunk = max(1, min(chunk, -(-n // (2 * workers))))  # a small database still keeps both workers busy
+    starts = list(range(0, n, chunk))
+    measured = undefined = 0
+    started = time.perf_counter()
+    try:
+        with progress("measure", eta=True) as cb, atomic_path(out) as tmp:
+            with open(tmp, "w", newline="", encoding="utf-8") as handle:
+                writer = csv.writer(handle)
+                writer.writerow(columns)
+                for start, (values, degrees, notes) in _chunks_in_order(starts, chunk, n, workers):
+                    for i in range(len(values)):
+                        row = start + i
+                        writer.writerow([row, db.scans["subject"][row], db.scans["pose"][row]]
+                                        + ([] if degrees is None else [_cell(degrees[i], 1)])
+                                        + [_cell(v, 4) for v in values[i]] + [notes[i]])
+                    measured += len(values)
+                    undefined += int(np.isnan(values).any(axis=1).sum())
+                    cb(f"{measured}/{n} scans", measured / n)
+    finally:
+        _DB_JOB.clear()
+    wall = time.perf_counter() - started
+    console.print(f"wrote {out}: {n} scans x {len(names)} measurements of {db!r} in {wall:.1f} s "
+                  f"({n / max(wall, 1e-9):.0f} scans/s); {'unposed first' if unposable else 'measured as posed'}; "
+                  f"{undefined} scan(s) with an empty value (see the note column)", highlight=False, soft_wrap=True)
+
+
+def _database_columns(mset, unposable: bool) -> tuple[list[str], list[str]]:
+    """The CSV header and the measurement names, in the set's order."""
+    names = list(mset.names)
+    units = {m["name"]: m["unit"] for m in mset.measurements}
+    unit_of = {"m": "cm"}  # lengths are written in cm, as everywhere on the CLI
+    cols = [f"{name}_{_UNIT_SUFFIX.get(unit_of.get(units[name], units[name]), 'value')}" for name in names]
+    return ["scan", "subject", "pose"] + (["unposed_deg"] if unposable else []) + cols + ["note"], names
+
+
+def _scan_demographics(db: ScanDatabase) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(age years, male) per scan from the subjects table when it has them (mass from volume
+    depends on them, composition.py), else None (the set's defaults)."""
+    row = db.scan_subject_index()
+    ages = db.subjects["age_years"][row] if "age_years" in db.subjects else None
+    if ages is not None and np.isnan(ages).any():
+        ages = None
+    males = (db.subjects["sex"][row] == "male") if "sex" in db.subjects else None
+    return ages, males
+
+
+def _cell(value: float, digits: int) -> str:
+    return "" if not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _chunks_in_order(starts: list[int], chunk: int, n: int, workers: int):
+    """``(start, result)`` of ``_measure_chunk`` for each chunk start, in order; ``workers``
+    forked processes with at most two chunks each in flight (bounded memory)."""
+    if workers <= 1 or len(starts) <= 1:
+        for start in starts:
+            yield start, _measure_chunk(start, min(n, start + chunk))
+        return
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        queue = deque((start, pool.submit(_measure_chunk, start, min(n, start + chunk)))
+                      for start in starts[:2 * workers])
+        following = iter(starts[2 * workers:])
+        while queue:
+            start, future = queue.popleft()
+            result = future.result()
+            upcoming = next(following, None)
+            if upcoming is not None:
+                queue.append((upcoming, pool.submit(_measure_chunk, upcoming, min(n, upcoming + chunk))))
+            yield start, result
+
+
+def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """Scans ``start..stop`` of the database in ``_DB_JOB``: values (n, M) in display units, the
+    unposed angle (n,) or None, and each scan's note ('' when every value is defined)."""
+    db, mset, rig = _DB_JOB["db"], _DB_JOB["mset"], _DB_JOB["rig"]
+    rows = np.arange(start, stop)
+    v = db.read(rows)
+    notes = [[] for _ in rows]
+    degrees = None
+    if rig is not None:
+        degrees = np.zeros(len(rows))
+        posed = np.ones(len(rows), dtype=bool)
+        if db.rotations is not None:
+            posed = np.abs(np.asarray(db.rotations[start:stop])).max(axis=(1, 2)) > 0
+        todo = np.flatnonzero(posed)
+        try:
+            if todo.size:
+                rest, _, info = unpose(v[todo], rig, mesh_name=f"scans {start}..{stop - 1}")
+                v[todo], degrees[todo] = rest, info.largest_rotation_deg
+        except MeshError:
+            for i in todo:  # one scan the fit refuses: the others of its chunk are still unposed
+                try:
+                    rest, _, info = unpose(v[i], rig, mesh_name=f"scan {rows[i]}")
+                except MeshError as exc:
+                    notes[i].append(f"not unposed ({exc}); measured as posed")
+                    degrees[i] = np.nan
+                    continue
+                v[i], degrees[i] = rest, float(info.largest_rotation_deg)
+    ages = None if _DB_JOB["ages"] is None else _DB_JOB["ages"][start:stop]
+    males = None if _DB_JOB["males"] is None else _DB_JOB["males"][start:stop]
+    values = np.empty((len(rows), len(mset.names)))
+    # One evaluate per sex: the mass method takes one sex for a batch (ages may vary).
+    groups = [(np.arange(len(rows)), None)] if males is None else \
+        [(np.flatnonzero(males == sex), sex) for sex in (False, True)]
+    for idx, sex in groups:
+        if not idx.size:
+            continue
+        results = evaluate(mset, v[idx], db.faces, age_years=None if ages is None else ages[idx],
+                           male=None if sex is None else float(sex), mesh_name=f"scans {start}..{stop - 1}")
+        for j, m in enumerate(results.values()):
+            values[idx, j] = m.display()[0]
+            for i, why in zip(idx, m.note or []):
+                if why and not np.isfinite(values[i, j]):
+                    notes[i].append(f"{m.name}: {why}")
+    return values, degrees, ["; ".join(dict.fromkeys(n)) for n in notes]

@@ -65,6 +65,11 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
                                     help="Order of the PCA components: code (by code variance, Hasler) or vertex "
                                          "(by the vertex-space variance they carry: an RRE model's first components "
                                          "then move whole limbs; docs/encoding.md)."),
+          scratch: Optional[Path] = typer.Option(None, "--scratch", help="Folder for the code file of a large build "
+                                                 "(the codes of every scan, N x D x 4 bytes, read in blocks by the "
+                                                 "PCA so memory does not grow with N; kept when the build is "
+                                                 "killed, so the same command continues it). Default: the "
+                                                 "system's temporary folder (TMPDIR)."),
           force: bool = ForceOption):
     """Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."""
     check_file_output(out, "--out", force, (".npz",), example="model.npz")
@@ -74,10 +79,13 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
     if landmarks is not None and not landmarks.is_file():
         raise ParameterError(f"--landmarks {landmarks}: no such file; expected a landmark file (JSON, "
                              "docs/measurements.md)")
+    if scratch is not None and not scratch.is_dir():
+        raise ParameterError(f"--scratch {scratch}: not a folder; give an existing folder with room for the codes")
     db = ScanDatabase.load(database)
-    with progress("build") as cb:
+    with progress("build", eta=True) as cb:
         model = BodyModel.fit(db, encoding, selection, components, on_flipped=on_flipped, landmarks=landmarks,
-                              basis=basis, progress=cb)
+                              basis=basis, progress=cb, scratch=scratch,
+                              log=lambda line: console.print(line, highlight=False, soft_wrap=True))
     model.save(out)
     folded = model.provenance.get("flipped_scans")
     if folded:

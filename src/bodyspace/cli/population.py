@@ -57,6 +57,7 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
     check_poses(poses)
     template = load_template(assets)
     check_population_size(subjects, poses, len(template.vertices), out)
-    with progress("population") as cb:
-        db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb)
+    with progress("population", eta=True) as cb:
+        db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb,
+                              log=lambda line: console.print(line, highlight=False, soft_wrap=True))
     console.print(f"wrote {db!r} to {out}")

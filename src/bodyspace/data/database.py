@@ -32,6 +32,7 @@ from typing import Iterator, Mapping
 import numpy as np
 
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
+from bodyspace.rowfile import create_rows, npy_layout, read_rows, write_rows
 from bodyspace.errors import BodyspaceError, DatabaseError
 from bodyspace.measure.conventions import BODY_EXTENT_M
 from bodyspace.mesh.io import load_mesh
@@ -301,8 +302,8 @@ def check_vertices(vertices: np.ndarray, source: str) -> None:
         raise DatabaseError(f"{source}: shape {vertices.shape}, expected (n_scans, n_vertices, 3)")
     if vertices.dtype.kind != "f":
         raise DatabaseError(f"{source}: dtype {vertices.dtype}, expected floating point coordinates")
-    for start in range(0, len(vertices), _CHECK_CHUNK):
-        finite = np.isfinite(vertices[start:start + _CHECK_CHUNK]).all(axis=(1, 2))
+    for start, block in iter_blocks(vertices, _CHECK_CHUNK):
+        finite = np.isfinite(block).all(axis=(1, 2))
         if not finite.all():
             raise DatabaseError(f"{source}: scan {start + int(np.argmin(finite))} contains NaN or infinity, "
                                 f"expected finite coordinates")
@@ -350,8 +351,43 @@ def check_rotations(rotations: np.ndarray | None, joints, n_scans: int, source: 
         found = "none" if joints is None else len(joints)
         raise DatabaseError(f"{source}: {rotations.shape[1]} joints per scan, but {found} joint names "
                             f"(meta.json 'joints'); expected one name per joint")
-    if not np.isfinite(rotations).all():
+    if not all(np.isfinite(block).all() for _, block in iter_blocks(rotations, 16 * _CHECK_CHUNK)):
         raise DatabaseError(f"{source}: contains NaN or infinity, expected finite rotations")
+
+
+def iter_blocks(array: np.ndarray, size: int) -> Iterator[tuple[int, np.ndarray]]:
+    """``(start, array[start:start + size])`` over the first axis. A memory map of a whole .npy
+    file is read from the file (``rowfile.read_rows``), so a pass over it does not leave the
+    file mapped into the process (its resident size would grow to the file's)."""
+    path = getattr(array, "filename", None) if isinstance(array, np.memmap) else None
+    layout = None
+    if path is not None:
+        try:
+            layout = npy_layout(path)
+        except (OSError, ValueError, DatabaseError):
+            layout = None
+        if layout is not None and (layout[0] != array.shape or layout[1] != array.dtype):
+            layout = None  # a view of part of the file: read through the map
+    for start in range(0, len(array), size):
+        yield start, (read_rows(path, start, start + size, layout) if layout is not None
+                      else np.asarray(array[start:start + size]))
+
+
+def write_database_tables(folder: Path, faces: np.ndarray, subjects: Mapping, scans: Mapping,
+                          meta: Mapping, joints: list[str] | None = None) -> None:
+    """Complete a database folder whose ``vertices.npy`` (and ``rotations.npy`` with ``joints``)
+    were written in chunks (``rowfile.write_rows``): check everything together as
+    ``write_database`` does, then write faces, the two tables and meta.json beside them."""
+    folder = Path(folder)
+    vertices = np.load(folder / VERTICES_FILE, mmap_mode="r", allow_pickle=False)
+    rotations = (np.load(folder / ROTATIONS_FILE, mmap_mode="r", allow_pickle=False)
+                 if (folder / ROTATIONS_FILE).is_file() else None)
+    vertices, faces, subjects, scans, meta, rotations = validate_database(
+        vertices, faces, subjects, scans, meta, rotations, joints)
+    np.save(folder / FACES_FILE, faces.astype(np.int32), allow_pickle=False)
+    write_csv_table(folder / SUBJECTS_FILE, subjects)
+    write_csv_table(folder / SCANS_FILE, scans)
+    (folder / META_FILE).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -365,7 +401,8 @@ def validate_database(vertices, faces, subjects: Mapping, scans: Mapping, meta: 
     Returns (vertices, faces, subject table, scan table, meta with counts, rotations). A memmap
     ``vertices`` stays a view of its file.
     """
-    vertices = np.asarray(vertices)
+    if not isinstance(vertices, np.ndarray):  # a memmap stays one: check_vertices reads it by pread
+        vertices = np.asarray(vertices)
     faces = np.asarray(faces)
     check_vertices(vertices, "vertices")
     check_faces(faces, vertices.shape[1], "faces")
@@ -410,13 +447,11 @@ def write_database(folder: str | os.PathLike, vertices: np.ndarray, faces: np.nd
         if len(vertices) == 0:
             np.save(tmp / VERTICES_FILE, np.zeros(vertices.shape, dtype=np.float32), allow_pickle=False)
         else:
-            # Chunked copy: a memmap input (e.g. a loaded database) is never read into memory whole.
-            stored = np.lib.format.open_memmap(tmp / VERTICES_FILE, mode="w+", dtype=np.float32,
-                                               shape=vertices.shape)
-            for start in range(0, len(vertices), _CHECK_CHUNK):
-                stored[start:start + _CHECK_CHUNK] = vertices[start:start + _CHECK_CHUNK]
-            stored.flush()
-            del stored
+            # Chunked copy with file reads and writes (rowfile), not through maps: neither a memmap
+            # input (a loaded database) nor the output is ever held in memory whole.
+            create_rows(tmp / VERTICES_FILE, vertices.shape, np.float32)
+            for start, block in iter_blocks(vertices, _CHECK_CHUNK):
+                write_rows(tmp / VERTICES_FILE, start, block)
         np.save(tmp / FACES_FILE, faces.astype(np.int32), allow_pickle=False)
         if rotations is not None:
             np.save(tmp / ROTATIONS_FILE, rotations.astype(np.float32), allow_pickle=False)
@@ -1110,6 +1145,16 @@ class ScanDatabase:
             raise DatabaseError(f"read: scan rows {rows.min()}..{rows.max()}, expected 0..{self.n_scans - 1}")
         order = np.argsort(rows, kind="stable")
         out = np.empty((len(rows),) + tuple(self.vertices.shape[1:]), dtype=dtype)
+        if rows.size and self.folder is not None and isinstance(self.vertices, np.memmap):
+            # Read from the file (rowfile.read_rows), not through the map: pages touched through a
+            # map stay in the process, so a pass over a large database would grow to its size.
+            ranked = rows[order]
+            runs = np.flatnonzero(np.diff(ranked) != 1) + 1
+            layout = npy_layout(self.folder / VERTICES_FILE)
+            for run_rows, run_at in zip(np.split(ranked, runs), np.split(np.arange(len(rows)), runs)):
+                block = read_rows(self.folder / VERTICES_FILE, int(run_rows[0]), int(run_rows[-1]) + 1, layout)
+                out[order[run_at]] = block[run_rows - run_rows[0]]
+            return out
         out[order] = self.vertices[rows[order]]
         return out
 
@@ -1146,9 +1191,7 @@ class ScanDatabase:
         else:
             raise DatabaseError(f"select: got dtype {selection.dtype}, expected a bool mask or integer indices")
         # Sorted indices let a memmap read contiguous runs; the order is restored afterwards.
-        order = np.argsort(indices, kind="stable")
-        vertices = np.empty((len(indices),) + self.vertices.shape[1:], dtype=self.vertices.dtype)
-        vertices[order] = self.vertices[indices[order]]
+        vertices = self.read(indices, dtype=self.vertices.dtype)  # sorted runs, by pread from a file
         scan_subjects = self.scans["subject"][indices]
         keep = np.isin(self.subjects[SUBJECT_ID_COLUMN], scan_subjects)
         subjects = {name: values[keep] for name, values in self.subjects.items()}

@@ -25,6 +25,7 @@ from scipy.stats import truncnorm
 
 from bodyspace.errors import ParameterError
 from bodyspace.encoding.vertex import VertexEncoder
+from bodyspace.rowfile import RowFile
 from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full, vertex_ordered_basis
 from bodyspace.shape.vertex_fit import fit_coefficients
 from bodyspace.validation import as_generator
@@ -116,6 +117,12 @@ class ShapeSpace:
     def _code_matrix(self, x, name: str) -> np.ndarray:
         """Codes (N, D) of codes or meshes (N, V, 3), any float dtype kept (a float32 memmap is
         not copied); checked against the fitted length."""
+        if isinstance(x, RowFile):  # codes on disk: checked by their header, read in blocks
+            if x.ndim != 2 or x.dtype.kind != "f":
+                raise ParameterError(f"{name}: {x!r}, expected float codes (N, D) on disk")
+            if hasattr(self, "n_features_in_") and x.shape[1] != self.n_features_in_:
+                raise ParameterError(f"{name}: codes have length {x.shape[1]}, expected {self.n_features_in_}")
+            return x
         if not isinstance(x, np.ndarray):
             x = np.asarray(x)
         if x.ndim == 3:  # meshes (N, V, 3)
@@ -164,6 +171,8 @@ class ShapeSpace:
                 raise ParameterError(f"vertices: shape {vertices.shape}, expected ({len(x)}, V, 3): the bodies of "
                                      "the rows of X")
         if select is not None:
+            if isinstance(x, RowFile):
+                raise ParameterError("select: not with codes on disk (a RowFile); write only the selected codes")
             x = x[np.asarray(select)]
             vertices = None if vertices is None else vertices[np.asarray(select)]
         n, d = x.shape
@@ -198,20 +207,27 @@ class ShapeSpace:
 
     def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
         """Exact PCA in float64 (Gram matrix eigen-decomposition, ``solvers.pca_full``)."""
+        if isinstance(x, RowFile):  # the exact solver needs the codes in memory (at most FULL_PCA_MAX_BYTES)
+            x = x.read(0, n).astype(np.float64, copy=False)
         own = x.dtype == np.float64 and not self.copy
         x = x if own else np.array(x, dtype=np.float64)
         mean = x.mean(axis=0)
         if not np.isfinite(mean).all():  # a NaN or infinity anywhere reaches its column's mean
             raise ParameterError("X: contains NaN or infinity")
-        s, vt = pca_full(x, mean)                       # centres x in place
-        total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
-        var = s ** 2 / (n - 1)
-        self._set(mean, s, vt, var, total, n, d, self._n_keep(var, total, n, d))
+        kept = {}
+
+        def n_keep(s):  # called by pca_full once x is centred: only the kept components are formed
+            kept["total"] = float(np.einsum("ij,ij->", x, x)) / (n - 1)
+            kept["k"] = self._n_keep(s ** 2 / (n - 1), kept["total"], n, d)
+            return kept["k"]
+
+        s, vt = pca_full(x, mean, n_keep)               # centres x in place
+        self._set(mean, s, vt, s ** 2 / (n - 1), kept["total"], n, d, kept["k"])
 
     def _fit_truncated(self, x: np.ndarray, n: int, d: int) -> None:
         """Leading components by the randomized block Krylov method (``solvers.pca_block_krylov``),
         on x as it is (float32 ok, never copied); mean and total variance accumulated in float64."""
-        if x.dtype not in (np.float32, np.float64):
+        if x.dtype not in (np.float32, np.float64) and not isinstance(x, RowFile):
             x = x.astype(np.float64)
         mean, scatter = mean_and_scatter(x)
         if not (np.isfinite(mean).all() and np.isfinite(scatter)):
@@ -229,6 +245,7 @@ class ShapeSpace:
         (``vertices``, or the codes decoded: N decodes) aligned rigidly by generalized
         Procrustes (``VertexEncoder``), as vertex PCA sees them. Holds (N, 3V) float64
         vertices in memory beside the codes."""
+        x = x.read(0, n) if isinstance(x, RowFile) else x
         x = np.array(x, dtype=np.float64)                  # centred in place below
         if not np.isfinite(x).all():
             raise ParameterError("X: contains NaN or infinity")

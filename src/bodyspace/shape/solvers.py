@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from bodyspace.mesh.solver import single_threaded_blas
+from bodyspace.rowfile import RowFile
 from bodyspace.validation import as_generator
 
 __all__ = ["pca_full", "pca_randomized", "pca_block_krylov", "mean_and_scatter", "vertex_ordered_basis"]
@@ -34,6 +35,14 @@ RANDOMIZED_POWER_ITERATIONS = 2
 KRYLOV_DEPTH = 3
 KRYLOV_OVERSAMPLES = 10
 PRODUCT_CHUNKS_PER_JOB = 4
+# Codes on disk (a ``RowFile``) are read in blocks of about this many bytes per thread: memory
+# stays bounded whatever N (two threads hold ~130 MB of codes; 40 RRE codes a block).
+DISK_BLOCK_BYTES = 64 << 20
+
+
+def _row_block(x, a: int, b: int) -> np.ndarray:
+    """Rows a..b of codes in memory (a view) or on disk (read)."""
+    return x.read(a, b) if isinstance(x, RowFile) else x[a:b]
 
 
 def _svd_wide(a: np.ndarray, rel_tol: float = 1e-10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -99,13 +108,23 @@ def _sign_flip(vt: np.ndarray) -> np.ndarray:
     return vt * signs[:, None]
 
 
-def pca_full(x: np.ndarray, mean: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pca_full(x: np.ndarray, mean: np.ndarray, n_keep=None) -> tuple[np.ndarray, np.ndarray]:
     """Exact PCA of float64 codes x (N, D) around ``mean`` (D,); x is centred in place.
 
-    Returns ``(singular_values (K,), components (K, D))``, K = numerical rank.
+    Returns ``(singular_values (K,), components (k, D))``, K = numerical rank; ``n_keep(s)``
+    (called with the K singular values, x already centred) says how many components k to form
+    (default all K): only those are computed, so the output is not a second (N, D) matrix.
     """
     x -= mean
-    _, s, vt = _svd_wide(x)
+    g = x @ x.T  # as _svd_wide, with only the kept rows of vt formed
+    lam, u = np.linalg.eigh(g)
+    del g
+    lam, u = lam[::-1], u[:, ::-1]
+    rank = lam > 1e-10 * max(lam[0], 1e-300)
+    lam, u = lam[rank], u[:, rank]
+    s = np.sqrt(lam)
+    k = len(s) if n_keep is None else int(n_keep(s))
+    vt = (u[:, :k].T @ x) / s[:k, None]
     return s, _sign_flip(vt)
 
 
@@ -144,7 +163,8 @@ def pca_randomized(x: np.ndarray, mean: np.ndarray, k: int, rng=0,
 def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int = KRYLOV_DEPTH,
                      oversamples: int = KRYLOV_OVERSAMPLES,
                      n_jobs: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Leading ``k`` principal directions of codes x (N, D) (float32 ok) around ``mean`` (D,).
+    """Leading ``k`` principal directions of codes x (N, D) (float32 ok, in memory or a
+    ``RowFile`` on disk, read in row blocks) around ``mean`` (D,).
 
     Randomized block Krylov method (Musco and Musco 2015): with ``C = x - mean`` and a random
     start ``Y_0 = C G`` (G: D x l Gaussian, ``l = ceil((2 k + oversamples) / depth)``), each step
@@ -168,10 +188,13 @@ def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int 
     dt = x.dtype
     mu = np.asarray(mean, dtype=dt)
     jobs = n_jobs or os.cpu_count() or 1
+    on_disk = isinstance(x, RowFile)
     # The big products in PRODUCT_CHUNKS_PER_JOB pieces per thread, one BLAS thread each: on
     # the shared machine a multi-threaded BLAS call waits for its slowest (descheduled) thread,
-    # while pieces from a queue go to whichever thread runs (measured below).
-    row_cuts = np.linspace(0, n, min(n, PRODUCT_CHUNKS_PER_JOB * jobs) + 1).astype(int)
+    # while pieces from a queue go to whichever thread runs (measured below). Codes on disk are
+    # cut into blocks of DISK_BLOCK_BYTES instead, so only a few blocks are ever in memory.
+    pieces = -(-n * d * dt.itemsize // DISK_BLOCK_BYTES) if on_disk else PRODUCT_CHUNKS_PER_JOB * jobs
+    row_cuts = np.linspace(0, n, min(n, max(pieces, PRODUCT_CHUNKS_PER_JOB * jobs)) + 1).astype(int)
     col_cuts = np.linspace(0, d, PRODUCT_CHUNKS_PER_JOB * jobs + 1).astype(int)
 
     def each(cuts, work):
@@ -184,20 +207,34 @@ def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int 
                 future.result()
 
     def times(m):  # (x - mean) @ m, m (D, l)
-        out = np.empty((n, m.shape[1]), dtype=np.result_type(x, m))
+        out = np.empty((n, m.shape[1]), dtype=np.result_type(dt, m.dtype))
 
         def work(a, b):
-            out[a:b] = x[a:b] @ m
+            out[a:b] = _row_block(x, a, b) @ m
         each(row_cuts, work)
         return out - (mu @ m)[None]
 
     def t_times(y):  # y^T (x - mean), y (N, l); measured 1.3x faster than x^T @ y
         yt = np.ascontiguousarray(y.T)
-        out = np.empty((yt.shape[0], d), dtype=np.result_type(x, y))
+        if on_disk:
+            # Row blocks, each thread summing its own share into its own (l, D) total.
+            totals = [np.zeros((yt.shape[0], d), dtype=np.result_type(dt, yt.dtype)) for _ in range(min(jobs, n))]
+            cuts = list(zip(row_cuts[:-1], row_cuts[1:]))
 
-        def work(a, b):
-            out[:, a:b] = yt @ x[:, a:b]
-        each(col_cuts, work)
+            def share(j, _):
+                for a, b in cuts[j::len(totals)]:
+                    totals[j] += yt[:, a:b] @ x.read(a, b)
+            each(np.arange(len(totals) + 1), share)
+            out = totals[0]
+            for other in totals[1:]:
+                out += other
+            del totals
+        else:
+            out = np.empty((yt.shape[0], d), dtype=np.result_type(x, y))
+
+            def work(a, b):
+                out[:, a:b] = yt @ x[:, a:b]
+            each(col_cuts, work)
         out -= np.outer(yt.sum(axis=1), mu)
         return out
 
@@ -250,12 +287,15 @@ def pca_block_krylov(x: np.ndarray, mean: np.ndarray, k: int, rng=0, depth: int 
 
 
 def mean_and_scatter(x: np.ndarray, block: int = 64) -> tuple[np.ndarray, float]:
-    """Column means (D,) and total scatter ``sum |x_i - mean|^2`` of codes x (N, D), both
+    """Column means (D,) and total scatter ``sum |x_i - mean|^2`` of codes x (N, D) (an array
+    or a ``RowFile``), both
     accumulated in float64 over row blocks (no float64 copy of a float32 x)."""
     total = np.zeros(x.shape[1])
     sq = 0.0
+    if isinstance(x, RowFile):
+        block = max(1, min(block, DISK_BLOCK_BYTES // max(1, x.shape[1] * x.dtype.itemsize)))
     for s in range(0, len(x), block):
-        rows = x[s:s + block]
+        rows = _row_block(x, s, s + block)
         total += np.add.reduce(rows, axis=0, dtype=np.float64)
         sq += float(np.einsum("ij,ij->", rows, rows, dtype=np.float64))
     mean = total / len(x)

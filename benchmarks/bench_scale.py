@@ -1,0 +1,181 @@
+"""Scale on one machine (issue 16): wall time, peak memory and disk of population, build (both
+encodings) and measure at growing N, the fitted growth, and the Krylov PCA with its codes in
+memory against the same PCA reading them from disk.
+
+Each command runs as the user runs it (``python -m bodyspace ...``) in a child process, and its
+peak resident memory is the child's own (``os.wait4`` rusage ``ru_maxrss``); disk is the size of
+what it wrote. The PCA comparison runs in this process on the codes of one build (the baseline:
+the in-memory fit, same codes, same start block).
+
+    PYTHONPATH=src python benchmarks/bench_scale.py --scans 1000 5000 [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import report  # noqa: E402
+
+from bodyspace.data.database import ScanDatabase  # noqa: E402
+from bodyspace.encoding import ENCODERS  # noqa: E402
+from bodyspace.model import BodyModel  # noqa: E402
+from bodyspace.rowfile import RowFile  # noqa: E402
+from bodyspace.shape import ShapeSpace  # noqa: E402
+
+POSES = 4  # scans per subject: rest + 4 poses
+
+
+def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
+    """(wall s, CPU s, peak RSS GB, its summary lines) of ``python -m bodyspace ARGS``,
+    the child reaped with ``os.wait4`` to read its own rusage."""
+    t = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as log:
+        child = subprocess.Popen([sys.executable, "-c", _WRAPPER, *args], stdout=log, stderr=log,
+                                 env={**os.environ, "COLUMNS": "200"})
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - t
+        log.seek(0)
+        text = log.read()
+    if child.returncode:
+        raise SystemExit(f"bodyspace {' '.join(args)} failed:\n{text[-2000:]}")
+    lines = [ln for ln in text.strip().splitlines() if ln.startswith(("wrote", "1 ", "no subject")) or "redrawn" in ln]
+    workers = [ln.split()[1:] for ln in text.splitlines() if ln.startswith("bench-workers")]
+    peak_kb = max([usage.ru_maxrss] + [int(w[0]) for w in workers])
+    cpu = usage.ru_utime + usage.ru_stime + sum(float(w[1]) for w in workers)
+    return wall, cpu, peak_kb / 2**20, " | ".join(lines)[-300:]
+
+
+# The command as `python -m bodyspace ARGS` runs it, then the peak RSS and CPU seconds of its own
+# worker processes (measure's forked pool; reaped before it exits, so RUSAGE_CHILDREN has them).
+_WRAPPER = """
+import resource, sys
+from bodyspace.cli import main
+sys.argv = ["bodyspace"] + sys.argv[1:]
+try:
+    main()
+except SystemExit as exc:
+    code = exc.code
+else:
+    code = 0
+workers = resource.getrusage(resource.RUSAGE_CHILDREN)
+print("bench-workers", workers.ru_maxrss, workers.ru_utime + workers.ru_stime, file=sys.stderr)
+sys.exit(code)
+"""
+
+
+def disk_gb(path: Path) -> float:
+    if path.is_file():
+        return path.stat().st_size / 1e9
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 1e9
+
+
+def fitted_growth(ns: list[int], values: list[float]) -> str:
+    """``value ∝ N^b``: the exponent b of a least-squares line in log-log (1 = linear)."""
+    if len(ns) < 2:
+        return "n/a"
+    b, _ = np.polyfit(np.log(ns), np.log(values), 1)
+    return f"N^{b:.2f}"
+
+
+def pca_side_by_side(db_folder: Path, scratch: Path, k: int = 100) -> None:
+    """The Krylov PCA of the RRE codes of every scan, in memory and from a RowFile on disk."""
+    db = ScanDatabase.load(db_folder, check_values=False)
+    rows = np.arange(db.n_scans)
+    encoder = ENCODERS["rre"](np.asarray(db.rest_pose().vertices[0], float), db.faces).fit(db.read(rows[:64]))
+    d = encoder.n_features_
+    codes = RowFile.create(scratch / "codes.npy", (len(rows), d), np.float32)
+    for s, x in db.iter_chunks(rows, 64):
+        codes.write(s, encoder.encode(x).astype(np.float32))
+    k = min(k, len(rows) - 1)
+    results = {}
+    for where in ("memory", "disk"):
+        x = codes.read(0, len(rows)) if where == "memory" else codes
+        tracemalloc.start()
+        t = time.perf_counter()
+        space = ShapeSpace(n_components=k, solver="krylov", rng=0).fit(x)
+        wall = time.perf_counter() - t
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        held = codes.nbytes if where == "memory" else 0
+        results[where] = (wall, float(space.explained_variance_ratio_.sum()), (peak + held) / 1e9)
+        del x
+    (codes.path).unlink()
+    print(f"\nPCA (block Krylov, {k} components) of {len(rows)} RRE codes of length {d} "
+          f"({len(rows) * d * 4 / 1e9:.2f} GB float32):")
+    print("| codes | wall | captured variance | peak numpy memory (tracemalloc, + codes held) |")
+    print("|---|---|---|---|")
+    for where, (wall, ratio, peak) in results.items():
+        print(f"| {where} | {wall:.1f} s | {100 * ratio:.4f} % | {peak:.2f} GB |")
+    report("out-of-core PCA", results["disk"][0], results["memory"][0], len(rows), "codes")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scans", type=int, nargs="+", default=[1000, 5000])
+    parser.add_argument("--keep", type=Path, default=None, help="work folder (default: a temporary one)")
+    parser.add_argument("--skip", nargs="*", default=[], help="stages to skip: population build-rre build-vertex "
+                                                               "measure measure-posed pca")
+    parser.add_argument("--pca-scans", type=int, default=1000, help="size of the PCA side-by-side (0: skip)")
+    args = parser.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"bench_scale: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, work in {work}")
+    rows = []
+    stats: dict[str, list[tuple[int, float, float]]] = {}
+    for n in args.scans:
+        subjects = -(-n // (1 + POSES))
+        db = work / f"db{n}"
+        stages = {
+            "population": (["population", "--subjects", str(subjects), "--poses", str(POSES), "--seed", "0",
+                            "--out", str(db), "--force"], db),
+            "build-rre": (["build", str(db), "--out", str(work / f"rre{n}.npz"), "--selection", "all",
+                           "--scratch", str(work), "--force"], work / f"rre{n}.npz"),
+            "build-vertex": (["build", str(db), "--encoding", "vertex", "--out", str(work / f"vertex{n}.npz"),
+                              "--selection", "all", "--scratch", str(work), "--force"], work / f"vertex{n}.npz"),
+            "measure": (["measure", str(db), "--csv", str(work / f"m{n}.csv"), "--force"], work / f"m{n}.csv"),
+            "measure-posed": (["measure", str(db), "--csv", str(work / f"p{n}.csv"), "--as-posed", "--force"],
+                              work / f"p{n}.csv"),
+        }
+        for stage, (cli, output) in stages.items():
+            if stage in args.skip or (stage != "population" and not db.exists()):
+                continue
+            if output.is_file():
+                output.unlink()  # CSV files carry no signature for --force
+            wall, cpu, peak, said = _spawn_measured(cli)
+            scans = subjects * (1 + POSES)
+            rows.append((stage, scans, wall, cpu, peak, disk_gb(output), said))
+            stats.setdefault(stage, []).append((scans, wall, cpu, peak))
+            print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
+                  f"{disk_gb(output):.2f} GB | {said} |", flush=True)
+    print("\n| work | scans | wall | CPU | rate (wall) | peak RSS | disk | output |")
+    print("|---|---|---|---|---|---|---|---|")
+    for stage, scans, wall, cpu, peak, disk, said in rows:
+        print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
+              f"{disk:.2f} GB | {said} |")
+    print("\n| work | wall growth | CPU growth | peak memory growth |")
+    print("|---|---|---|---|")
+    for stage, points in stats.items():
+        ns = [p[0] for p in points]
+        print(f"| {stage} | {fitted_growth(ns, [p[1] for p in points])} | {fitted_growth(ns, [p[2] for p in points])} "
+              f"| {fitted_growth(ns, [p[3] for p in points])} |")
+    if "pca" not in args.skip and args.pca_scans:
+        folder = work / f"db{args.pca_scans}"
+        if folder.exists():
+            pca_side_by_side(folder, work)
+    print(f"\nthis process: peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GB")
+
+
+if __name__ == "__main__":
+    main()
