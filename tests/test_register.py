@@ -20,7 +20,7 @@ from bodyspace.measure import evaluate
 from bodyspace.measure.definitions import load_landmarks, load_measurement_set
 from bodyspace.mesh.io import load_mesh
 from bodyspace.register.align import similarity_from_landmarks
-from bodyspace.register.correspondences import vertex_normals
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.register.nicp import nonrigid_icp, stiffness_schedule
 from bodyspace.register.pipeline import register_scan
 from bodyspace.register.pose_fit import fit_pose, posed_vertices, rest_state

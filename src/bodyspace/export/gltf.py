@@ -43,12 +43,12 @@ from scipy.sparse.csgraph import shortest_path
 from bodyspace import __version__
 from bodyspace.atomic import atomic_path
 from bodyspace.errors import MeshError, ParameterError
-from bodyspace.mesh.geometry import check_mesh, face_normals
+from bodyspace.mesh.geometry import check_mesh, vertex_normals
 from bodyspace.rig.kinematics import matrix_to_quaternion
 from bodyspace.rig.skeleton import Skeleton
 
 __all__ = ["MorphTarget", "SkeletonAnimation", "continuous_quaternions", "gltf_bytes", "write_gltf", "top_influences",
-           "influences_matrix", "bone_distances", "joint_local_transforms", "vertex_normals", "GENERATOR",
+           "influences_matrix", "bone_distances", "joint_local_transforms", "unit_vertex_normals", "GENERATOR",
            "SKIN_COLOR", "MAX_INFLUENCES"]
 
 GENERATOR = f"bodyspace {__version__}"
@@ -97,22 +97,12 @@ def continuous_quaternions(q: np.ndarray) -> np.ndarray:
     return q
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit vertex normals (V, 3): area-weighted sums of the adjacent face normals.
-
-    A vertex no face uses (or whose faces have zero area) gets +Y, so the array stays unit
-    length, as glTF requires.
-    """
-    v = np.asarray(vertices, dtype=float)
-    fn = face_normals(v, faces, normalize=False)                  # length 2 * area
-    corners = np.asarray(faces).ravel()
-    per_corner = np.repeat(fn, 3, axis=0)
-    n = np.stack([np.bincount(corners, per_corner[:, c], minlength=len(v)) for c in range(3)], axis=1)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    bad = length[:, 0] < 1e-300
-    n[bad] = (0.0, 1.0, 0.0)
-    length[bad] = 1.0
-    return n / length
+def unit_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (V, 3) (``mesh.geometry.vertex_normals``), with +Y for a vertex no
+    face uses (or whose faces have zero area), so every normal is unit length, as glTF requires."""
+    n = vertex_normals(vertices, faces)
+    n[np.linalg.norm(n, axis=1) < 0.5] = (0.0, 1.0, 0.0)
+    return n
 
 
 def bone_distances(parents: np.ndarray) -> np.ndarray:
@@ -304,7 +294,7 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
     gltf.materials.append(pygltflib.Material(
         name="skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
             baseColorFactor=list(SKIN_COLOR), metallicFactor=0.0, roughnessFactor=0.65)))
-    normals = vertex_normals(v, f)
+    normals = unit_vertex_normals(v, f)
     attrs = pygltflib.Attributes(
         POSITION=buf.add(v.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, minmax=True),
         NORMAL=buf.add(normals.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER))
@@ -320,7 +310,7 @@ def gltf_bytes(vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton | Non
     for d in deltas:
         targets.append(pygltflib.Attributes(
             POSITION=buf.add(d.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, minmax=True),
-            NORMAL=buf.add((vertex_normals(v + d, f) - normals).astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER)))
+            NORMAL=buf.add((unit_vertex_normals(v + d, f) - normals).astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER)))
     primitive = pygltflib.Primitive(attributes=attrs, indices=indices, material=0, mode=4, targets=targets or None)
     mesh_extras = {}
     if morphs:

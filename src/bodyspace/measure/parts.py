@@ -30,6 +30,7 @@ import re
 import numpy as np
 
 from bodyspace.errors import MeasurementError
+from bodyspace.mesh.geometry import vertex_normals
 
 PARTS = ("torso", "neck", "head",
          "upper_arm_l", "forearm_l", "hand_l", "upper_arm_r", "forearm_r", "hand_r",
@@ -179,7 +180,7 @@ def parts_from_landmarks(vertices: np.ndarray, landmarks: dict, faces: np.ndarra
     out = np.full(len(v), NO_PART, dtype=np.int8)
     if not len(part):
         return out
-    normals = _vertex_normals(v, np.asarray(faces)) if faces is not None else None
+    normals = vertex_normals(v, np.asarray(faces)) if faces is not None else None
     d = tails - heads
     dd = np.maximum(np.einsum("si,si->s", d, d), 1e-18)
     # The facing rule is for the torso and the long limb bones, whose skin is convex around them;
@@ -218,15 +219,6 @@ def parts_from_landmarks(vertices: np.ndarray, landmarks: dict, faces: np.ndarra
             t = (v - k) @ (a - k) / max(float((a - k) @ (a - k)), 1e-18)
             out[(out == PART_INDEX[calf]) & (t > 1.0)] = PART_INDEX[foot]
     return out
-
-
-def _vertex_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) (zero where a vertex is on no face)."""
-    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
 
 def encode_parts(labels: np.ndarray) -> str:

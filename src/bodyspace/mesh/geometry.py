@@ -35,6 +35,18 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True
     return n
 
 
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (V, 3): area-weighted sums of the adjacent face normals; zero where a
+    vertex is on no face (or its faces have no area)."""
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    fn = face_normals(v, f, normalize=False)                   # length 2 * area
+    corners = f.ravel()
+    per_corner = np.repeat(fn, 3, axis=0)
+    n = np.stack([np.bincount(corners, per_corner[:, c], minlength=len(v)) for c in range(3)], axis=1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Triangle areas (..., F)."""
     return 0.5 * np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=-1)

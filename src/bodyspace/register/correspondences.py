@@ -18,9 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bodyspace.mesh.geometry import face_normals
-
-__all__ = ["Pairs", "closest_pairs", "vertex_normals", "tangent_plane_targets", "orient_normals",
+__all__ = ["Pairs", "closest_pairs", "tangent_plane_targets", "orient_normals",
            "MAX_ANGLE_DEG", "MAX_DISTANCE_M", "MIN_SUPPORT"]
 
 # Hasler §2.3: matches whose normals differ by more than 30° or that are more than 50 mm apart
@@ -37,15 +35,6 @@ class Pairs:
     query: np.ndarray
     match: np.ndarray
     distance: np.ndarray
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a mesh (V, 3), (F, 3)."""
-    fn = face_normals(vertices, faces, normalize=False)
-    n = np.zeros((len(vertices), 3))
-    for corner in range(3):
-        n += np.stack([np.bincount(faces[:, corner], fn[:, d], minlength=len(vertices)) for d in range(3)], axis=1)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 def closest_pairs(query: np.ndarray, query_normals: np.ndarray, tree: cKDTree, normals: np.ndarray,

@@ -21,8 +21,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.register.correspondences import closest_pairs, vertex_normals
+from bodyspace.register.correspondences import closest_pairs
 from bodyspace.register.pose_fit import MIN_COS, PoseState, sample_vertices
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age

@@ -38,11 +38,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from bodyspace.mesh.geometry import face_normals
+from bodyspace.mesh.geometry import face_normals, vertex_normals
 from bodyspace.mesh.operators import cotangent_laplacian
 from bodyspace.mesh.topology import face_adjacency
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.register.correspondences import tangent_plane_targets, vertex_normals
+from bodyspace.register.correspondences import tangent_plane_targets
 
 __all__ = ["NicpResult", "nonrigid_icp", "folded_faces", "unfold", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
 

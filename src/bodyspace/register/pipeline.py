@@ -25,9 +25,10 @@ from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template, load_template
 from bodyspace.errors import RegistrationError
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.register.align import initial_alignment
-from bodyspace.register.correspondences import orient_normals, vertex_normals
+from bodyspace.register.correspondences import orient_normals
 from bodyspace.register.model_fit import ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices

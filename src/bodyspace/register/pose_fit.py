@@ -26,8 +26,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Rig, Template
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.register.correspondences import closest_pairs, vertex_normals
+from bodyspace.register.correspondences import closest_pairs
 from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
 from bodyspace.rig.skinning import linear_blend_skinning
 from bodyspace.rig.unpose import solved_bones

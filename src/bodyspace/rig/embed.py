@@ -66,7 +66,7 @@ from scipy.spatial import cKDTree
 from bodyspace.data.template import Rig, Template, load_template
 from bodyspace.errors import ParameterError, RigError
 from bodyspace.measure.conventions import MESH_UNITS, plausible_units, signed_volume
-from bodyspace.mesh.geometry import face_areas, face_normals
+from bodyspace.mesh.geometry import face_areas, vertex_normals
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.mesh.topology import vertex_components
 from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
@@ -458,14 +458,6 @@ def _apply_step(model: _Model, st: _State, step: np.ndarray, G: np.ndarray) -> _
     return new
 
 
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    fn = face_normals(v, f, normalize=False)
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
 def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
     return rotvec_to_matrix(np.asarray(axis, dtype=float) * angle)
 
@@ -499,7 +491,7 @@ def _pairs(model: _Model, st: _State, target: np.ndarray, target_normals: np.nda
     V = len(model.mean)
     everything = np.arange(V)
     posed = _posed(model, st, everything, G)
-    normals = _vertex_normals(posed, model.faces)
+    normals = vertex_normals(posed, model.faces)
     # template -> mesh
     d1, j1 = target_tree.query(posed[sample])
     ok1 = (normals[sample] * target_normals[j1]).sum(1) > MIN_NORMAL_DOT
@@ -724,7 +716,7 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
     used = np.unique(f)
     if signed_volume(x, f)[0] < 0:                 # wound inwards: turn it out (normals, winding numbers)
         f = f[:, ::-1].copy()
-    normals = _vertex_normals(x, f)
+    normals = vertex_normals(x, f)
     model = _model()
     # Small dense matrices (a few thousand rows, 116 columns): BLAS threads only contend.
     with single_threaded_blas():

@@ -44,7 +44,7 @@ from bodyspace.atomic import atomic_dir
 from bodyspace.data.template import Template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
-from bodyspace.mesh.geometry import face_normals
+from bodyspace.mesh.geometry import face_normals, vertex_normals
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, years_to_age
@@ -170,15 +170,6 @@ def closest_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     best = np.argmin(score, axis=1)
     rows = np.arange(len(points))
     return Correspondence(cand[rows, best], bary[rows, best]), dist[rows, best]
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a mesh (V, 3), (F, 3)."""
-    fn = face_normals(vertices, faces, normalize=False)
-    n = np.zeros_like(vertices, dtype=float)
-    for corner in range(3):
-        np.add.at(n, faces[:, corner], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 # ------------------------------------------------------------------------------ remeshing
