@@ -87,18 +87,22 @@ def vertex_ordered_basis(codes: np.ndarray, code_mean: np.ndarray, vertices: np.
     y = np.asarray(vertices, dtype=np.float64)
     y = y - y.mean(axis=0)
     u, s, _ = _svd_wide(y)
-    b = codes.T @ u                                        # (D, K): the codes of the components
-    q, r = np.linalg.qr(b)
+    # In the codes' own coordinates, C = Uc diag(sc) Vc^T: b = Vc (diag(sc) Uc^T U), so every
+    # orthonormalization below is of (r, K) matrices, never of (D, K) ones (x7 on 60 x 20k codes).
+    uc, sc, vct = _svd_wide(codes)
+    m = sc[:, None] * (uc.T @ u)                           # (r, K): the b_k in the Vc basis
+    q, r = np.linalg.qr(m)
     diag = np.abs(np.diag(r))
     keep = diag > 1e-10 * max(diag.max(initial=0.0), 1e-300)   # a code combination already spanned
     q = q[:, keep]
     vertex_var = (s[keep] ** 2) / max(n - 1, 1)
-    rest = codes - (codes @ q) @ q.T
+    coords = uc * sc                                       # (N, r): the codes in the Vc basis
+    rest = coords - (coords @ q) @ q.T
     _, rs, rvt = _svd_wide(rest)
-    rvt = rvt[rs > 1e-5 * np.linalg.norm(codes)]       # only what the codes hold beyond the vertex order
-    basis = np.vstack([q.T, rvt - (rvt @ q) @ q.T])
-    basis /= np.linalg.norm(basis, axis=1, keepdims=True)
-    return _sign_flip(basis), np.concatenate([vertex_var, np.zeros(len(rvt))])
+    rvt = rvt[rs > 1e-5 * np.linalg.norm(sc)]              # only what the codes hold beyond the vertex order
+    small = np.vstack([q.T, rvt - (rvt @ q) @ q.T])
+    small /= np.linalg.norm(small, axis=1, keepdims=True)
+    return _sign_flip(small @ vct), np.concatenate([vertex_var, np.zeros(len(rvt))])
 
 
 def _sign_flip(vt: np.ndarray) -> np.ndarray:
