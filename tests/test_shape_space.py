@@ -231,3 +231,7 @@ def test_vertex_basis_of_the_vertex_encoding_is_vertex_pca(population):
     codes = enc.encode(scans)
     a, b = ShapeSpace(enc, basis="vertex").fit(codes), ShapeSpace(enc).fit(codes)
     np.testing.assert_allclose(a.components_, b.components_)
+    # Its vertex variance is its code variance, and the space round-trips through a file's arrays.
+    np.testing.assert_allclose(a.vertex_variance_, a.explained_variance_)
+    back = ShapeSpace.from_arrays(a.to_arrays(), encoder=enc)
+    assert back.basis_ == "vertex" and np.allclose(back.vertex_variance_, a.vertex_variance_)

@@ -200,9 +200,10 @@ class ShapeSpace:
         else:
             self._fit_truncated(x, n, d)
         self.solver_ = solver
-        self.basis_ = "vertex" if vertex_basis or self.basis == "vertex" else "code"
+        self.basis_ = self.basis
         if not vertex_basis:
-            self.vertex_variance_ = None
+            # An affine decoder's codes are vertex offsets: its PCA is already the vertex order.
+            self.vertex_variance_ = self.explained_variance_.copy() if self.basis == "vertex" else None
         return self
 
     def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
@@ -264,10 +265,11 @@ class ShapeSpace:
         del bodies
         comps, vertex_var = vertex_ordered_basis(x, mean, aligned)    # centres x
         total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
-        var = np.einsum("ij,ij->j", x @ comps.T, x @ comps.T) / (n - 1)    # code variance along each
-        # n_components as a count, or a fraction of the vertex variance (the order's measure).
-        k = self._n_keep(vertex_var, float(np.einsum("ij,ij->", aligned - aligned.mean(axis=0),
-                                                     aligned - aligned.mean(axis=0))) / (n - 1), n, d)
+        coefficients = x @ comps.T
+        var = np.einsum("ij,ij->j", coefficients, coefficients) / (n - 1)    # code variance along each
+        # n_components as a count, or a fraction of the vertex variance (the order's measure; the
+        # vertex components hold all of it).
+        k = self._n_keep(vertex_var, float(vertex_var.sum()), n, d)
         self._set(mean, np.sqrt(var * (n - 1)), comps, var, total, n, d, k)
         self.vertex_variance_ = vertex_var[:k]
 
