@@ -17,15 +17,11 @@ from bodyspace.studies.embedding import embedding_study, markdown
 from bodyspace.synth.phenotype import PhenotypeModel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from study_pose_spread import _code_version  # noqa: E402  (one helper for every study script)
+from study_pose_spread import _code_version, split_out_option  # noqa: E402  (one helper for every study script)
 
 
 def main(argv: list[str]) -> None:
-    out = None
-    if "--out" in argv:
-        i = argv.index("--out")
-        out = Path(argv[i + 1])
-        argv = argv[:i] + argv[i + 2:]
+    argv, out = split_out_option(argv)
     n = int(argv[0]) if argv else 24
     template = load_template()
     study = embedding_study(template, PhenotypeModel(template), n_bodies=n, rng=2026)

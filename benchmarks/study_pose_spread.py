@@ -34,12 +34,16 @@ def _code_version() -> str:
         return "unknown"
 
 
+def split_out_option(argv: list[str]) -> tuple[list[str], Path | None]:
+    """The arguments without ``--out FILE``, and FILE (None when not given)."""
+    if "--out" not in argv:
+        return argv, None
+    i = argv.index("--out")
+    return argv[:i] + argv[i + 2:], Path(argv[i + 1])
+
+
 def main(argv: list[str]) -> None:
-    out = None
-    if "--out" in argv:
-        i = argv.index("--out")
-        out = Path(argv[i + 1])
-        argv = argv[:i] + argv[i + 2:]
+    argv, out = split_out_option(argv)
     subjects = int(argv[0]) if argv else 4
     t = time.perf_counter()
     result = pose_spread_study(load_template(), subjects, rng=0)
