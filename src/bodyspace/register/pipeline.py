@@ -29,7 +29,7 @@ from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.register.align import initial_alignment
 from bodyspace.register.correspondences import orient_normals
-from bodyspace.register.model_fit import ShapeBasis, fit_shape, phenotype_basis
+from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 from bodyspace.register.prepare import prepare_scan
@@ -37,11 +37,22 @@ from bodyspace.register.quality import Quality, assess
 
 __all__ = ["Registration", "register_scan", "DEFAULT_STEPS"]
 
-# Pose-fit rounds (each followed by a model fit): the correspondence gate's start and end (metres).
-POSE_ROUNDS = ((0.10, 0.03), (0.05, 0.02), (0.04, 0.015))
-# NICP stiffness levels and iterations per level (measured: docs/registration.md).
-DEFAULT_STEPS = 8
+# Pose-fit rounds: the correspondence gate's start and end (metres), whether the shape and scale
+# are fitted with the pose (jointly, one Gauss-Newton problem), and the pose prior's weight. The
+# first round places the limbs with the shape held and a firm prior (free, a hand on the hip
+# went astray); then pose and shape together with the prior relaxed. Alternating pose and shape
+# fits instead crawled along the valley where the two trade off: 9.2 mm after three rounds on an
+# elbows-flexed scan, 1.4 mm jointly (docs/registration.md).
+POSE_ROUNDS = ((0.10, 0.03, False, 0.004), (0.05, 0.02, True, 0.002), (0.04, 0.015, True, 0.001),
+               (0.03, 0.01, True, 0.001))
+# NICP stiffness levels and iterations per level, and the last level's stiffness (measured:
+# docs/registration.md). After the joint pose and shape fit the model explains the body to about
+# 0.5 mm; the NICP is there for what it cannot (detail), so it stops stiffer than Hasler's 0.01:
+# on an elbows-flexed scan from 1.41 mm, ending at 1 took the correspondence to 2.54 mm, at 10 to
+# 1.85 mm, at 30 to 1.54 mm (surface 0.79, 0.61, 0.52 mm).
+DEFAULT_STEPS = 6
 DEFAULT_INNER = 2
+NICP_STIFFNESS_END = 30.0
 # Scan points the fits use at most (a subsample spread at random: 60 k points hold the surface
 # to well under a millimetre at 2 mm noise, and the KD-tree and plane fits scale with them).
 MAX_POINTS = 60_000
@@ -95,7 +106,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                   units: str | None = None, up: str | None = None, landmarks: dict | None = None,
                   basis: ShapeBasis | None = None, steps: int = DEFAULT_STEPS, inner: int = DEFAULT_INNER,
                   pose_iterations: int = 12, check: bool = True, name: str = "the scan",
-                  progress=None, rng=0) -> Registration:
+                  progress=None, trace=None, rng=0) -> Registration:
     """Register the template to a raw scan (module docstring).
 
     points: (P, 3) in the file's frame; faces: (F, 3) if the scan is a mesh. units, up: the
@@ -103,7 +114,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     frame) of measurement-set landmarks, optional (at least 3). basis: the shape space (default
     ``phenotype_basis``). steps, inner: NICP stiffness levels and iterations per level.
     check: refuse (``RegistrationError``) a fit whose quality is below ``MIN_QUALITY``.
-    progress: callback(message, fraction).
+    progress: callback(message, fraction). trace: callback(stage, vertices (V, 3) in the scan
+    file's frame) after each stage, to see where the error comes from (benchmarks/diag_register.py).
     """
     report = progress or (lambda message, fraction: None)
     template = template if template is not None else load_template()
@@ -139,6 +151,20 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     lm_fit = None if lm_pairs is None else (lm_pairs[0], align.apply(lm_pairs[1]))
     tree = cKDTree(q)
     seconds["align"] = time.perf_counter() - t
+    # internal → file: undo the alignment, then the prepare step (units and up).
+    to_internal = np.eye(4)
+    to_internal[:3, :3] = align.rotation @ np.linalg.inv(prep.to_scan[:3, :3])
+    to_internal[:3, 3] = align.translation
+    to_scan = np.linalg.inv(to_internal)
+
+    def _trace(stage, state_or_vertices):
+        if trace is not None:
+            x = state_or_vertices
+            if isinstance(x, PoseState):
+                x = posed_vertices(rig, x)[0]
+            trace(stage, x @ to_scan[:3, :3].T + to_scan[:3, 3])
+
+    _trace("align", align.state)
 
     # The shape first (the alignment's short fit holds the pose), then pose and shape in turn
     # with the gates narrowing: a thin template's pose fitted to a heavy body first drifts (on a
@@ -148,27 +174,28 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     state = align.state
     state, coef = fit_shape(q, qn, template, state, basis, scan_tree=tree, max_distance=0.08, rng=rng)
     seconds["model"] = time.perf_counter() - t
+    _trace("model", state)
     seconds["pose"] = 0.0
-    for k, (start, end) in enumerate(POSE_ROUNDS):
-        report("skeleton pose fit", 0.3 + 0.07 * k)
+    for k, (start, end, joint, prior) in enumerate(POSE_ROUNDS):
+        report("skeleton pose fit" if not joint else "pose and model fit", 0.3 + 0.05 * k)
         t = time.perf_counter()
         state, _ = fit_pose(q, qn, template, state, iterations=pose_iterations, landmarks=lm_fit, scan_tree=tree,
-                            start_distance=start, end_distance=end, fit_scale=False, rng=rng)
+                            start_distance=start, end_distance=end, fit_scale=joint, pose_prior=prior,
+                            shape=(basis, coef, SHAPE_PRIOR, SCALE_PRIOR) if joint else None, rng=rng)
+        if joint:
+            coef = state.coefficients
         seconds["pose"] += time.perf_counter() - t
-        report("model fit", 0.33 + 0.07 * k)
-        t = time.perf_counter()
-        state, coef = fit_shape(q, qn, template, state, basis, scan_tree=tree, coefficients=coef,
-                                max_distance=max(2 * end, 0.03), rng=rng)
-        seconds["model"] += time.perf_counter() - t
+        _trace(f"pose {k + 1}", state)
 
     report("non-rigid refinement", 0.5)
     t = time.perf_counter()
     x, _, _ = posed_vertices(rig, state)
     qn = orient_normals(q, qn, x, vertex_normals(x, template.faces))
     nicp = nonrigid_icp(x, template.faces, template.vertices, q, qn, steps=steps, inner=inner,
-                        landmarks=lm_fit, scan_tree=tree,
+                        stiffness_end=NICP_STIFFNESS_END, landmarks=lm_fit, scan_tree=tree,
                         progress=lambda f: report("non-rigid refinement", 0.5 + 0.45 * f))
     seconds["nicp"] = time.perf_counter() - t
+    _trace("nicp", nicp.vertices)
 
     t = time.perf_counter()
     quality = assess(nicp.vertices, template.faces, q, nicp.has_target)
@@ -177,11 +204,6 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         raise RegistrationError(f"{name}: refused, the fit does not explain the scan: {quality.describe()}; a scan "
                                 "of one person standing alone is expected (two people, an object or a partial scan "
                                 "are refused)")
-    # internal → file: undo the alignment, then the prepare step (units and up).
-    to_internal = np.eye(4)
-    to_internal[:3, :3] = align.rotation @ np.linalg.inv(prep.to_scan[:3, :3])
-    to_internal[:3, 3] = align.translation
-    to_scan = np.linalg.inv(to_internal)
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
     seconds["total"] = time.perf_counter() - t0

@@ -30,6 +30,7 @@ from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.register.correspondences import closest_pairs
 from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
+from bodyspace.rig.posing import pose_bodies
 from bodyspace.rig.skinning import linear_blend_skinning
 from bodyspace.rig.unpose import solved_bones
 
@@ -58,12 +59,14 @@ SCAN_SAMPLES = 5000
 
 @dataclass(frozen=True)
 class PoseState:
-    """rest: (V, 3) the rest body; rotations: (B, 3, 3); scale: float; translation: (3,)."""
+    """rest: (V, 3) the rest body; rotations: (B, 3, 3); scale: float; translation: (3,);
+    coefficients: (K,) the shape coefficients of ``rest`` when a shape fit made it, else None."""
 
     rest: np.ndarray
     rotations: np.ndarray
     scale: float
     translation: np.ndarray
+    coefficients: np.ndarray | None = None
 
 
 def rest_state(template: Template, rig: Rig, rest: np.ndarray | None = None) -> PoseState:
@@ -129,6 +132,12 @@ def _lever_arms(rig: Rig, state: PoseState, G: np.ndarray, A: sp.csr_matrix, row
     return S, C, heads
 
 
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) nearest to M (3, 3): products of many small steps drift off SO(3)."""
+    u, _, vt = np.linalg.svd(M)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
 def fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, **kw
              ) -> tuple[PoseState, float]:
     """Fit the pose (and global scale and translation) of the template to scan points.
@@ -151,8 +160,17 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
              start_distance: float = START_DISTANCE, end_distance: float = END_DISTANCE,
              fit_scale: bool = True, rig_name: str = "default", scan_tree: cKDTree | None = None,
              template_samples: int = TEMPLATE_SAMPLES, scan_samples: int = SCAN_SAMPLES,
-             rng=0) -> tuple[PoseState, float]:
+             shape=None, pose_prior: float = POSE_PRIOR, rng=0) -> tuple[PoseState, float]:
     rig = template.rigs[rig_name]
+    # Joint shape unknowns: (basis, coefficients (K,), prior weight, scale prior weight) or None.
+    if shape is not None:
+        basis, coef, shape_prior, scale_prior = shape
+        coef = np.asarray(coef, dtype=float).copy()
+        K = len(basis.components)
+        stack = np.concatenate([basis.mean[None], basis.mean[None] + basis.components])
+        state = replace(state, rest=basis.body(coef))
+    else:
+        K = 0
     faces = template.faces
     solved, A = _structure(rig, template.vertices)
     Sn = len(solved)
@@ -171,6 +189,11 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
         gate = start_distance * (end_distance / start_distance) ** frac
         x, y, G = posed_vertices(rig, state)
         xn = vertex_normals(x, faces)
+        if K:
+            # Posed shape directions at the current rotations: posing is affine in the rest body
+            # with the rotations held, so d x / d c_k = s · Pk[k] exactly at this pose.
+            posed = pose_bodies(stack, rig, state.rotations)
+            Pk = posed[1:] - posed[0]
         # template → scan
         fwd = closest_pairs(x[tsample], xn[tsample], tree, normals, gate, MIN_COS, oriented=False)
         fv, fp = tsample[fwd.query], fwd.match
@@ -197,7 +220,10 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
             res.append(w_d * (diff * n_d).sum(1))
             jw = state.scale * np.cross(a[inv], n_d[:, None, :]).reshape(len(rows_v), 3 * Sn)
             js = (y[rows_v] * n_d).sum(1, keepdims=True)
-            jac.append(w_d[:, None] * np.concatenate([jw, n_d, js], axis=1))
+            blocks = [jw, n_d, js]
+            if K:
+                blocks.insert(0, state.scale * np.einsum("kvd,vd->vk", Pk[:, rows_v], n_d))
+            jac.append(w_d[:, None] * np.concatenate(blocks, axis=1))
         if lm_matrix is not None:
             lx = lm_matrix @ x
             ly = lm_matrix @ y
@@ -212,7 +238,10 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
                 e = np.broadcast_to(np.eye(3)[d], (len(lx), 3))
                 res.append(wl * (lx - lm_points)[:, d])
                 jw = state.scale * np.cross(al, e[:, None, :]).reshape(len(lx), 3 * Sn)
-                jac.append(wl * np.concatenate([jw, e, ly[:, d:d + 1]], axis=1))
+                blocks = [jw, e, ly[:, d:d + 1]]
+                if K:
+                    blocks.insert(0, state.scale * (lm_matrix @ Pk[:, :, d].T))
+                jac.append(wl * np.concatenate(blocks, axis=1))
         r = np.concatenate(res)
         Jm = np.concatenate(jac)
         rms = float(np.sqrt(np.mean(((diff * nrm).sum(1)) ** 2)))
@@ -224,26 +253,40 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
         for k, j in enumerate(solved):
             if parents[j] < 0:
                 continue
-            Jp = POSE_PRIOR * Qp[k].T
-            H[3 * k:3 * k + 3, 3 * k:3 * k + 3] += Jp.T @ Jp
-            g[3 * k:3 * k + 3] += Jp.T @ (POSE_PRIOR * rv[k])
+            Jp = pose_prior * Qp[k].T
+            o = K + 3 * k
+            H[o:o + 3, o:o + 3] += Jp.T @ Jp
+            g[o:o + 3] += Jp.T @ (pose_prior * rv[k])
+        if K:
+            # Shape prior c_k / σ_k, and the scale towards 1 (the shape space spans statures).
+            H[:K, :K] += np.diag((shape_prior / basis.sigma) ** 2)
+            g[:K] += (shape_prior / basis.sigma) ** 2 * coef
+            H[-1, -1] += scale_prior ** 2
+            g[-1] += scale_prior ** 2 * (state.scale - 1.0)
         if not fit_scale:
             H[-1, :] = 0.0
             H[:, -1] = 0.0
             H[-1, -1] = 1.0
             g[-1] = 0.0
-        H[np.diag_indices_from(H)] += DAMPING * np.mean(np.diag(H)) + 1e-12
+        # Marquardt's damping, per unknown: scaled by the mean diagonal it held back the
+        # weakly seen unknowns (a thigh's twist, a foot) far more than the strongly seen ones.
+        dH = np.diag(H).copy()
+        H[np.diag_indices_from(H)] += DAMPING * dH + 1e-9 * np.mean(dH) + 1e-12
         step = -np.linalg.solve(H, g)
-        w = step[:3 * Sn].reshape(Sn, 3)
+        w = step[K:K + 3 * Sn].reshape(Sn, 3)
         big = np.linalg.norm(w, axis=1).max()
         if big > MAX_STEP:
             step *= MAX_STEP / big
-            w = step[:3 * Sn].reshape(Sn, 3)
+            w = step[K:K + 3 * Sn].reshape(Sn, 3)
+        if K:
+            coef = coef + step[:K]
+            state = replace(state, rest=basis.body(coef), coefficients=coef)
+        step = step[K:]
         R = state.rotations.copy()
         for j in solved_order:
             k = col[j]
             Q = Qp[k]
-            R[j] = Q.T @ rotvec_to_matrix(w[k]) @ Q @ R[j]
+            R[j] = _nearest_rotation(Q.T @ rotvec_to_matrix(w[k]) @ Q @ R[j])
         state = replace(state, rotations=R, translation=state.translation + step[3 * Sn:3 * Sn + 3],
                         scale=float(state.scale * (1.0 + step[-1] / max(state.scale, 1e-9)) if fit_scale else state.scale))
     return state, rms
