@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from bodyspace.data.template import Template
 from bodyspace.errors import ParameterError
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices, rest_state
+from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.synth.poses import load_pose_library
 
 __all__ = ["Alignment", "similarity_from_landmarks", "heading_candidates", "initial_alignment"]
@@ -29,6 +30,17 @@ SCORE_ITERATIONS = 8
 # Library poses the pose fit is also started from (besides the template's A-pose) once the
 # heading is chosen.
 START_POSES = ("t_pose", "arms_overhead", "arms_forward")
+# Strides the pose fit is also started from: (bone, rotation vector in degrees) pairs, one leg
+# forward and the other back, either way. From the A-pose's parallel legs an ICP puts a
+# stepping scan's legs on the wrong scan legs (48-56 mm, legs swapped): each leg follows the
+# nearest points, and the hips cannot swing a leg through the other. Started from both
+# assignments, the better short fit is kept.
+STRIDES = {"stride_left": (("upperleg01.L", (-20.0, 0.0, 0.0)), ("upperleg01.R", (15.0, 0.0, 0.0))),
+           "stride_right": (("upperleg01.R", (-20.0, 0.0, 0.0)), ("upperleg01.L", (15.0, 0.0, 0.0)))}
+# Degrees the best heading candidate is also turned by, either way.
+HEADING_TURN = 25.0
+# The limbs whose rotations are mixed between the start fits (each with its subtree).
+LIMB_ROOTS = ("clavicle.L", "clavicle.R", "upperleg01.L", "upperleg01.R")
 
 
 @dataclass(frozen=True)
@@ -70,6 +82,19 @@ def similarity_from_landmarks(source: np.ndarray, target: np.ndarray) -> tuple[f
     return s, R, mu_d - s * R @ mu_s
 
 
+def _subtree(parents: np.ndarray, root: int) -> np.ndarray:
+    """Bone indices (n,) of ``root`` and all its descendants."""
+    parents = np.asarray(parents)
+    inside = np.zeros(len(parents), dtype=bool)
+    inside[root] = True
+    changed = True
+    while changed:
+        grow = ~inside & (parents >= 0) & inside[np.maximum(parents, 0)]
+        changed = bool(grow.any())
+        inside |= grow
+    return np.flatnonzero(inside)
+
+
 def _yaw(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
@@ -79,21 +104,22 @@ def heading_candidates(points: np.ndarray, up_known: bool = True) -> list[np.nda
     """Rotations (3, 3) that may bring a scan (P, 3), +Y up, to face +Z.
 
     The horizontal principal axes: the one of least spread (front/back of a standing body) and
-    the other (a T-pose's arms), each in both directions; with ``up_known=False`` also each of
-    these turned upside down (about X).
+    the other (a T-pose's arms), each in both directions; with ``up_known=False`` also the same
+    for the scan turned upside down (about X).
     """
-    c = points - points.mean(axis=0)
-    h = c[:, [0, 2]]
-    _, vecs = np.linalg.eigh(h.T @ h)
     out = []
-    for axis in (vecs[:, 0], vecs[:, 1]):
-        for sign in (1.0, -1.0):
-            fx, fz = sign * axis
-            theta = np.arctan2(fx, fz)            # heading of the candidate front
-            out.append(_yaw(-theta))              # turn it onto +Z
-    if not up_known:
-        flip = np.diag([1.0, -1.0, -1.0])
-        out += [R @ flip for R in out]
+    flips = (np.eye(3), np.diag([1.0, -1.0, -1.0])) if not up_known else (np.eye(3),)
+    for flip in flips:
+        # The axes of the scan as turned (turning about X mirrors the heading: the axes are
+        # taken after it, not before).
+        pts = points @ flip.T
+        h = (pts - pts.mean(axis=0))[:, [0, 2]]
+        _, vecs = np.linalg.eigh(h.T @ h)
+        for axis in (vecs[:, 0], vecs[:, 1]):
+            for sign in (1.0, -1.0):
+                fx, fz = sign * axis
+                theta = np.arctan2(fx, fz)            # heading of the candidate front
+                out.append(_yaw(-theta) @ flip)       # turn it onto +Z
     return out
 
 
@@ -172,11 +198,48 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
         if best is None or score < best[0]:
             best = (score, R, t, state)
     score, R, t, state = best
+    if landmarks is None:
+        # The principal axes miss a stepping or twisting body's heading (by 29° on a
+        # step-forward scan, which the pose fit took up as a twist between pelvis and chest):
+        # the best candidate turned either way is scored too.
+        for turn in (-HEADING_TURN, HEADING_TURN):
+            R2 = _yaw(np.radians(turn)) @ R
+            t2 = _place(p @ R2.T, rest)
+            q = p @ R2.T + t2
+            tree = cKDTree(q)
+            s2, sc2 = _short_fit(q, n @ R2.T, tree, template, start(q))
+            if sc2 < score:
+                score, R, t, state = sc2, R2, t2, s2
     q = p @ R.T + t
     tree = cKDTree(q)
     library = load_pose_library()
-    for name in START_POSES:
-        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, library.rotations(name, rig)))
+    starts = [library.rotations(name, rig) for name in START_POSES]
+    for bones in STRIDES.values():
+        rv = np.zeros((rig.n_bones, 3))
+        for bone, degrees in bones:
+            rv[rig.bone_index(bone)] = np.radians(degrees)
+        starts.append(rotvec_to_matrix(rv))
+    fits = [state]
+    for rotations in starts:
+        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, rotations))
+        fits.append(s2)
+        if sc2 < score:
+            score, state = sc2, s2
+    # Limb by limb: the best start for the whole body may have lost one arm (a hand on the hip,
+    # an arm swinging with a step) that another start placed; each limb's rotations are taken
+    # from whichever fit makes the whole body score best, then the mix is fitted once more.
+    mixed, mixed_score = state, score
+    for root in LIMB_ROOTS:
+        bones = _subtree(rig.parents, rig.bone_index(root))
+        for other in fits:
+            rot = mixed.rotations.copy()
+            rot[bones] = other.rotations[bones]
+            trial = PoseState(mixed.rest, rot, mixed.scale, mixed.translation)
+            sc = _score(template, trial, q, tree)
+            if sc < mixed_score:
+                mixed, mixed_score = trial, sc
+    if mixed is not state:
+        s2, sc2 = _short_fit(q, n @ R.T, tree, template, mixed)
         if sc2 < score:
             score, state = sc2, s2
     return Alignment(R, t, scale, state, tuple(scores))
