@@ -140,10 +140,10 @@ def _score(template: Template, state: PoseState, points: np.ndarray, tree: cKDTr
     return float(np.mean(np.minimum(d1, 0.1)) + np.mean(np.minimum(d2, 0.1)))
 
 
-def _short_fit(points, normals, tree, template, state):
+def _short_fit(points, normals, tree, template, state, iterations=SCORE_ITERATIONS):
     # The scale stays the height ratio: fitted, it trades stature for girth on a body wider than
     # the template (a heavy 1.46 m man came out 1.65 m tall); the shape fit takes the girth.
-    state, _ = fit_pose(points, normals, template, state, iterations=SCORE_ITERATIONS, scan_tree=tree,
+    state, _ = fit_pose(points, normals, template, state, iterations=iterations, scan_tree=tree,
                         start_distance=0.25, end_distance=0.06, template_samples=1500, scan_samples=2500,
                         fit_scale=False)
     return state, _score(template, state, points, tree)
@@ -151,7 +151,7 @@ def _short_fit(points, normals, tree, template, state):
 
 def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Template, *,
                       up_known: bool = True, landmarks: tuple | None = None, rest: np.ndarray | None = None,
-                      rng=0) -> Alignment:
+                      iterations: int = SCORE_ITERATIONS, rng=0) -> Alignment:
     """The rigid motion of the prepared scan (P, 3) (normals (P, 3)) onto the template's frame.
 
     landmarks: (template landmark positions (L, 3) on the rest body, scan positions (L, 3)),
@@ -160,7 +160,7 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
     space's mean), scaled to the scan's height. Either way the
     pose is then started from each of ``START_POSES`` (a limb ICP cannot swing far: an A-pose
     template's arm does not reach a T-pose scan's) and the best short fit is kept as
-    ``Alignment.state``.
+    ``Alignment.state``. iterations: pose-fit iterations of each short fit.
     """
     rest = np.asarray(template.vertices if rest is None else rest, dtype=float)
     rig = template.rigs["default"]
@@ -193,7 +193,7 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
     for R, t in candidates:
         q = p @ R.T + t
         tree = cKDTree(q)
-        state, score = _short_fit(q, n @ R.T, tree, template, start(q))
+        state, score = _short_fit(q, n @ R.T, tree, template, start(q), iterations)
         scores.append(score)
         if best is None or score < best[0]:
             best = (score, R, t, state)
@@ -207,7 +207,7 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
             t2 = _place(p @ R2.T, rest)
             q = p @ R2.T + t2
             tree = cKDTree(q)
-            s2, sc2 = _short_fit(q, n @ R2.T, tree, template, start(q))
+            s2, sc2 = _short_fit(q, n @ R2.T, tree, template, start(q), iterations)
             if sc2 < score:
                 score, R, t, state = sc2, R2, t2, s2
     q = p @ R.T + t
@@ -221,7 +221,7 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
         starts.append(rotvec_to_matrix(rv))
     fits = [state]
     for rotations in starts:
-        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, rotations))
+        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, rotations), iterations)
         fits.append(s2)
         if sc2 < score:
             score, state = sc2, s2
@@ -239,7 +239,7 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
             if sc < mixed_score:
                 mixed, mixed_score = trial, sc
     if mixed is not state:
-        s2, sc2 = _short_fit(q, n @ R.T, tree, template, mixed)
+        s2, sc2 = _short_fit(q, n @ R.T, tree, template, mixed, iterations)
         if sc2 < score:
             score, state = sc2, s2
     return Alignment(R, t, scale, state, tuple(scores))

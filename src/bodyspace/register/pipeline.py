@@ -5,10 +5,10 @@
 1. ``prepare.prepare_scan``: metres, +Y up, unoriented normals (units and up found or given);
 2. ``align.initial_alignment``: landmarks (similarity) or principal axes with the heading and
    the start pose chosen by short pose fits;
-3. ``model_fit.fit_shape``: the shape coefficients with the pose held;
-4. ``pose_fit.fit_pose``: the skeleton's pose and placement by twist ICP (the scale is the
-   height ratio of the alignment), then 3 again; three rounds with narrowing gates;
-5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 0.01;
+3. ``model_fit.fit_shape``: the shape coefficients and scale with the pose held;
+4. ``pose_fit.fit_pose``: the skeleton's pose by twist ICP with the shape held, then pose, shape
+   and scale together in one Gauss-Newton problem (``POSE_ROUNDS``, gates narrowing);
+5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 30;
 6. ``quality.assess``: how much of the scan the fit explains; refused below ``MIN_QUALITY``.
 
 The result is in the template's topology, both in the scan's own frame and units (to lay over
@@ -27,7 +27,7 @@ from bodyspace.data.template import Template, load_template
 from bodyspace.errors import RegistrationError
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
-from bodyspace.register.align import initial_alignment
+from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment
 from bodyspace.register.correspondences import orient_normals
 from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
@@ -105,7 +105,8 @@ def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, t
 def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, template: Template | None = None,
                   units: str | None = None, up: str | None = None, landmarks: dict | None = None,
                   basis: ShapeBasis | None = None, steps: int = DEFAULT_STEPS, inner: int = DEFAULT_INNER,
-                  pose_iterations: int = 12, check: bool = True, name: str = "the scan",
+                  pose_iterations: int = 12, align_iterations: int = SCORE_ITERATIONS, check: bool = True,
+                  name: str = "the scan",
                   progress=None, trace=None, rng=0) -> Registration:
     """Register the template to a raw scan (module docstring).
 
@@ -113,6 +114,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     file's ("mm", "z", ...), or None to find them. landmarks: name → (3,) scan positions (file
     frame) of measurement-set landmarks, optional (at least 3). basis: the shape space (default
     ``phenotype_basis``). steps, inner: NICP stiffness levels and iterations per level.
+    pose_iterations, align_iterations: pose-fit iterations per round and per alignment candidate.
     check: refuse (``RegistrationError``) a fit whose quality is below ``MIN_QUALITY``.
     progress: callback(message, fraction). trace: callback(stage, vertices (V, 3) in the scan
     file's frame) after each stage, to see where the error comes from (benchmarks/diag_register.py).
@@ -145,7 +147,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     report("initial alignment", 0.05)
     t = time.perf_counter()
     align = initial_alignment(q, qn, template, up_known=prep.up_known, rest=basis.mean,
-                              landmarks=None if lm_pairs is None else (lm_template, lm_pairs[1]), rng=rng)
+                              landmarks=None if lm_pairs is None else (lm_template, lm_pairs[1]),
+                              iterations=align_iterations, rng=rng)
     q = align.apply(q)
     qn = qn @ align.rotation.T
     lm_fit = None if lm_pairs is None else (lm_pairs[0], align.apply(lm_pairs[1]))

@@ -15,7 +15,14 @@ template vertex: the second pulls a limb the template misplaced back onto its po
 distance (annealed from ``START_DISTANCE`` to ``END_DISTANCE``) and by the normals' angle (the
 scan's normals are unoriented here), with point-to-plane residuals and a weak point-to-point
 term. Optional landmarks enter as point-to-point rows. A weak prior pulls each bone's rotation
-towards its rest (``POSE_PRIOR``). Each iteration is one damped Gauss-Newton step.
+towards its rest (``POSE_PRIOR``). Each iteration is one damped Gauss-Newton step (Marquardt's
+damping, per unknown).
+
+With ``shape=(basis, coefficients, shape_prior, scale_prior)`` the shape coefficients c and the
+scale are unknowns of the same step: with the rotations held posing is affine in the rest body,
+so ``d x / d c_k = s · P_k`` (``P_k``: component k posed at the current rotations, recomputed
+each iteration), with a prior ``c_k / σ_k`` and the scale pulled towards 1. Alternating pose and
+shape fits crawls along the valley where they trade off (a thigh's twist against its girth).
 """
 
 from __future__ import annotations
