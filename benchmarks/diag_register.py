@@ -22,6 +22,7 @@ from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.register.model_fit import phenotype_basis
 from bodyspace.register.pipeline import register_scan
 from bodyspace.studies.registration import SURFACE_LANDMARKS, registration_errors
+from bodyspace.synth.foreign import to_frame
 from bodyspace.synth.phenotype import PhenotypeModel
 from bodyspace.synth.scans import raw_scan
 
@@ -55,8 +56,10 @@ def vertex_regions(template) -> tuple[list[str], np.ndarray]:
 
 
 def score(vertices, template, scan, regions, region_names) -> dict:
+    """Errors of a stage's body (V, 3) (the scan's frame) against the truth: registration_errors,
+    the mean |normal| and tangential parts of the correspondence error (mm), and its mean per
+    region."""
     scale = float(scan.frame["scale"])
-    from bodyspace.synth.foreign import to_frame
     truth = to_frame(scan.body, **scan.frame)
     # Normals in the scan frame: the frame is a similarity, so the body's normals turn with it.
     tn = vertex_normals(truth, template.faces)
