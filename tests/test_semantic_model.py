@@ -396,3 +396,23 @@ def test_morph_accepts_the_models_own_folds(setup, tmp_path):
         warnings.simplefilter("error")
         result = sm.morph(x, {"stature": 0.02})
     assert abs(result.values["stature"] - result.targets["stature"]) <= tolerance("stature")
+
+
+def test_cli_crowd_streams_random_bodies_with_a_bounded_line_up(setup, app, tmp_path, monkeypatch):
+    """Nothing asked: the crowd is the model's random sample for the seed, decoded in chunks and
+    written as made; the line-up holds only the first SHEET_MAX (here 2 of 3)."""
+    import bodyspace.cli.semantics as cli_semantics
+    monkeypatch.setattr(cli_semantics, "SHEET_MAX", 2)
+    monkeypatch.setattr(cli_semantics, "SAMPLE_CHUNK", 2)
+    root, _, _, _ = setup
+    r = CliRunner().invoke(app, ["crowd", str(root / "model.npz"), "-n", "3", "--seed", "5",
+                                 "--out", str(tmp_path / "c")])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader(open(tmp_path / "c" / "crowd.csv")))
+    assert [row["mesh"] for row in rows] == ["body_000.obj", "body_001.obj", "body_002.obj"]
+    model = BodyModel.load(root / "model.npz")
+    expected = model.sample(3, sigma_range=2.0, rng=5)
+    for i in range(3):
+        written, _ = load_mesh(tmp_path / "c" / f"body_{i:03d}.obj")
+        assert np.abs(written - expected[i]).max() < 1e-5
+    assert (tmp_path / "c" / "lineup.png").stat().st_size > 0

@@ -52,6 +52,11 @@ out_console = Console()  # results: tables, JSON, CSV
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL_ERROR = 3
 MESH_SUFFIXES = (".obj", ".ply", ".glb")
+# Bodies decoded at once by `sample` and `crowd` (bounds memory: 64 bodies of 19k vertices are
+# 30 MB), and bodies drawn on a contact sheet (a sheet of thousands is unreadable and would
+# hold them all).
+SAMPLE_CHUNK = 64
+SHEET_MAX = 100
 
 AssetsOption = typer.Option(None, "--assets", help="An MPFB2-style asset folder to use instead of the cache "
                                                     "(or set BODYSPACE_ASSETS).")
