@@ -220,10 +220,13 @@ def test_template_weights_agree_with_makehuman_on_the_limbs(template, rig, heat_
     strong = (np.asarray(mh.max(1).toarray()).ravel() > 0.9) & ~face
     assert (dm == dh)[strong].mean() > 0.9
     # mirror symmetric up to the triangulation (not exactly mirror-symmetric): vertex i on
-    # bone b <-> mirror[i] on bone b's mirror
+    # bone b <-> mirror[i] on bone b's mirror. The worst vertex is on the midline of the groin,
+    # where pelvis.L/R, spine03 and upperleg01.L/R meet: four influences must drop one of a
+    # mirror pair, and the smoothing after the cut carries the kept one's weight there (0.107;
+    # 0.052 with the cut alone)
     from bodyspace.rig.posing import mirror_bones
     asym = abs(W[template.mirror][:, mirror_bones(rig)] - W).max(axis=1).toarray().ravel()
-    assert asym.max() < 0.1 and np.percentile(asym, 99) < 0.02, (asym.max(), np.percentile(asym, 99))
+    assert asym.max() < 0.15 and np.percentile(asym, 99) < 0.02, (asym.max(), np.percentile(asym, 99))
 
 
 def test_pose_bodies_with_bone_heat_weights(template, rig, heat_weights, phenotype_model):
