@@ -45,7 +45,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.operators import cotangent_laplacian
@@ -61,11 +60,12 @@ _kernel = numba.njit(cache=True, nogil=True)
 # The paper's c in H_jj = c / d(j)^2 ("c = 1 works well"; larger values follow the nearest bone
 # more closely, smaller ones blur the weights more).
 DEFAULT_HEAT = 1.0
-# Diffusion length of the smoothing after the cut, as a fraction of the mesh's bounding-box
-# diagonal (0.03: 6 cm on a 2 m body). Measured on 3 bodies x 39 poses (docs/skinning.md): the
-# folds added by the 4-influence cut fall from 526 to 244 (the uncut heat adds 233) for fractions
-# 0.028-0.05; 0.016 gives 359, 0.16 gives 288 (the smoothing then crosses joints).
-DEFAULT_SMOOTHING = 0.03
+# Diffusion length of the smoothing after the cut, as a fraction of the square root of the
+# mesh's surface area (a length that turning the mesh does not change): 0.05 is 6.4 cm on the
+# template (1.61 m^2). Measured on 3 bodies x 39 poses (docs/skinning.md): the folds added by
+# the 4-influence cut fall from 526 to about 240 for 3.5-8 cm (the uncut heat adds 233), to 287
+# at 3.2 cm and 411 at 1 cm; at 32 cm 288 again.
+DEFAULT_SMOOTHING = 0.05
 # The least threshold of the cut (the skinning kernels cost per influence; a 1e-3 weight moves a
 # vertex by at most 1e-3 of the bones' relative displacement).
 MIN_WEIGHT = 1e-3
@@ -449,20 +449,30 @@ def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np
     those steep, kinked weights fold the skin when posed). Negative values (obtuse triangles)
     become zero; each row is renormalized (a row the solve empties keeps its cut weights).
     """
-    W = sp.csc_matrix(weights)
+    W = sp.csr_matrix(weights)
     W.sort_indices()
-    L = sp.csr_matrix(stiffness)
-    V = W.shape[0]
-    t = float(length) ** 2
-    data = W.data.copy()
-    for b in range(W.shape[1]):
-        lo, hi = W.indptr[b], W.indptr[b + 1]
-        if hi - lo < 2:                      # a support of one vertex: nothing to smooth
-            continue
-        dom = W.indices[lo:hi]
-        A = (t * L[dom][:, dom] + sp.diags(mass[dom])).tocsc()
-        data[lo:hi] = sla.splu(A).solve(mass[dom] * W.data[lo:hi])
-    S = sp.csc_matrix((np.maximum(data, 0.0), W.indices, W.indptr), shape=W.shape).tocsr()
+    A = (float(length) ** 2 * sp.csr_matrix(stiffness) + sp.diags(mass)).tocoo()     # SPD, (V, V)
+    # All bones' systems as one block-diagonal system over the entries of W: entry (i, b) couples
+    # with entry (j, b) through A_ij when bone b has weight at both i and j. One factorization
+    # (the blocks' fill stays within each block) instead of one per bone.
+    V, B = W.shape
+    k = int(np.diff(W.indptr).max(initial=0))
+    slot_bone = np.full((V, max(k, 1)), -1, dtype=np.int64)            # (V, k) bone of each slot
+    slot_entry = np.zeros((V, max(k, 1)), dtype=np.int64)              # (V, k) entry id in W.data
+    row = np.repeat(np.arange(V), np.diff(W.indptr))
+    pos = np.arange(W.nnz) - W.indptr[row]
+    slot_bone[row, pos] = W.indices
+    slot_entry[row, pos] = np.arange(W.nnz)
+    rows, cols, vals = [], [], []
+    for a in range(k):
+        for c in range(k):
+            same = (slot_bone[A.row, a] == slot_bone[A.col, c]) & (slot_bone[A.row, a] >= 0)
+            rows.append(slot_entry[A.row[same], a])
+            cols.append(slot_entry[A.col[same], c])
+            vals.append(A.data[same])
+    blocks = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(W.nnz, W.nnz))
+    data = FactorizedSolver(blocks).solve(mass[row] * W.data)
+    S = sp.csr_matrix((np.maximum(data, 0.0), W.indices, W.indptr), shape=W.shape)
     total = np.asarray(S.sum(axis=1)).ravel()
     empty = total <= 0.0
     if empty.any():                          # keep the cut weights on such (isolated) rows
@@ -490,8 +500,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     heat: the paper's c in ``H_jj = c / d(j)^2``.
     min_weight: the least threshold of the continuous cut (rows sum to one): smaller weights
         are dropped.
-    smoothing: diffusion length of the smoothing after the cut, as a fraction of the bounding-box
-        diagonal (``smooth_within_support``); 0 keeps the cut weights. Skipped when nothing is
+    smoothing: diffusion length of the smoothing after the cut, as a fraction of the square root
+        of the surface area (``smooth_within_support``); 0 keeps the cut weights. Skipped when nothing is
         cut (``max_influences`` at least the number of bones with heat).
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
@@ -514,7 +524,7 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     if lanes not in (None, 1, 2):
         raise ParameterError(f"lanes={lanes!r}; expected 1, 2 or None (automatic)")
     if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise ParameterError(f"smoothing={smoothing!r}; expected a fraction of the bounding-box diagonal >= 0 "
+        raise ParameterError(f"smoothing={smoothing!r}; expected a fraction of sqrt(surface area) >= 0 "
                              f"(default {DEFAULT_SMOOTHING}; 0: no smoothing after the cut)")
     V, B = len(v), len(h)
     scale = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
@@ -562,7 +572,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     top = _top_weights(W, max_influences, min_weight)              # (len(active), K)
     if smoothing > 0 and max_influences < len(columns):
         # 5. the cut smoothed within each bone's support
-        top = smooth_within_support(top, L[active][:, active], mass[active], smoothing * scale)
+        length = smoothing * np.sqrt(mass.sum())          # mass sums to the surface area
+        top = smooth_within_support(top, L[active][:, active], mass[active], length)
     top = sp.csr_matrix((top.data, columns[top.indices], top.indptr), shape=(len(active), B))
     if used.all():
         out = top
