@@ -292,7 +292,7 @@ def test_pose_bodies_with_bone_heat_weights(template, rig, heat_weights, phenoty
 
 def test_smoothed_cut_folds_less_than_the_cut_alone_on_the_template(template, rig, heat_weights, phenotype_model):
     """The template and its 124 deforming bones, four influences, the poses where the cut folds
-    most (docs/skinning.md, 3 bodies: 178 folds added with the cut alone, 69 smoothed): the
+    most (docs/skinning.md, 3 bodies: 178 folds added with the cut alone, 72 smoothed): the
     smoothing after the cut must keep most of that gain on one body."""
     from bodyspace.synth.poses import load_pose_library
     v = template.vertices
