@@ -233,6 +233,9 @@ def test_bad_inputs_raise_clear_errors():
         bone_heat_weights(v, f, h, t, lanes=3)
     with pytest.raises(ParameterError, match="smoothing=-0.1"):
         bone_heat_weights(v, f, h, t, smoothing=-0.1)
+    W = bone_heat_weights(v, f, h, t)
+    with pytest.raises(MeshError, match=r"stiffness \(10, 10\)"):
+        smooth_within_support(W, sp.eye(10), np.ones(10), 0.1)
 
 
 # ------------------------------------------------------------------------ template, foreign

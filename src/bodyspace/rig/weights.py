@@ -449,13 +449,19 @@ def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np
     those steep, kinked weights fold the skin when posed). Negative values (obtuse triangles)
     become zero; each row is renormalized (a row the solve empties keeps its cut weights).
     """
-    W = sp.csr_matrix(weights)
+    W = sp.csr_matrix(weights, dtype=float)
     W.sort_indices()
+    V = W.shape[0]
+    mass = np.asarray(mass, dtype=float)
+    if sp.csr_matrix(stiffness).shape != (V, V) or mass.shape != (V,) or not (mass > 0).all():
+        raise MeshError(f"stiffness {np.shape(stiffness)}, mass {mass.shape}: expected ({V}, {V}) and ({V},) "
+                        f"positive vertex areas for the {V} rows of the weights")
+    if not (np.isfinite(length) and length >= 0):
+        raise ParameterError(f"length={length!r}; expected a diffusion length >= 0 in the mesh's units")
     A = (float(length) ** 2 * sp.csr_matrix(stiffness) + sp.diags(mass)).tocoo()     # SPD, (V, V)
     # All bones' systems as one block-diagonal system over the entries of W: entry (i, b) couples
     # with entry (j, b) through A_ij when bone b has weight at both i and j. One factorization
     # (the blocks' fill stays within each block) instead of one per bone.
-    V, B = W.shape
     k = int(np.diff(W.indptr).max(initial=0))
     slot_bone = np.full((V, max(k, 1)), -1, dtype=np.int64)            # (V, k) bone of each slot
     slot_entry = np.zeros((V, max(k, 1)), dtype=np.int64)              # (V, k) entry id in W.data
@@ -500,9 +506,9 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     heat: the paper's c in ``H_jj = c / d(j)^2``.
     min_weight: the least threshold of the continuous cut (rows sum to one): smaller weights
         are dropped.
-    smoothing: diffusion length of the smoothing after the cut, as a fraction of the square root
-        of the surface area (``smooth_within_support``); 0 keeps the cut weights. Skipped when nothing is
-        cut (``max_influences`` at least the number of bones with heat).
+    smoothing: diffusion length of the smoothing after the cut, as a fraction of the square
+        root of the surface area (``smooth_within_support``); 0 keeps the cut weights. Skipped
+        when nothing is cut (``max_influences`` at least the number of bones with heat).
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
