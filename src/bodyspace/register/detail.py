@@ -54,9 +54,11 @@ DETAIL_VERSION = 1
 # Subdivision levels allowed: 1 quadruples the faces (the paper's one step: 107 k faces, 3 mm
 # edges at the median on hm08), 2 gives 428 k faces and 1.6 mm; 3 would be 1.7 M faces.
 MAX_LEVELS = 2
-# Scan points a local plane is fitted to: at the test scans' 4-5 mm spacing and 2 mm noise, 12
-# points make a patch of ~8 mm radius and hold the plane's height to ~0.6 mm.
-NEIGHBOURS = 12
+# Scan points each local height field is fitted to (6 coefficients). Measured on a body with a
+# 2 mm relief (benchmarks/bench_detail.py's surface, the true base): mean offset error at 200 k
+# points, σ = 0.5 mm: 0.47 / 0.48 / 0.57 mm with 12 / 20 / 32 points; at 80 k points, σ = 2 mm:
+# 1.69 / 1.63 / 1.91 mm. Fewer points follow the relief, more average the noise.
+NEIGHBOURS = 16
 # The scan's patch must face within this angle of the base normal (else it is another part of
 # the body, or too noisy to say where the surface is).
 MAX_ANGLE_DEG = 60.0
@@ -73,6 +75,7 @@ class Detail:
     offsets: (S,) metres along the subdivided base surface's normals (0 where not valid);
     valid: (S,) bool, the offset was measured on the scan; levels: mid-edge subdivisions;
     n_base_vertices, n_base_faces, faces_sha256: the base topology they belong to.
+    noise: metres, the median standard deviation the scan's noise leaves in an offset (NaN: unknown).
     S = the subdivided mesh's vertex count (``midpoint_subdivide``).
     """
 
@@ -82,13 +85,19 @@ class Detail:
     n_base_vertices: int
     n_base_faces: int
     faces_sha256: str
+    noise: float = float("nan")
 
     def describe(self) -> str:
         h = self.offsets[self.valid]
         spread = f"{1000 * np.sqrt(np.mean(h ** 2)):.2f} mm RMS, {1000 * np.abs(h).max():.1f} mm at most" if h.size \
             else "none measured"
-        return (f"{len(self.offsets)} subdivided vertices ({self.levels} level(s)), {100 * self.valid.mean():.1f} % "
+        text = (f"{len(self.offsets)} subdivided vertices ({self.levels} level(s)), {100 * self.valid.mean():.1f} % "
                 f"on the scan; offsets {spread}")
+        if np.isfinite(self.noise):
+            text += f"; the scan's noise leaves {1000 * self.noise:.2f} mm of uncertainty in an offset (median)"
+            if h.size and self.noise >= 0.7 * np.sqrt(np.mean(h ** 2)):
+                text += " - as large as the relief: this scan is too noisy for its detail to be worth keeping"
+        return text
 
 
 def faces_digest(faces: np.ndarray) -> str:
@@ -133,8 +142,10 @@ def _check_levels(levels) -> int:
 
 def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *, levels: int = 1,
                    neighbours: int = NEIGHBOURS, max_offset: float = MAX_OFFSET,
-                   max_angle_deg: float = MAX_ANGLE_DEG) -> Detail:
+                   max_angle_deg: float = MAX_ANGLE_DEG, shrink: bool = True) -> Detail:
     """The scan's relief over a registered mesh (module docstring, step 2).
+
+    shrink: each offset shrunk toward 0 by its noise (1 - var/h², var from the fit's residuals).
 
     vertices: (V, 3) the registration (metres, the frame of ``points``); faces: (F, 3);
     points: (P, 3) the scan's points (outliers may stay: a patch is fitted per vertex and an
@@ -167,17 +178,28 @@ def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
     for _ in range(2):
         # The second pass leaves out the patch's points far off the first fit: points of another
         # surface close by (a finger beside a finger, the other lip, the ear's fold).
-        AtA = np.einsum("sk,ski,skj->sij", wt, A, A) + 1e-9 * np.eye(6)
-        coef = np.linalg.solve(AtA, np.einsum("sk,ski,sk->si", wt, A, t)[..., None])[..., 0]
+        used = wt
+        AtA = np.einsum("sk,ski,skj->sij", used, A, A) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(AtA, np.einsum("sk,ski,sk->si", used, A, t)[..., None])[..., 0]
         res = np.abs(np.einsum("ski,si->sk", A, coef) - t)
         wt = (res <= 3.0 * np.maximum(np.median(res, axis=1, keepdims=True), ROBUST_FLOOR)).astype(float)
     h = coef[:, 0]
+    # The scan's noise passes into h with variance σ² (AᵀA)⁻¹₀₀, σ² from the fit's own residuals.
+    dof = np.maximum(used.sum(axis=1) - 6, 1)
+    var = (used * res ** 2).sum(axis=1) / dof * np.linalg.inv(AtA)[:, 0, 0]
+    if shrink:
+        # Each offset shrunk by 1 - var/h² (James-Stein), so the noise of a scan coarser than its
+        # relief is not stamped onto the morph as relief (measured in bench_detail.py's setting,
+        # on the true base: mean offset error 1.63 → 1.36 mm at σ = 2 mm, 0.47 → 0.44 at 0.5 mm).
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = h * np.clip(1 - var / h ** 2, 0, 1)
     slope = np.hypot(coef[:, 1], coef[:, 2]) / r[:, 0]                       # tan of the patch's tilt
     valid = (slope <= np.tan(np.radians(max_angle_deg))) & np.isfinite(h) & (np.abs(h) <= max_offset)
     # Over a hole the nearest scan point is off to one side, farther than any relief.
     valid &= dist[:, 0] <= max_offset
     h = np.where(valid, h, 0.0)
-    return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces))
+    noise = float(np.sqrt(np.median(var[valid]))) if valid.any() else float("nan")
+    return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces), noise)
 
 
 def apply_detail(vertices: np.ndarray, faces: np.ndarray, detail: Detail, *,
@@ -210,7 +232,8 @@ def save_detail(path: str | os.PathLike, detail: Detail, **provenance) -> Path:
     header = {"format": DETAIL_FORMAT, "format_version": DETAIL_VERSION, "units": "m",
               "levels": detail.levels, "n_base_vertices": detail.n_base_vertices,
               "n_base_faces": detail.n_base_faces, "faces_sha256": detail.faces_sha256,
-              "n_subdivided_vertices": len(detail.offsets), **provenance}
+              "n_subdivided_vertices": len(detail.offsets),
+              "noise_m": None if not np.isfinite(detail.noise) else round(float(detail.noise), 7), **provenance}
     raw = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -261,5 +284,7 @@ def load_detail(path: str | os.PathLike) -> Detail:
     if len(offsets) < nv:
         raise RegistrationError(f"{path}: {len(offsets)} offsets for a base mesh of {nv} vertices; expected more "
                                 "(one per subdivided vertex)")
-    return Detail(offsets, valid, levels, nv, nf, digest)
+    noise = header.get("noise_m")
+    noise = float(noise) if isinstance(noise, (int, float)) and np.isfinite(noise) and noise >= 0 else float("nan")
+    return Detail(offsets, valid, levels, nv, nf, digest, noise)
 

@@ -101,7 +101,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                   units: str | None = None, up: str | None = None, landmarks: dict | None = None,
                   basis: ShapeBasis | None = None, steps: int = DEFAULT_STEPS, inner: int = DEFAULT_INNER,
                   pose_iterations: int = 12, check: bool = True, name: str = "the scan",
-                  detail_levels: int | None = None, progress=None, rng=0) -> Registration:
+                  detail_levels: int | None = None, mset: MeasurementSet | None = None, progress=None,
+                  rng=0) -> Registration:
     """Register the template to a raw scan (module docstring).
 
     points: (P, 3) in the file's frame; faces: (F, 3) if the scan is a mesh. units, up: the
@@ -110,7 +111,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     ``phenotype_basis``). steps, inner: NICP stiffness levels and iterations per level.
     check: refuse (``RegistrationError``) a fit whose quality is below ``MIN_QUALITY``.
     detail_levels: 1 or 2 to also take the scan's relief (``detail.detail_offsets`` on all the
-    prepared scan's points), None not to.
+    prepared scan's points), None not to. mset: the measurement set whose landmark names
+    ``landmarks`` uses (default the shipped hm08 set; a user model's own: ``--model``).
     progress: callback(message, fraction).
     """
     report = progress or (lambda message, fraction: None)
@@ -135,7 +137,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         def to_prepared(p):    # the file's frame → the prepared scan's (units and up applied)
             return np.linalg.solve(prep.to_scan[:3, :3], p.T).T
 
-        M, lm_scan = _landmark_pairs(landmarks, load_measurement_set(), template, to_prepared)
+        M, lm_scan = _landmark_pairs(landmarks, mset if mset is not None else load_measurement_set(), template,
+                                     to_prepared)
         lm_template = M @ basis.mean
         lm_pairs = (M, lm_scan)
     report("initial alignment", 0.05)
