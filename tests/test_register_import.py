@@ -8,21 +8,28 @@ the other tests are on small inputs. docs/registration.md.
 
 import csv
 import json
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
 from bodyspace.data.database import ScanDatabase
 from bodyspace.encoding.vertex import VertexEncoder
-from bodyspace.errors import RegistrationError
+from bodyspace.errors import RegistrationError, RigError
+from bodyspace.measure.definitions import load_landmarks, load_measurement_set
+from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.model import BodyModel
 from bodyspace.register.caesar import CAESAR_TO_BODYSPACE, caesar_to_bodyspace, read_lnd
 from bodyspace.register.landmark_files import read_scan_landmarks, sidecar_landmarks
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document, load_carried_weights
 from bodyspace.register.user_model import basis_from_model, check_model_topology
 from bodyspace.shape import ShapeSpace
+from bodyspace.synth.foreign import foreign_body, to_frame
 from bodyspace.synth.population import build_population
 from bodyspace.synth.scans import raw_scan
 
@@ -199,3 +206,38 @@ def test_registered_scan_is_near_the_truth(imported, template):
     fit = v - v.mean(axis=0)
     err = np.linalg.norm(fit - truth, axis=1).mean()
     assert err < 0.03, err
+
+
+def test_parts_and_skin_weights_carried_to_another_topology(template, phenotype_model, tmp_path):
+    """The template's body parts and skin weights on a remeshed body (5,000 vertices, mm, Z up),
+    carried from the template laid on it (here the true one; ``bodyspace landmarks`` uses its
+    registration): each vertex gets the part and the main bone of the template's nearest vertex,
+    and the landmark document brings them to ``measure``/``build --landmarks`` and ``rig --weights``."""
+    body = foreign_body(template, phenotype_model, rng=3, pose="rest", target_vertices=5000)
+    on_mesh = to_frame(body.template_vertices, **body.frame)
+    carried = carry_vertex_data(on_mesh, template, body.vertices, body.faces)
+    mset = load_measurement_set()
+    nearest = cKDTree(on_mesh).query(body.vertices)[1]
+    assert np.mean(carried.vertex_parts == mset.vertex_parts[nearest]) > 0.95
+    rig = template.rigs["default"]
+    main = np.asarray(rig.weights.argmax(axis=1)).ravel()[nearest]
+    assert np.mean(carried.bone_ids[:, 0] == main) > 0.9
+    assert np.allclose(carried.weights.sum(axis=1), 1.0)
+    doc = landmark_document(body_landmarks(body), len(body.vertices), carried, written_by="test")
+    path = tmp_path / "lm.json"
+    path.write_text(json.dumps(doc))
+    ms = landmark_measurement_set(path, len(body.vertices))
+    assert np.array_equal(ms.vertex_parts, carried.vertex_parts)
+    w = load_carried_weights(path, len(body.vertices), rig)
+    assert w.shape == (len(body.vertices), rig.n_bones) and np.allclose(np.asarray(w.sum(axis=1)).ravel(), 1.0)
+    with pytest.raises(RigError, match="rig 'default', not"):
+        load_carried_weights(path, len(body.vertices), template.rigs[next(r for r in template.rigs if r != "default")])
+    with pytest.raises(RigError, match="another mesh"):
+        load_carried_weights(path, 10, rig)
+
+
+def body_landmarks(body) -> dict:
+    """The true landmarks of a remeshed body, as ``mesh_landmarks`` returns them."""
+    p = Path(tempfile.mkdtemp()) / "truth.json"
+    p.write_text(json.dumps(body.landmark_file))
+    return load_landmarks(p)[0]

@@ -19,7 +19,7 @@ from bodyspace.measure.conventions import MESH_UNITS, UP_AXES
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.register.detail import MAX_LEVELS, apply_detail, save_detail
 from bodyspace.register.landmark_files import read_scan_landmarks
-from bodyspace.register.landmarks import landmark_document, mesh_landmarks
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document, mesh_landmarks
 from bodyspace.model import BodyModel
 from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
 from bodyspace.register.user_model import basis_from_model, check_model_topology
@@ -170,8 +170,11 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     template = load_template()
     with progress("landmarks") as report:
         lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
-    doc = landmark_document(lms, len(vertices), written_by="bodyspace",
-                            note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}")
+    carried = carry_vertex_data(reg.vertices, template, vertices, faces)
+    doc = landmark_document(lms, len(vertices), carried, written_by="bodyspace",
+                            note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}; "
+                                 "vertex_parts and skin_weights are the template's body parts and skin weights "
+                                 "carried to this mesh")
     write_json(out, doc)
     if png is not None:
         to_internal = np.linalg.inv(reg.to_scan)
@@ -184,6 +187,7 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
         contact_sheet([v], [faces], png, labels=[f"{mesh.name}: {len(lms)} landmarks"], views=("front", "side"),
                       polylines=[crosses], title="bodyspace landmarks", panel_height=6.0)
     console.print(f"{reg.quality.describe()}", markup=False, highlight=False)
-    console.print(f"wrote {out} ({len(lms)} landmarks for {len(vertices)} vertices; bodyspace measure {mesh} "
+    console.print(f"wrote {out} ({len(lms)} landmarks, the body part and skin weights of each of the "
+                  f"{len(vertices)} vertices; bodyspace measure {mesh} "
                   f"--landmarks {out}{'' if units is None else f' --units {units}'}"
                   f"{'' if up is None else f' --up {up}'})", markup=False, highlight=False)
