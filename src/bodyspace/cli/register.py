@@ -189,5 +189,5 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     console.print(f"{reg.quality.describe()}", markup=False, highlight=False)
     console.print(f"wrote {out} ({len(lms)} landmarks, the body part and skin weights of each of the "
                   f"{len(vertices)} vertices; bodyspace measure {mesh} "
-                  f"--landmarks {out}{'' if units is None else f' --units {units}'}"
-                  f"{'' if up is None else f' --up {up}'})", markup=False, highlight=False)
+                  f"--landmarks {out} --units {units or reg.units}{'' if up is None else f' --up {up}'})",
+                  markup=False, highlight=False)
