@@ -90,9 +90,9 @@ def test_caesar_lnd_read_and_mapped(tmp_path):
 
 @pytest.fixture(scope="module")
 def user_model(template, tmp_path_factory):
-    """A BodyModel of the template's topology (8 synthetic bodies, vertex encoding), saved."""
+    """A BodyModel of the template's topology (5 synthetic bodies, vertex encoding), saved."""
     root = tmp_path_factory.mktemp("user_model")
-    db = build_population(template, root / "db", 8, 0, rng=0)
+    db = build_population(template, root / "db", 5, 0, rng=0)
     model = BodyModel.fit(db, "vertex", "rest")
     model.save(root / "model.npz")
     return root / "model.npz", model

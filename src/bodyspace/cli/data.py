@@ -82,9 +82,9 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
     if register:
         return _import_scans(mesh_folder, labels, out, rest_pose=rest_pose, units=units, up=up, landmarks=landmarks,
                              faces=faces, model=model, steps=steps, force=force)
-    if model is not None:
-        raise DatabaseError("--model is used with --register (the shape space raw scans are fitted with); "
-                            "registered meshes are imported as they are")
+    if model is not None or steps != DEFAULT_STEPS:
+        raise DatabaseError(f"{'--model' if model is not None else '--steps'} is used with --register (raw scans "
+                            "are fitted with it); registered meshes are imported as they are")
     units = check_choice(units or "m", "--units", LENGTH_UNITS)
     if up is not None:
         up = check_choice(up, "--up", UP_ROTATIONS)
