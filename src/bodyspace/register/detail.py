@@ -64,6 +64,8 @@ NEIGHBOURS = 16
 MAX_ANGLE_DEG = 60.0
 # Residuals (metres) under this never mark a point as another surface's (noise-free scans).
 ROBUST_FLOOR = 0.0003
+# Subdivided vertices whose patches are fitted at once (bounds the memory: ~200 MB a block).
+CHUNK = 40_000
 # Offsets beyond this (metres) are not relief but a misfit or a gap crossed: left out.
 MAX_OFFSET = 0.015
 
@@ -140,27 +142,10 @@ def _check_levels(levels) -> int:
     return int(levels)
 
 
-def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *, levels: int = 1,
-                   neighbours: int = NEIGHBOURS, max_offset: float = MAX_OFFSET,
-                   max_angle_deg: float = MAX_ANGLE_DEG, shrink: bool = True) -> Detail:
-    """The scan's relief over a registered mesh (module docstring, step 2).
-
-    shrink: each offset shrunk toward 0 by its noise (1 - var/h², var from the fit's residuals).
-
-    vertices: (V, 3) the registration (metres, the frame of ``points``); faces: (F, 3);
-    points: (P, 3) the scan's points (outliers may stay: a patch is fitted per vertex and an
-    offset beyond ``max_offset`` is dropped). Returns a ``Detail`` with S offsets, S the
-    subdivided vertex count.
-    """
-    levels = _check_levels(levels)
-    check_mesh(vertices, faces, "the registered mesh")
-    pts = np.asarray(points, dtype=float)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < neighbours:
-        raise RegistrationError(f"detail: the scan has points of shape {pts.shape}; expected (P, 3) with at least "
-                                f"{neighbours} points")
-    sv, sf = midpoint_subdivide(vertices, faces, levels)
-    n = vertex_normals(sv, sf)                                               # (S, 3)
-    dist, nb = cKDTree(pts).query(sv, k=int(neighbours))                     # (S, k)
+def _patch_offsets(sv, n, pts, tree, neighbours, max_offset, max_angle_deg, shrink):
+    """Offsets (S,), their noise variances (S,) and validity (S,) of subdivided vertices sv (S, 3)
+    with normals n (S, 3) against scan points pts (P, 3) (``detail_offsets``)."""
+    dist, nb = tree.query(sv, k=neighbours)                                  # (S, k)
     # The scan near p as a height field over p's tangent plane, t = a + b u + c v + d u² + e uv + f v²
     # (least squares over the k points): the line p + h n meets it at (u, v) = (0, 0), h = a. A
     # plane through the patch's centroid would average the relief over the patch instead.
@@ -197,7 +182,36 @@ def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
     valid = (slope <= np.tan(np.radians(max_angle_deg))) & np.isfinite(h) & (np.abs(h) <= max_offset)
     # Over a hole the nearest scan point is off to one side, farther than any relief.
     valid &= dist[:, 0] <= max_offset
-    h = np.where(valid, h, 0.0)
+    return np.where(valid, h, 0.0), var, valid
+
+
+def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *, levels: int = 1,
+                   neighbours: int = NEIGHBOURS, max_offset: float = MAX_OFFSET,
+                   max_angle_deg: float = MAX_ANGLE_DEG, shrink: bool = True) -> Detail:
+    """The scan's relief over a registered mesh (module docstring, step 2).
+
+    shrink: each offset shrunk toward 0 by its noise (1 - var/h², var from the fit's residuals).
+
+    vertices: (V, 3) the registration (metres, the frame of ``points``); faces: (F, 3);
+    points: (P, 3) the scan's points (outliers may stay: a patch is fitted per vertex and an
+    offset beyond ``max_offset`` is dropped). Returns a ``Detail`` with S offsets, S the
+    subdivided vertex count.
+    """
+    levels = _check_levels(levels)
+    check_mesh(vertices, faces, "the registered mesh")
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < neighbours:
+        raise RegistrationError(f"detail: the scan has points of shape {pts.shape}; expected (P, 3) with at least "
+                                f"{neighbours} points")
+    sv, sf = midpoint_subdivide(vertices, faces, levels)
+    n = vertex_normals(sv, sf)                                               # (S, 3)
+    tree = cKDTree(pts)
+    h, var, valid = np.zeros(len(sv)), np.zeros(len(sv)), np.zeros(len(sv), dtype=bool)
+    # In blocks: the per-vertex patches (S, k, 6) of two levels would take a gigabyte at once.
+    for lo in range(0, len(sv), CHUNK):
+        block = slice(lo, lo + CHUNK)
+        h[block], var[block], valid[block] = _patch_offsets(sv[block], n[block], pts, tree, int(neighbours),
+                                                            max_offset, max_angle_deg, shrink)
     noise = float(np.sqrt(np.median(var[valid]))) if valid.any() else float("nan")
     return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces), noise)
 
