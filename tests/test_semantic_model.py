@@ -14,6 +14,7 @@ from bodyspace.errors import SemanticsFileError
 from bodyspace.measure import measure
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel, ModelError
+from bodyspace.register.detail import Detail, apply_detail, faces_digest, load_detail, midpoint_subdivide, save_detail
 from bodyspace.report.semantic_report import format_request_report, write_request_report
 from bodyspace.semantics.masks import MaskedPoissonBlend
 from bodyspace.semantics.model import SemanticModel, TargetError, tolerance
@@ -179,6 +180,21 @@ def test_cli_generate_and_morph(setup, app, tmp_path):
     v2, _ = load_mesh(tmp_path / "b.obj")
     w = sm.regions_["upper_body"]
     assert np.linalg.norm(v2 - v, axis=1)[w == 0].max() < 0.002
+    # --detail: a relief (here 1 mm outward everywhere, 2 mm on the first vertices) re-added on the morph
+    sub, _ = midpoint_subdivide(v, f, 1)
+    offsets = np.full(len(sub), 0.001)
+    offsets[:100] = 0.002
+    save_detail(tmp_path / "detail.npz", Detail(offsets, np.ones(len(sub), bool), 1, len(v), len(f), faces_digest(f)))
+    r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
+                            "--keep", "mass", "--mask", "upper_body", "--detail", str(tmp_path / "detail.npz"),
+                            "--out", str(tmp_path / "b_detail.obj")])
+    assert r.exit_code == 0, r.output
+    vd, fd = load_mesh(tmp_path / "b_detail.obj")
+    want, want_faces = apply_detail(v2, f, load_detail(tmp_path / "detail.npz"))
+    assert np.array_equal(fd, want_faces) and np.abs(vd - want).max() < 1e-5
+    r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
+                            "--detail", str(tmp_path / "a.obj"), "--out", str(tmp_path / "b_bad.obj")])
+    assert r.exit_code == 2 and "bodyspace register --detail" in " ".join(r.output.split())
     r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=260cm", "--out",
                             str(tmp_path / "c.obj")])
     assert r.exit_code == 2 and "can reach" in r.output and "cm to" in r.output

@@ -33,6 +33,7 @@ from bodyspace.measure import (
     with_landmarks,
 )
 from bodyspace.measure import conventions
+from bodyspace.measure.definitions import load_landmark_parts, with_vertex_parts
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.render import contact_sheet
@@ -92,6 +93,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         if landmarks is not None:
             lms, nv = load_landmarks(landmarks)
             mset = with_landmarks(mset, lms, nv, str(landmarks))
+            parts = load_landmark_parts(landmarks)    # carried by bodyspace landmarks, if any
+            if parts is not None:
+                mset = with_vertex_parts(mset, parts)
         labels = _labels([str(p) for p in meshes])
         results, bodies, postures = {}, [], {}
         for path, label in zip(meshes, labels):

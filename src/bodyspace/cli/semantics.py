@@ -45,6 +45,7 @@ from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel, request_tolerance
+from bodyspace.register.detail import apply_detail, load_detail
 from bodyspace.report.render import contact_sheet
 from bodyspace.semantics.evaluation import (
     RegressionTable,
@@ -293,6 +294,9 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
           mask: Optional[List[str]] = typer.Option(None, "--mask", help="Confine the change to a region: upper_body, "
                                                    "lower_body, arms, legs, torso, head, left, right (repeatable)."),
           out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
+          detail: Optional[Path] = typer.Option(None, "--detail", help="detail.npz of bodyspace register --detail "
+                                                "(MESH its registered_standard.obj): the scan's relief re-added "
+                                                "on the morphed body (the output is then the subdivided mesh)."),
           clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
           accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
@@ -300,6 +304,7 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     try:
         if not sets:
             raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
+        relief = load_detail(detail) if detail is not None else None
         sm = load_semantics(model_file, database, refit, clamp)
         changes = parse_targets(sets, None, allow_delta=True, sm=sm)
         v, f = load_mesh(mesh)
@@ -310,14 +315,18 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
             warnings.simplefilter("always", RuntimeWarning)
             result = sm.body_model.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None,
                                          accept_misses=accept_misses)
-        _save_mesh(out, result.vertices, f)
+        if relief is None:
+            _save_mesh(out, result.vertices, f)
+        else:
+            _save_mesh(out, *apply_detail(result.vertices, f, relief, name=f"{mesh} (--detail {detail})"))
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
     out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result,
                                     sm))
     moved = np.linalg.norm(result.vertices - v, axis=1)
-    out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm",
+    out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm"
+                      f"{'' if relief is None else f'; the relief of {detail} re-added ({relief.describe()})'}",
                       highlight=False)
 
 

@@ -377,6 +377,21 @@ def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray,
     return lms, n
 
 
+def load_landmark_parts(path: str | os.PathLike) -> np.ndarray | None:
+    """The body part of every vertex (V,) int8 a landmark file carries (its optional
+    ``"vertex_parts"``, one letter a vertex as in a measurement set; ``bodyspace landmarks``
+    writes it), or None."""
+    path = Path(path)
+    d = _read_json(path)
+    text = d.get("vertex_parts") if isinstance(d, dict) else None
+    if text is None:
+        return None
+    if not isinstance(text, str):
+        raise MeasurementError(f"{path}: field 'vertex_parts' is {type(text).__name__}; expected a string of one "
+                               "letter a vertex (as bodyspace landmarks writes), or no such field")
+    return decode_parts(text, f"{path} field 'vertex_parts'")
+
+
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,
                    source: str = "<landmarks>") -> MeasurementSet:
     """The topology-free part of ``base`` re-pointed at another topology's ``landmarks``.
