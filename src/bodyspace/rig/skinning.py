@@ -258,6 +258,39 @@ _lbs_blend_set = _lbs_blend_intrinsic(False)
 _lbs_blend_add = _lbs_blend_intrinsic(True)
 
 
+@intrinsic
+def _lbs_vertex(typingctx, table, bones, weights, xyz, tile, t):
+    """A vertex of at most four influences in one pass, in registers: for r = 0, 1, 2, the
+    blended row ``m = sum_k weights[k] table[bones[k], 4r : 4r + 4]`` applied,
+    ``tile[3t + r] = v_r + (m_3 + m_0 x + m_1 y + m_2 z)`` (as ``_lbs_blend_set`` + ``_apply``
+    without the blended matrix's trip through memory)."""
+    n = len(bones)
+
+    def codegen(context, builder, signature, args):
+        tb = _Rows(context, builder, signature.args[0], args[0])
+        x = _Rows(context, builder, signature.args[3], args[3])
+        o = _Rows(context, builder, signature.args[4], args[4])
+        L, fma = tb.L, _vector_intrinsic(builder, "llvm.fmuladd", tb.vec, 3)
+        offs = [_bone_offset(builder, builder.extract_value(args[1], k), 12 * L) for k in range(n)]
+        ws = [_splat(builder, tb.vec, builder.extract_value(args[2], k)) for k in range(n)]
+        base = builder.mul(args[5], _const(3 * L))
+        p = [x.load(builder.add(base, _const(c * L))) for c in range(3)]
+        res = []
+        for r in range(3):
+            m = []
+            for c in range(4):
+                rows = [tb.load(builder.add(off, _const((4 * r + c) * L))) for off in offs]
+                s = builder.fmul(ws[0], rows[0])
+                for k in range(1, n):
+                    s = fma(ws[k], rows[k], s)
+                m.append(s)
+            res.append(builder.fadd(p[r], fma(m[2], p[2], fma(m[1], p[1], fma(m[0], p[0], m[3])))))
+        for r in range(3):
+            o.store(res[r], builder.add(base, _const(r * L)))
+        return context.get_dummy_value()
+    return types.void(table, bones, weights, xyz, tile, t), codegen
+
+
 def _dqs_blend_intrinsic(accumulate: bool):
     def blend(typingctx, acc, table, pivot, bones, weights):
         """acc[0:8] (+)= sum_k s_k w_k table[bones[k], 0:8]: acc (12, L) (rows 0-7 used), table
@@ -438,17 +471,32 @@ def _skin(kernel, n_rows: int, head: tuple, G, v, out, lanes) -> np.ndarray:
         run_both(lambda: lane(0), lambda: lane(1))
     if target is not out:
         out[...] = target
-    if any(c.any() for c in checks):
+    if any(c.any() for c in checks) or (len(rest) == 1 and not np.isfinite(rest).all()):
         raise MeshError("vertices: NaN or infinity found in the rest vertices; expected finite coordinates "
                         "(the output holds NaN where they were)")
     return out
 
 
+@intrinsic
+def _check_rows(typingctx, check, xyz):
+    """``check += 0 * xyz`` over the whole (3W, L) buffers, in vectors: check stays zero unless
+    a coordinate read into xyz was NaN or infinite."""
+    def codegen(context, builder, signature, args):
+        c = _Rows(context, builder, signature.args[0], args[0])
+        x = _Rows(context, builder, signature.args[1], args[1])
+        zero = ir.Constant(c.vec, None)
+        for r in range(3 * c.W):
+            off = _const(r * c.L)
+            c.store(builder.fadd(c.load(off), builder.fmul(zero, x.load(off))), off)
+        return context.get_dummy_value()
+    return types.void(check, xyz), codegen
+
+
 @_inline
 def _rest_tile(rest, rest2, s, nf, a, tv, xyz, check):
     """Rest vertices a:a+tv of frames s:s+nf into xyz (3W, L) (rows 3t + c, frames in lanes;
-    lanes past nf repeat frame nf - 1); ``check`` gets ``0 * v`` added, so it stays zero unless
-    a coordinate is NaN or infinite."""
+    lanes past nf repeat frame nf - 1). Per-body rest vertices are checked here (``check``),
+    a shared rest (1, V, 3) once by the caller."""
     L = xyz.shape[1]
     if rest.shape[0] == 1:
         for t in range(tv):
@@ -457,7 +505,8 @@ def _rest_tile(rest, rest2, s, nf, a, tv, xyz, check):
                 row = xyz[3 * t + c]
                 for f in range(L):
                     row[f] = v
-    elif tv * 3 == xyz.shape[0]:
+        return
+    if tv * 3 == xyz.shape[0]:
         _frames_to_tile(rest2, s, nf, 3 * a, xyz)
     else:
         for t in range(tv):
@@ -465,10 +514,7 @@ def _rest_tile(rest, rest2, s, nf, a, tv, xyz, check):
                 row = xyz[3 * t + c]
                 for f in range(L):
                     row[f] = rest[s + min(f, nf - 1), a + t, c]
-    for r in range(3 * tv):
-        row, ck = xyz[r], check[r]
-        for f in range(L):
-            ck[f] += 0.0 * row[f]
+    _check_rows(check, xyz)
 
 
 @_inline
@@ -542,8 +588,21 @@ def _lbs_kernel(indptr, indices, data, G, rest, rest2, out, out2, table, acc, xy
             tv = min(W, i1 - a)
             _rest_tile(rest, rest2, s, nf, a, tv, xyz, check)
             for t in range(tv):
-                _lbs_blend(acc, table, indices, data, indptr[a + t], indptr[a + t + 1])
-                _apply(acc, xyz, tile, t)
+                p0, p1 = indptr[a + t], indptr[a + t + 1]
+                n = p1 - p0
+                if n == 1:
+                    _lbs_vertex(table, (indices[p0],), (data[p0],), xyz, tile, t)
+                elif n == 2:
+                    _lbs_vertex(table, (indices[p0], indices[p0 + 1]), (data[p0], data[p0 + 1]), xyz, tile, t)
+                elif n == 3:
+                    _lbs_vertex(table, (indices[p0], indices[p0 + 1], indices[p0 + 2]),
+                                (data[p0], data[p0 + 1], data[p0 + 2]), xyz, tile, t)
+                elif n == 4:
+                    _lbs_vertex(table, (indices[p0], indices[p0 + 1], indices[p0 + 2], indices[p0 + 3]),
+                                (data[p0], data[p0 + 1], data[p0 + 2], data[p0 + 3]), xyz, tile, t)
+                else:
+                    _lbs_blend(acc, table, indices, data, p0, p1)
+                    _apply(acc, xyz, tile, t)
             _write_tile(tile, out, out2, s, nf, a, tv)
 
 
