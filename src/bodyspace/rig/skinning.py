@@ -292,33 +292,73 @@ def _lbs_vertex(typingctx, table, bones, weights, xyz, tile, t):
     return types.void(table, bones, weights, xyz, tile, t), codegen
 
 
+def _dqs_blend_values(builder, t: _Rows, pivot, bones, weights, n: int, acc: list) -> list:
+    """The 8 rows of ``acc`` (vectors, or None to start from zero) plus ``sum_k s_k w_k
+    table[bones[k], 0:8]`` for the n influences of the tuples ``bones``, ``weights``; table
+    (B, 8, L) of unit dual quaternions; s_k = -1 in the frame lanes where bone k's rotation
+    quaternion has a negative dot product with the pivot bone's, else 1 (antipodality)."""
+    L, fma = t.L, _vector_intrinsic(builder, "llvm.fmuladd", t.vec, 3)
+    po = _bone_offset(builder, pivot, 8 * L)
+    p = [t.load(builder.add(po, _const(j * L))) for j in range(4)]
+    zero = ir.Constant(t.vec, None)
+    acc = list(acc)
+    for k in range(n):
+        o = _bone_offset(builder, builder.extract_value(bones, k), 8 * L)
+        rows = [t.load(builder.add(o, _const(j * L))) for j in range(8)]
+        d = builder.fmul(rows[0], p[0])
+        for j in range(1, 4):
+            d = fma(rows[j], p[j], d)
+        w = _splat(builder, t.vec, builder.extract_value(weights, k))
+        w = builder.select(builder.fcmp_ordered("<", d, zero), builder.fneg(w), w)
+        for j in range(8):
+            acc[j] = builder.fmul(w, rows[j]) if acc[j] is None else fma(w, rows[j], acc[j])
+    return acc
+
+
+def _rigid_rows(builder, vec: ir.VectorType, r: list) -> list:
+    """The blended dual quaternion ``(q, e)`` (8 vectors), normalized, as the 12 rows of
+    ``(R(q) - I | t)``, t = 2 (e conj(q)).xyz. ``R - I`` is formed from q's products (its
+    diagonal as ``-2 (q_j^2 + q_k^2)``), so q = 1 gives exactly 0."""
+    L = vec.count
+    fma = _vector_intrinsic(builder, "llvm.fmuladd", vec, 3)
+    sqrt = _vector_intrinsic(builder, "llvm.sqrt", vec, 1)
+    mul, sub, add = builder.fmul, builder.fsub, builder.fadd
+    n2 = mul(r[0], r[0])
+    for j in range(1, 4):
+        n2 = fma(r[j], r[j], n2)
+    inv = builder.fdiv(ir.Constant(vec, [1.0] * L), sqrt(n2))
+    qw, qx, qy, qz, dw, dx, dy, dz = (mul(v, inv) for v in r)
+    two, minus_two = ir.Constant(vec, [2.0] * L), ir.Constant(vec, [-2.0] * L)
+
+    def diagonal(u, v):
+        return mul(minus_two, fma(u, u, mul(v, v)))
+    return [diagonal(qy, qz), mul(two, sub(mul(qx, qy), mul(qw, qz))), mul(two, add(mul(qx, qz), mul(qw, qy))),
+            mul(two, add(sub(mul(qw, dx), mul(dw, qx)), sub(mul(qy, dz), mul(qz, dy)))),
+            mul(two, add(mul(qx, qy), mul(qw, qz))), diagonal(qx, qz), mul(two, sub(mul(qy, qz), mul(qw, qx))),
+            mul(two, add(sub(mul(qw, dy), mul(dw, qy)), sub(mul(qz, dx), mul(qx, dz)))),
+            mul(two, sub(mul(qx, qz), mul(qw, qy))), mul(two, add(mul(qy, qz), mul(qw, qx))), diagonal(qx, qy),
+            mul(two, add(sub(mul(qw, dz), mul(dw, qz)), sub(mul(qx, dy), mul(qy, dx))))]
+
+
+def _apply_rows(builder, vec: ir.VectorType, m: list, p: list) -> list:
+    """``v_r + (m[4r+3] + m[4r] x + m[4r+1] y + m[4r+2] z)`` for r = 0, 1, 2: the 12 rows m of
+    ``(A - I | t)`` applied to the rest vertex p = (x, y, z) (vectors over the frame lanes)."""
+    fma = _vector_intrinsic(builder, "llvm.fmuladd", vec, 3)
+    return [builder.fadd(p[r], fma(m[4 * r + 2], p[2], fma(m[4 * r + 1], p[1], fma(m[4 * r], p[0], m[4 * r + 3]))))
+            for r in range(3)]
+
+
 def _dqs_blend_intrinsic(accumulate: bool):
     def blend(typingctx, acc, table, pivot, bones, weights):
-        """acc[0:8] (+)= sum_k s_k w_k table[bones[k], 0:8]: acc (12, L) (rows 0-7 used), table
-        (B, 8, L) of unit dual quaternions; s_k = -1 in the frame lanes where bone k's rotation
-        quaternion has a negative dot product with the pivot bone's, else 1 (antipodality)."""
+        """acc[0:8] (+)= the antipodal blend of ``_dqs_blend_values``: acc (12, L), rows 0-7 used."""
         n = len(bones)
 
         def codegen(context, builder, signature, args):
             a = _Rows(context, builder, signature.args[0], args[0])
             t = _Rows(context, builder, signature.args[1], args[1])
-            L, fma = a.L, _vector_intrinsic(builder, "llvm.fmuladd", a.vec, 3)
-            po = _bone_offset(builder, args[2], 8 * L)
-            p = [t.load(builder.add(po, _const(j * L))) for j in range(4)]
-            zero = ir.Constant(a.vec, None)
-            acc = [a.load(_const(j * L)) if accumulate else None for j in range(8)]
-            for k in range(n):
-                o = _bone_offset(builder, builder.extract_value(args[3], k), 8 * L)
-                rows = [t.load(builder.add(o, _const(j * L))) for j in range(8)]
-                d = builder.fmul(rows[0], p[0])
-                for j in range(1, 4):
-                    d = fma(rows[j], p[j], d)
-                w = _splat(builder, a.vec, builder.extract_value(args[4], k))
-                w = builder.select(builder.fcmp_ordered("<", d, zero), builder.fneg(w), w)
-                for j in range(8):
-                    acc[j] = builder.fmul(w, rows[j]) if acc[j] is None else fma(w, rows[j], acc[j])
-            for j in range(8):
-                a.store(acc[j], _const(j * L))
+            start = [a.load(_const(j * a.L)) if accumulate else None for j in range(8)]
+            for j, v in enumerate(_dqs_blend_values(builder, t, args[2], args[3], args[4], n, start)):
+                a.store(v, _const(j * a.L))
             return context.get_dummy_value()
         return types.void(acc, table, pivot, bones, weights), codegen
     return intrinsic(blend)
@@ -330,35 +370,37 @@ _dqs_blend_add = _dqs_blend_intrinsic(True)
 
 @intrinsic
 def _dual_quaternion_rows(typingctx, acc):
-    """In place: the blended dual quaternion ``(q, e)`` in acc rows 0-7, normalized, becomes the
-    12 rows of ``(R(q) - I | t)``, t = 2 (e conj(q)).xyz, in acc (12, L). ``R - I`` is formed from
-    q's products (its diagonal as ``-2 (q_j^2 + q_k^2)``), so q = 1 gives exactly 0."""
+    """In place: the blended dual quaternion in acc rows 0-7 becomes the 12 rows of
+    ``(R(q) - I | t)`` (``_rigid_rows``) in acc (12, L)."""
     def codegen(context, builder, signature, args):
         a = _Rows(context, builder, signature.args[0], args[0])
-        L, vec = a.L, a.vec
-        fma = _vector_intrinsic(builder, "llvm.fmuladd", vec, 3)
-        sqrt = _vector_intrinsic(builder, "llvm.sqrt", vec, 1)
-        mul, sub, add = builder.fmul, builder.fsub, builder.fadd
-        r = [a.load(_const(j * L)) for j in range(8)]
-        n2 = mul(r[0], r[0])
-        for j in range(1, 4):
-            n2 = fma(r[j], r[j], n2)
-        inv = builder.fdiv(ir.Constant(vec, [1.0] * L), sqrt(n2))
-        qw, qx, qy, qz, dw, dx, dy, dz = (mul(v, inv) for v in r)
-        two, minus_two = ir.Constant(vec, [2.0] * L), ir.Constant(vec, [-2.0] * L)
-
-        def diagonal(u, v):
-            return mul(minus_two, fma(u, u, mul(v, v)))
-        rows = [diagonal(qy, qz), mul(two, sub(mul(qx, qy), mul(qw, qz))), mul(two, add(mul(qx, qz), mul(qw, qy))),
-                mul(two, add(sub(mul(qw, dx), mul(dw, qx)), sub(mul(qy, dz), mul(qz, dy)))),
-                mul(two, add(mul(qx, qy), mul(qw, qz))), diagonal(qx, qz), mul(two, sub(mul(qy, qz), mul(qw, qx))),
-                mul(two, add(sub(mul(qw, dy), mul(dw, qy)), sub(mul(qz, dx), mul(qx, dz)))),
-                mul(two, sub(mul(qx, qz), mul(qw, qy))), mul(two, add(mul(qy, qz), mul(qw, qx))), diagonal(qx, qy),
-                mul(two, add(sub(mul(qw, dz), mul(dw, qz)), sub(mul(qx, dy), mul(qy, dx))))]
+        rows = _rigid_rows(builder, a.vec, [a.load(_const(j * a.L)) for j in range(8)])
         for j, v in enumerate(rows):
-            a.store(v, _const(j * L))
+            a.store(v, _const(j * a.L))
         return context.get_dummy_value()
     return types.void(acc), codegen
+
+
+@intrinsic
+def _dqs_vertex(typingctx, table, pivot, bones, weights, xyz, tile, t):
+    """A vertex of at most four influences in registers: blend (``_dqs_blend_values``),
+    normalize and form ``(R - I | t)`` (``_rigid_rows``), apply to rest vertex t of xyz into
+    tile rows 3t:3t+3 (xyz and tile (3W, L))."""
+    n = len(bones)
+
+    def codegen(context, builder, signature, args):
+        tb = _Rows(context, builder, signature.args[0], args[0])
+        x = _Rows(context, builder, signature.args[4], args[4])
+        o = _Rows(context, builder, signature.args[5], args[5])
+        L = tb.L
+        base = builder.mul(args[6], _const(3 * L))
+        q = _dqs_blend_values(builder, tb, args[1], args[2], args[3], n, [None] * 8)
+        m = _rigid_rows(builder, tb.vec, q)
+        p = [x.load(builder.add(base, _const(c * L))) for c in range(3)]
+        for r, v in enumerate(_apply_rows(builder, tb.vec, m, p)):
+            o.store(v, builder.add(base, _const(r * L)))
+        return context.get_dummy_value()
+    return types.void(table, pivot, bones, weights, xyz, tile, t), codegen
 
 
 @intrinsic
@@ -370,15 +412,12 @@ def _apply(typingctx, acc, xyz, tile, t):
         a = _Rows(context, builder, signature.args[0], args[0])
         x = _Rows(context, builder, signature.args[1], args[1])
         o = _Rows(context, builder, signature.args[2], args[2])
-        L, fma = a.L, _vector_intrinsic(builder, "llvm.fmuladd", a.vec, 3)
+        L = a.L
         base = builder.mul(args[3], _const(3 * L))
         p = [x.load(builder.add(base, _const(c * L))) for c in range(3)]
-        res = []
-        for r in range(3):
-            m = [a.load(_const((4 * r + c) * L)) for c in range(4)]
-            res.append(builder.fadd(p[r], fma(m[2], p[2], fma(m[1], p[1], fma(m[0], p[0], m[3])))))
-        for r in range(3):
-            o.store(res[r], builder.add(base, _const(r * L)))
+        m = [a.load(_const(j * L)) for j in range(12)]
+        for r, v in enumerate(_apply_rows(builder, a.vec, m, p)):
+            o.store(v, builder.add(base, _const(r * L)))
         return context.get_dummy_value()
     return types.void(acc, xyz, tile, t), codegen
 
@@ -738,9 +777,22 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, rest2, out, out2, table, 
             _rest_tile(rest, rest2, s, nf, a, tv, xyz, check)
             for t in range(tv):
                 i = a + t
-                _dqs_blend(acc, table, pivot[i], indices, data, indptr[i], indptr[i + 1])
-                _dual_quaternion_rows(acc)
-                _apply(acc, xyz, tile, t)
+                p0, p1, p = indptr[i], indptr[i + 1], pivot[i]
+                n = p1 - p0
+                if n == 1:
+                    _dqs_vertex(table, p, (indices[p0],), (data[p0],), xyz, tile, t)
+                elif n == 2:
+                    _dqs_vertex(table, p, (indices[p0], indices[p0 + 1]), (data[p0], data[p0 + 1]), xyz, tile, t)
+                elif n == 3:
+                    _dqs_vertex(table, p, (indices[p0], indices[p0 + 1], indices[p0 + 2]),
+                                (data[p0], data[p0 + 1], data[p0 + 2]), xyz, tile, t)
+                elif n == 4:
+                    _dqs_vertex(table, p, (indices[p0], indices[p0 + 1], indices[p0 + 2], indices[p0 + 3]),
+                                (data[p0], data[p0 + 1], data[p0 + 2], data[p0 + 3]), xyz, tile, t)
+                else:
+                    _dqs_blend(acc, table, p, indices, data, p0, p1)
+                    _dual_quaternion_rows(acc)
+                    _apply(acc, xyz, tile, t)
             _write_tile(tile, out, out2, s, nf, a, tv)
 
 
