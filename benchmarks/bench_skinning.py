@@ -162,6 +162,8 @@ def main(frames: int = 1000) -> None:
         return linear_blend_skinning_numpy(body, W, Gn)
     t_old = best_time(numpy_pipeline, 1)
     report("pose_bodies one body over the frames (heads + FK + LBS)", t_new, t_old, vf, "vertex-frames")
+    t32 = best_time(lambda: pose_bodies(body, rig, R, dtype=np.float32), 3)
+    report("pose_bodies, float32 output", t32, t_old, vf, "vertex-frames")
 
     # a batch of 100 bodies x 10 frames: per-body rest meshes
     n_bodies, per = 100, 10
