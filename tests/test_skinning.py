@@ -22,6 +22,7 @@ from bodyspace.rig.kinematics import (
     linear_blend_skinning_numpy,
     rotvec_to_matrix,
 )
+from bodyspace.rig import skinning
 from bodyspace.rig.skinning import FRAME_BLOCK, dual_quaternion_skinning, linear_blend_skinning
 
 SKINNERS = [(linear_blend_skinning, linear_blend_skinning_numpy), (dual_quaternion_skinning, dual_quaternion_skinning_numpy)]
@@ -99,6 +100,23 @@ def test_float32_arithmetic_error_on_a_body_scale_mesh(compiled, reference):
     got = compiled(rest, W, G, dtype=np.float32)
     assert np.abs(got - ref).max() < 2e-6                 # metres: 0.002 mm
     assert np.abs(got - ref).max() > 0                    # (float32 arithmetic, not a rounded float64 result)
+
+
+@pytest.mark.parametrize("compiled, reference", SKINNERS)
+def test_streaming_stores_write_the_same(compiled, reference, monkeypatch):
+    """Outputs past STREAM_MIN_BYTES go out through staged runs and non-temporal stores (whole
+    aligned lines streamed, partial ones stored plainly): same values, every alignment of a row."""
+    rng = np.random.default_rng(13)
+    V, B, N = 301, 7, 45                     # rows of 903 values: each frame's run starts at another offset
+    W = random_weights(rng, V, B)
+    G = random_rigid(rng, N, B)
+    rest = rng.normal(size=(N, V, 3))
+    plain = {dt: compiled(rest, W, G, dtype=dt, lanes=1) for dt in (np.float64, np.float32)}
+    monkeypatch.setattr(skinning, "STREAM_MIN_BYTES", 0)
+    for dt, expected in plain.items():
+        for lanes in (1, 2):
+            np.testing.assert_array_equal(compiled(rest, W, G, dtype=dt, lanes=lanes), expected)
+    np.testing.assert_allclose(plain[np.float64], reference(rest, W, G), rtol=0, atol=1e-12 * np.abs(rest).max() * 10)
 
 
 @pytest.mark.parametrize("compiled", [linear_blend_skinning, dual_quaternion_skinning])

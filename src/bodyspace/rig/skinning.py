@@ -73,6 +73,12 @@ VECTOR_BYTES = 64
 ROW_VECTORS = 2
 # The most frames a block takes (float32: 2 x 16); float64 blocks take 16.
 FRAME_BLOCK = ROW_VECTORS * VECTOR_BYTES // 4
+# Full vertex tiles staged before their frame runs are copied out (runs of 3 W C values a frame:
+# 384 float32 = 24 cache lines, so the two partial lines at the ends of a run are few).
+STAGED_TILES = 8
+# Outputs at least this large are written with non-temporal (streaming) stores: they do not fit
+# the 32 MB L3 anyway, and a plain store reads every line before writing it.
+STREAM_MIN_BYTES = 16 * 2**20
 # Rows of the weights must sum to one within this (float32-stored weights still pass).
 WEIGHT_SUM_TOLERANCE = 1e-6
 # Below this many vertex-frames a call stays on one lane (a thread hand-off costs ~50 us).
@@ -468,6 +474,56 @@ def _frames_to_tile(typingctx, rest2, s, nf, col, xyz):
     return types.void(rest2, s, nf, col, xyz), codegen
 
 
+def _copy_rows_intrinsic(nontemporal: bool):
+    def copy_rows(typingctx, staging, out2, s, nf, col, n):
+        """``out2[s + f, col : col + n] = staging[f, :n]`` for the frames f < nf. With
+        ``nontemporal``, the whole 64-byte lines of each run are written by streaming stores
+        (no read of the line first, no cache pollution; the unaligned load from the L1 staging
+        row does the realignment) and the partial lines at both ends by plain stores; a fence at
+        the end orders the streaming stores before any later access."""
+        def codegen(context, builder, signature, args):
+            st = _Rows(context, builder, signature.args[0], args[0], native=True)
+            o = _Rows(context, builder, signature.args[1], args[1], native=True)
+            W, item = st.W, st.align
+            elem = st.vec.element
+            s_len, o_len = st.row_length(), o.row_length()
+            n = args[5]
+            with cgutils.for_range(builder, args[3]) as loop:
+                f = loop.index
+                src = builder.gep(st.array.data, [builder.mul(f, s_len)])
+                dst = builder.gep(o.array.data, [builder.add(builder.mul(builder.add(args[2], f), o_len), args[4])])
+                if nontemporal:
+                    address = builder.ptrtoint(dst, _I64)
+                    head = builder.udiv(builder.and_(builder.sub(_const(0), address), _const(VECTOR_BYTES - 1)),
+                                        _const(item))
+                    head = builder.select(builder.icmp_signed("<", n, head), n, head)
+                else:
+                    head = _const(0)
+                body = builder.sdiv(builder.sub(n, head), _const(W))
+                with cgutils.for_range(builder, head) as h:
+                    builder.store(builder.load(builder.gep(src, [h.index])), builder.gep(dst, [h.index]))
+                with cgutils.for_range(builder, body) as b:
+                    k = builder.add(head, builder.mul(b.index, _const(W)))
+                    v = builder.load(builder.bitcast(builder.gep(src, [k]), st.vec.as_pointer()), align=item)
+                    store = builder.store(v, builder.bitcast(builder.gep(dst, [k]), st.vec.as_pointer()),
+                                          align=VECTOR_BYTES if nontemporal else item)
+                    if nontemporal:
+                        store.set_metadata("nontemporal", builder.module.add_metadata([ir.Constant(ir.IntType(32), 1)]))
+                done = builder.add(head, builder.mul(body, _const(W)))
+                with cgutils.for_range(builder, builder.sub(n, done)) as t:
+                    e = builder.add(done, t.index)
+                    builder.store(builder.load(builder.gep(src, [e])), builder.gep(dst, [e]))
+            if nontemporal:
+                builder.fence("seq_cst")
+            return context.get_dummy_value()
+        return types.void(staging, out2, s, nf, col, n), codegen
+    return intrinsic(copy_rows)
+
+
+_copy_rows = _copy_rows_intrinsic(False)
+_stream_rows = _copy_rows_intrinsic(True)
+
+
 def _lane_ranges(N: int, V: int, lanes: int | None, L: int) -> list[tuple[int, int, int, int]]:
     """Work split: [(n0, n1, i0, i1)], one range per lane; two lanes take the halves of the
     frames (whole blocks of L on the first), or of the vertices for one frame."""
@@ -498,13 +554,14 @@ def _skin(kernel, n_rows: int, head: tuple, G, v, out, lanes) -> np.ndarray:
     # the kernels write (N, 3V) rows; a non-contiguous ``out`` gets them through a buffer
     target = out if out.flags.c_contiguous else np.empty(out.shape, dtype)
     ranges = _lane_ranges(N, V, lanes, L)
+    stream = out.nbytes >= STREAM_MIN_BYTES
     checks = [np.zeros((3 * W, L), dtype) for _ in ranges]
     args = (*head, G, rest, rest.reshape(rest.shape[0], 3 * V), target, target.reshape(N, 3 * V))
 
     def lane(k):
         buffers = (np.zeros((B, n_rows, L), dtype), np.zeros((12, L), dtype), np.zeros((3 * W, L), dtype),
-                   np.zeros((3 * W, L), dtype))
-        kernel(*args, *buffers, *ranges[k], checks[k])
+                   np.zeros((3 * W, L), dtype), np.zeros((L, 3 * W * STAGED_TILES), dtype))
+        kernel(*args, *buffers, stream, *ranges[k], checks[k])
     if len(ranges) == 1:
         lane(0)
     else:
@@ -558,15 +615,32 @@ def _rest_tile(rest, rest2, s, nf, a, tv, xyz, check):
 
 
 @_inline
-def _write_tile(tile, out, out2, s, nf, a, tv):
-    """The tile's posed vertices a:a+tv, frames s:s+nf, into out (N, V, 3) / its (N, 3V) view."""
-    if tv * 3 == tile.shape[0]:
-        _tile_to_frames(tile, out2, s, nf, 3 * a)
+def _write_tile(tile, staging, out, out2, s, nf, a, tv, i0, i1, stream):
+    """The tile's posed vertices a:a+tv, frames s:s+nf, out: a full tile goes to its slot of the
+    staging rows (L, 3 W C), transposed; when the C slots are full or the range ends, the
+    staged runs are copied to out2 (the (N, 3V) view of out), streaming when ``stream``. A
+    partial tile (the range's last) is written directly."""
+    W = tile.shape[0] // 3
+    C = staging.shape[1] // (3 * W)
+    k = (a - i0) // W % C
+    if tv == W:
+        _tile_to_frames(tile, staging, 0, nf, 3 * W * k)
+        k += 1
+        if k < C and a + W < i1:
+            return
+        start = a - (k - 1) * W
     else:
         for f in range(nf):
             for t in range(tv):
                 for c in range(3):
                     out[s + f, a + t, c] = tile[3 * t + c, f]
+        if k == 0:
+            return
+        start = a - k * W
+    if stream:
+        _stream_rows(staging, out2, s, nf, 3 * start, 3 * W * k)
+    else:
+        _copy_rows(staging, out2, s, nf, 3 * start, 3 * W * k)
 
 
 # ------------------------------------------------------------------------------- LBS kernel
@@ -605,7 +679,8 @@ def _lbs_blend(acc, table, indices, data, p0, p1):
 
 
 @_kernel
-def _lbs_kernel(indptr, indices, data, G, rest, rest2, out, out2, table, acc, xyz, tile, n0, n1, i0, i1, check):
+def _lbs_kernel(indptr, indices, data, G, rest, rest2, out, out2, table, acc, xyz, tile, staging, stream, n0, n1,
+                i0, i1, check):
     """``out[n, i] = v + sum_k w_k (G_{b_k} - I) [v; 1]`` for frames n0:n1 and vertices i0:i1.
 
     indptr/indices/data: the weights' CSR arrays (data in the output dtype); G (N, B, 4, 4);
@@ -643,7 +718,7 @@ def _lbs_kernel(indptr, indices, data, G, rest, rest2, out, out2, table, acc, xy
                 else:
                     _lbs_blend(acc, table, indices, data, p0, p1)
                     _apply(acc, xyz, tile, t)
-            _write_tile(tile, out, out2, s, nf, a, tv)
+            _write_tile(tile, staging, out, out2, s, nf, a, tv, i0, i1, stream)
 
 
 def linear_blend_skinning(vertices: np.ndarray, weights: sp.spmatrix | np.ndarray, transforms: np.ndarray, *,
@@ -753,8 +828,8 @@ def _dqs_blend(acc, table, pivot, indices, data, p0, p1):
 
 
 @_kernel
-def _dqs_kernel(indptr, indices, data, pivot, G, rest, rest2, out, out2, table, acc, xyz, tile, n0, n1, i0, i1,
-                check):
+def _dqs_kernel(indptr, indices, data, pivot, G, rest, rest2, out, out2, table, acc, xyz, tile, staging, stream, n0,
+                n1, i0, i1, check):
     """Dual-quaternion skinning of frames n0:n1, vertices i0:i1 (``dual_quaternion_skinning``).
 
     Arguments as ``_lbs_kernel``, table (B, 8, L); pivot (V,): each vertex's heaviest bone. Per
@@ -793,7 +868,7 @@ def _dqs_kernel(indptr, indices, data, pivot, G, rest, rest2, out, out2, table, 
                     _dqs_blend(acc, table, p, indices, data, p0, p1)
                     _dual_quaternion_rows(acc)
                     _apply(acc, xyz, tile, t)
-            _write_tile(tile, out, out2, s, nf, a, tv)
+            _write_tile(tile, staging, out, out2, s, nf, a, tv, i0, i1, stream)
 
 
 @_kernel
