@@ -24,6 +24,9 @@ Layout of the work (docs/skinning.md measures each choice):
   coordinates: three vector stores a frame instead of 3W scattered scalar ones (the scatter
   was the largest cost of the previous kernel). Per-body rest vertices are read the same way
   backwards (``_frames_to_tile``);
+* ``STAGED_TILES`` full tiles are staged so a frame's run is 3WC values long, then copied out;
+  outputs of ``STREAM_MIN_BYTES`` or more with non-temporal stores for the run's whole cache
+  lines (a plain store reads each line before writing it);
 * the vector code is written directly in LLVM IR (numba ``intrinsic``s below): LLVM's
   auto-vectorizer left the constant-length frame loops scalar (it fully unrolls them and then
   cannot prove the buffers do not alias).
