@@ -442,17 +442,12 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
     ages = None if _DB_JOB["ages"] is None else _DB_JOB["ages"][start:stop]
     males = None if _DB_JOB["males"] is None else _DB_JOB["males"][start:stop]
     values = np.empty((len(rows), len(mset.names)))
-    # One evaluate per sex: the mass method takes one sex for a batch (ages may vary).
-    groups = [(np.arange(len(rows)), None)] if males is None else \
-        [(np.flatnonzero(males == sex), sex) for sex in (False, True)]
-    for idx, sex in groups:
-        if not idx.size:
-            continue
-        results = evaluate(mset, v[idx], db.faces, age_years=None if ages is None else ages[idx],
-                           male=None if sex is None else float(sex), mesh_name=f"scans {start}..{stop - 1}")
-        for j, m in enumerate(results.values()):
-            values[idx, j] = m.display()[0]
-            for i, why in zip(idx, m.note or []):
-                if why and not np.isfinite(values[i, j]):
-                    notes[i].append(f"{m.name}: {why}")
+    # One evaluate for the chunk: the mass method takes one sex and one age per body.
+    results = evaluate(mset, v, db.faces, age_years=ages, male=None if males is None else males.astype(float),
+                       mesh_name=f"scans {start}..{stop - 1}", chunk=len(rows))
+    for j, m in enumerate(results.values()):
+        values[:, j] = m.display()[0]
+        for i, why in enumerate(m.note or []):
+            if why and not np.isfinite(values[i, j]):
+                notes[i].append(f"{m.name}: {why}")
     return values, degrees, ["; ".join(dict.fromkeys(n)) for n in notes]
