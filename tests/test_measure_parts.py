@@ -184,3 +184,51 @@ def test_mass_takes_one_sex_per_body(mset, mean_body, template):
     assert np.isfinite(m).all() and m[0] != m[1]
     one = evaluate(mset, mean_body, template.faces, male=1.0)
     assert m[0] == pytest.approx(one["mass"].value)
+
+
+def _tilted(template, body, bones, degrees):
+    """``body`` with the head tilted sideways (about the front axis) by ``degrees``, shared by ``bones``."""
+    from bodyspace.rig.kinematics import rotvec_to_matrix
+    rig = template.rigs["default"]
+    rv = np.zeros((rig.n_bones, 3))
+    for b in bones:
+        rv[rig.bone_index(b)] = [0.0, 0.0, np.radians(degrees / len(bones))]
+    return pose_bodies(body, rig, rotvec_to_matrix(rv), on_ground=True)
+
+
+def test_neck_plane_follows_the_neck_when_the_head_tilts(mset, mean_body, template):
+    """Issue 12 §3: the neck girth's plane is normal to the neck's own axis (its rims on the torso
+    and the head), so a head tilted sideways by 20-30° keeps the neck girth within 1 cm; with the
+    old axis, neck to head top, tilting the head alone at 30° moved it by more (the plane leaned
+    with the head)."""
+    neck = [m for m in mset.measurements if m["name"] == "neck_girth"][0]
+    assert isinstance(neck["normal"], dict) and neck["normal"]["part"] == "neck"
+    old = _one(mset, "neck_girth", normal=neck["normal"]["fallback"])
+    new = _one(mset, "neck_girth")
+    upright = evaluate(new, mean_body, template.faces)["neck_girth"].value
+    upright_old = evaluate(old, mean_body, template.faces)["neck_girth"].value
+    cases = [(["neck01", "neck02", "neck03", "head"], 20), (["neck01", "neck02", "neck03", "head"], -30),
+             (["head"], 25), (["head"], -30)]
+    bodies = np.stack([_tilted(template, mean_body, bones, deg) for bones, deg in cases])
+    got = evaluate(new, bodies, template.faces)["neck_girth"].value
+    assert np.abs(got - upright).max() < 0.01, got - upright
+    assert np.abs(evaluate(old, bodies, template.faces)["neck_girth"].value - upright_old).max() > 0.01
+    # Standing, the neck's own axis is the old one within a degree: the same girth.
+    assert abs(upright - upright_old) < 0.005
+
+
+def test_part_axis_is_checked_and_falls_back_without_labels(mset, mean_body, template):
+    neck = dict(next(m for m in mset.measurements if m["name"] == "neck_girth"))
+    d = mset.to_dict()
+    for bad, words in (({"part": "nek", "from": "torso", "to": "head", "fallback": neck["normal"]["fallback"]},
+                        "field 'part'"),
+                       ({"part": "neck", "from": "torso", "to": "head"}, "field 'fallback'"),
+                       ({"part": "neck", "from": "torso", "to": "head", "fallback": ["x", "head_top"]},
+                        "unknown landmark 'x'")):
+        with pytest.raises(MeasurementError, match=words):
+            measurement_set_from_dict(dict(d, measurements=[dict(neck, normal=bad)]))
+    # Without part labels (no part-aware girths) the fallback axis is used: the old plane.
+    bare = dataclasses.replace(_one(mset, "neck_girth", part=None), vertex_parts=None)
+    fallback = _one(mset, "neck_girth", part=None, normal=neck["normal"]["fallback"])
+    assert evaluate(bare, mean_body, template.faces)["neck_girth"].value == pytest.approx(
+        evaluate(fallback, mean_body, template.faces)["neck_girth"].value, abs=1e-12)
