@@ -23,7 +23,7 @@ from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
 from bodyspace.measure.parts import parts_from_landmarks
-from bodyspace.measure.points import axis, border_key, format_point, part_axes
+from bodyspace.measure.points import axis, format_point
 from bodyspace.mesh.geometry import check_mesh
 
 CHUNK = 64
@@ -128,12 +128,6 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
     P = _landmarks(L, v)
     chunk = Chunk(v, {name: P[:, i] for i, name in enumerate(mset.landmarks)}, topology, keep_polylines,
                   age_years, male, parts)
-    if parts is not None:
-        # The border centroids part axes need (the neck's rims on the torso and on the head).
-        for part, other in part_axes([m.get(k) for m in mset.measurements for k in ("normal", "axis")]):
-            idx = topology.border_vertices(parts, part, other)
-            if len(idx):
-                chunk.landmarks[border_key(part, other)] = v[:, idx].mean(axis=1)
     cond = _conditions(mset, chunk.landmarks, n)
     res: dict = {}
     for m in mset.measurements:

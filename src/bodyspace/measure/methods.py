@@ -65,21 +65,6 @@ class Topology:
         self.neighbours = edge_neighbours(self.faces, self.edges, self.edge_faces)
         self.loops = boundary_loops(self.faces)
         self._part_edges: dict = {}
-        self._borders: dict = {}
-
-    def border_vertices(self, labels: np.ndarray, part: str, other: str) -> np.ndarray:
-        """The vertices (K,) of ``part`` joined by an edge to a vertex of ``other`` (by the vertex
-        ``labels`` (V,)): where the part meets the other, e.g. the neck's lower rim on the torso.
-        Cached: labels are per topology."""
-        key = (hash(labels.tobytes()), part, other)
-        if key not in self._borders:
-            a, b = labels[self.edges[:, 0]], labels[self.edges[:, 1]]
-            p, o = PART_INDEX[part], PART_INDEX[other]
-            ends = np.concatenate([self.edges[(a == p) & (b == o), 0], self.edges[(b == p) & (a == o), 1]])
-            self._borders[key] = np.unique(ends)
-            if len(self._borders) > 64:
-                self._borders.pop(next(iter(self._borders)))
-        return self._borders[key]
 
     def part_edges(self, labels: np.ndarray, part) -> tuple[np.ndarray, np.ndarray]:
         """The edges (E', 2) whose two ends are on ``part`` (a part name or a list of them) by the
