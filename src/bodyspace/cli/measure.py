@@ -444,7 +444,7 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
     values = np.empty((len(rows), len(mset.names)))
     # One evaluate for the chunk: the mass method takes one sex and one age per body.
     results = evaluate(mset, v, db.faces, age_years=ages, male=None if males is None else males.astype(float),
-                       mesh_name=f"scans {start}..{stop - 1}", chunk=len(rows))
+                       mesh_name=f"scans {start}..{stop - 1}")
     for j, m in enumerate(results.values()):
         values[:, j] = m.display()[0]
         for i, why in enumerate(m.note or []):
