@@ -333,6 +333,10 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
                   and list(db.meta.get("joints") or []) == list(rig.bone_names))
     _DB_JOB.update(db=db, mset=mset, rig=rig, ages=ages, males=males, known_pose=known_pose)
     n = db.n_scans
+    if workers > 1 and n > 1:
+        # One scan here first: the template, the unposing plan and the compiled kernels are then
+        # loaded once and inherited by the forked workers (each loaded its own: ~2 s CPU a worker).
+        _measure_chunk(0, 1)
     chunk = max(1, min(chunk, -(-n // (2 * workers))))  # a small database still keeps both workers busy
     starts = list(range(0, n, chunk))
     measured = undefined = 0
