@@ -32,7 +32,7 @@ import numpy as np
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.composition import mass_from_volume
 from bodyspace.measure.parts import PART_INDEX, PARTS
-from bodyspace.measure.points import axis, check_axis, check_point, fail, point
+from bodyspace.measure.points import axis, check_axis, check_point, fail, inline_points, point
 from bodyspace.measure.slicing import (
     approx_heights,
     band_contours,
@@ -469,6 +469,7 @@ def known_methods() -> str:
 
 def template_vertices(m: dict) -> list:
     """The template vertex ids a measurement uses directly: the ``vertices`` field of a
-    template-only method (a loop's ring), else none."""
+    template-only method (a loop's ring), and the inline joints of a joint axis; else none."""
     method = METHODS.get(m["method"])
-    return list(m.get("vertices", [])) if method is not None and not method.topology_free else []
+    ids = list(m.get("vertices", [])) if method is not None and not method.topology_free else []
+    return ids + [i for p in inline_points([m.get("normal"), m.get("axis")]) for i in p["vertices"]]
