@@ -55,6 +55,10 @@ UNFINISHED_FORMAT = 1
 STATE_FILE = "state.json"
 CHUNKS_FILE = "subjects.npz"
 LOCK_FILE = "lock"
+# The progress fraction at the end of the chunks: the rest (the NaN check reading vertices.npy
+# back, the tables) took 0.3-1 % of the time at 1,000-100,000 scans (benchmarks/RESULTS.md), and
+# the remaining time the progress bar shows is the rate so far applied to what is left.
+CHUNKS_SHARE = 0.99
 STATURE_TOL_M = 1e-4
 BMI_TOL = 5e-3
 # Redrawing an unreachable subject (``_redraw``): candidates solved per round, rounds before
@@ -591,7 +595,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
                 write_json(work / STATE_FILE, {"request": request, "chunks_done": -(-stop // chunk),
                                                "subjects_done": stop, "rng_after": rng_after})
                 report(f"wrote {stop}/{n_subjects} subjects ({stop * per_subject} scans)",
-                       0.02 + 0.9 * stop / n_subjects)
+                       CHUNKS_SHARE * stop / n_subjects)
         finally:
             _JOB.clear()
 
@@ -616,7 +620,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         }
         if redraws["redrawn"]:
             meta["provenance"]["redraw_target_moments"] = redraws["moments"]
-        report("writing the tables", 0.95)
+        report("writing the tables", CHUNKS_SHARE)
         write_database_tables(work, template.faces, subjects.table(),
                               {"subject": np.repeat(ids, per_subject), "pose": poses.astype(str)}, meta,
                               joints=list(skeleton.bone_names))
