@@ -42,8 +42,8 @@ POSES = 4  # scans per subject: rest + 4 poses
 
 def _spawn_measured(args: list[str]) -> tuple[float, float, float, float, str]:
     """(wall s, CPU s, peak PSS GB, peak RSS GB, its summary lines) of ``python -m bodyspace
-    ARGS``: memory summed over the child and its workers (``TreeMemory``), CPU from rusage (the
-    child reaped with ``os.wait4``, its workers reaped by it)."""
+    ARGS``: memory summed over the child and its workers (``TreeMemory``), CPU from the child's
+    rusage (``os.wait4``: its own and that of the workers it reaped)."""
     t = time.perf_counter()
     with tempfile.TemporaryFile("w+") as log:
         child = subprocess.Popen([sys.executable, "-c", _WRAPPER, *args], stdout=log, stderr=log,
@@ -60,7 +60,9 @@ def _spawn_measured(args: list[str]) -> tuple[float, float, float, float, str]:
     workers = [ln.split()[1:] for ln in text.splitlines() if ln.startswith("bench-workers")]
     # A sample can miss a short peak: never report less than the largest single process.
     single_gb = max([usage.ru_maxrss] + [int(w[0]) for w in workers]) / 2**20
-    cpu = usage.ru_utime + usage.ru_stime + sum(float(w[1]) for w in workers)
+    # wait4's rusage already includes the descendants the child reaped (its workers): adding the
+    # workers' own line as well counted them twice (the RESULTS tables before 2026-12-03 did).
+    cpu = usage.ru_utime + usage.ru_stime
     return (wall, cpu, max(tree.peak_pss_gb, single_gb), max(tree.peak_rss_gb, single_gb),
             " | ".join(lines)[-300:])
 
@@ -135,6 +137,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--skip", nargs="*", default=[], help="stages to skip: population-1-worker population "
                                                                "build-rre build-vertex measure measure-posed pca")
+    parser.add_argument("--baseline-scans", type=int, nargs="*", default=None,
+                        help="the N at which the --workers 1 population baseline runs (default: every N)")
     parser.add_argument("--pca-scans", type=int, default=1000, help="size of the PCA side-by-side (0: skip)")
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
@@ -159,6 +163,8 @@ def main() -> None:
                               work / f"p{n}.csv"),
         }
         for stage, (cli, output) in stages.items():
+            if stage == "population-1-worker" and args.baseline_scans is not None and n not in args.baseline_scans:
+                continue
             if stage in args.skip or (not stage.startswith("population") and not db.exists()):
                 continue
             if output.is_file():
