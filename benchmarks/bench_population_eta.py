@@ -42,6 +42,12 @@ def evaluate(samples: list[tuple[float, float, str]]) -> None:
             continue
         ratios.append(shown / real)
         print(f"| {100 * f:.0f} % | {t:,.0f} s | {shown:,.0f} s | {real:,.0f} s | {shown / real:.2f} |")
+    last = max((s for s in samples if s[1] < 1.0), key=lambda s: s[1])  # the last report before "done"
+    shown = remaining_seconds(first, last[:2])
+    if shown is not None and end > last[0]:
+        ratios.append(shown / (end - last[0]))
+        print(f"| {100 * last[1]:.0f} % ({last[2]}) | {last[0]:,.0f} s | {shown:,.0f} s | {end - last[0]:,.0f} s | "
+              f"{shown / (end - last[0]):.2f} |")
     if ratios:
         print(f"remaining time shown / real: {min(ratios):.2f} .. {max(ratios):.2f} (1 = exact), over {end:,.0f} s")
 
