@@ -176,8 +176,8 @@ def main() -> None:
             stats.setdefault(stage, []).append((scans, wall, cpu, pss))
             print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {pss:.2f} GB | "
                   f"{rss:.2f} GB | {disk_gb(output):.2f} GB | {load:.1f} | {said} |", flush=True)
-            if stage == "population" and "population-1-worker" in stats:
-                base = stats["population-1-worker"][-1]
+            base = stats.get("population-1-worker", [(0,)])[-1]
+            if stage == "population" and base[0] == scans:  # the baseline at this N
                 report(f"population of {scans:,} scans (workers: one per core, against --workers 1)", wall, base[1],
                        scans, "scans")
     print("\n| work | scans | wall | CPU | rate (wall) | peak PSS | peak RSS (sum) | disk | load before | output |")
