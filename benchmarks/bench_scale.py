@@ -85,6 +85,28 @@ sys.exit(code)
 """
 
 
+def cores_obtained(processes: int, seconds: float = 2.0) -> float:
+    """CPU cores that ``processes`` busy forked processes of this session get now (CPU s / wall s).
+
+    On a machine shared with other sessions, Linux's autogroup scheduling divides the CPU between
+    sessions, not processes: then two workers get no more than one, and no number of workers can
+    show a speed-up. Printed before the runs so the ratios can be read against it."""
+    pids = []
+    for _ in range(processes):
+        pid = os.fork()
+        if pid == 0:
+            end = time.perf_counter() + seconds
+            while time.perf_counter() < end:
+                pass
+            os._exit(0)
+        pids.append(pid)
+    cpu = 0.0
+    for pid in pids:
+        _, _, usage = os.wait4(pid, 0)
+        cpu += usage.ru_utime + usage.ru_stime
+    return cpu / seconds
+
+
 def disk_gb(path: Path) -> float:
     if path.is_file():
         return path.stat().st_size / 1e9
@@ -143,7 +165,9 @@ def main() -> None:
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
     work.mkdir(parents=True, exist_ok=True)
-    print(f"bench_scale: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, work in {work}")
+    print(f"bench_scale: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, work in {work}; "
+          f"cores one / two busy processes of this session get now: {cores_obtained(1):.2f} / "
+          f"{cores_obtained(2):.2f}", flush=True)
     rows = []
     stats: dict[str, list[tuple[int, float, float]]] = {}
     for n in args.scans:
