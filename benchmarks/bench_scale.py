@@ -2,9 +2,12 @@
 encodings) and measure at growing N, the fitted growth, and the Krylov PCA with its codes in
 memory against the same PCA reading them from disk.
 
-Each command runs as the user runs it (``python -m bodyspace ...``) in a child process, and its
-peak resident memory is the child's own (``os.wait4`` rusage ``ru_maxrss``); disk is the size of
-what it wrote. The PCA comparison runs in this process on the codes of one build (the baseline:
+Each command runs as the user runs it (``python -m bodyspace ...``) in a child process. Its
+peak memory is that of the child and its worker processes together, sampled (``_treemem``: the
+sum of their proportional set sizes, PSS, and the larger sum of their resident sizes, RSS, which
+counts the pages a forked worker shares with its parent twice); disk is the size of what it
+wrote. The population runs twice at each N: ``--workers 1`` (the baseline) and one worker per
+core, and the speed-up is printed as a ratio. The PCA comparison runs in this process on the codes of one build (the baseline:
 the in-memory fit, same codes, same start block).
 
     PYTHONPATH=src python benchmarks/bench_scale.py --scans 1000 5000 [--keep DIR]
@@ -26,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import report  # noqa: E402
+from _treemem import TreeMemory  # noqa: E402
 
 from bodyspace.data.database import ScanDatabase  # noqa: E402
 from bodyspace.encoding import ENCODERS  # noqa: E402
@@ -36,14 +40,16 @@ from bodyspace.shape import ShapeSpace  # noqa: E402
 POSES = 4  # scans per subject: rest + 4 poses
 
 
-def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
-    """(wall s, CPU s, peak RSS GB, its summary lines) of ``python -m bodyspace ARGS``,
-    the child reaped with ``os.wait4`` to read its own rusage."""
+def _spawn_measured(args: list[str]) -> tuple[float, float, float, float, str]:
+    """(wall s, CPU s, peak PSS GB, peak RSS GB, its summary lines) of ``python -m bodyspace
+    ARGS``: memory summed over the child and its workers (``TreeMemory``), CPU from the child's
+    rusage (``os.wait4``: its own and that of the workers it reaped)."""
     t = time.perf_counter()
     with tempfile.TemporaryFile("w+") as log:
         child = subprocess.Popen([sys.executable, "-c", _WRAPPER, *args], stdout=log, stderr=log,
                                  env={**os.environ, "COLUMNS": "200"})
-        _, status, usage = os.wait4(child.pid, 0)
+        with TreeMemory(child.pid) as tree:
+            _, status, usage = os.wait4(child.pid, 0)
         child.returncode = os.waitstatus_to_exitcode(status)
         wall = time.perf_counter() - t
         log.seek(0)
@@ -52,9 +58,13 @@ def _spawn_measured(args: list[str]) -> tuple[float, float, str]:
         raise SystemExit(f"bodyspace {' '.join(args)} failed:\n{text[-2000:]}")
     lines = [ln for ln in text.strip().splitlines() if ln.startswith(("wrote", "1 ", "no subject")) or "redrawn" in ln]
     workers = [ln.split()[1:] for ln in text.splitlines() if ln.startswith("bench-workers")]
-    peak_kb = max([usage.ru_maxrss] + [int(w[0]) for w in workers])
-    cpu = usage.ru_utime + usage.ru_stime + sum(float(w[1]) for w in workers)
-    return wall, cpu, peak_kb / 2**20, " | ".join(lines)[-300:]
+    # A sample can miss a short peak: never report less than the largest single process.
+    single_gb = max([usage.ru_maxrss] + [int(w[0]) for w in workers]) / 2**20
+    # wait4's rusage already includes the descendants the child reaped (its workers): adding the
+    # workers' own line as well counted them twice (the RESULTS tables before 2026-12-03 did).
+    cpu = usage.ru_utime + usage.ru_stime
+    return (wall, cpu, max(tree.peak_pss_gb, single_gb), max(tree.peak_rss_gb, single_gb),
+            " | ".join(lines)[-300:])
 
 
 # The command as `python -m bodyspace ARGS` runs it, then the peak RSS and CPU seconds of its own
@@ -73,6 +83,28 @@ workers = resource.getrusage(resource.RUSAGE_CHILDREN)
 print("bench-workers", workers.ru_maxrss, workers.ru_utime + workers.ru_stime, file=sys.stderr)
 sys.exit(code)
 """
+
+
+def cores_obtained(processes: int, seconds: float = 2.0) -> float:
+    """CPU cores that ``processes`` busy forked processes of this session get now (CPU s / wall s).
+
+    On a machine shared with other sessions, Linux's autogroup scheduling divides the CPU between
+    sessions, not processes: then two workers get no more than one, and no number of workers can
+    show a speed-up. Printed before the runs so the ratios can be read against it."""
+    pids = []
+    for _ in range(processes):
+        pid = os.fork()
+        if pid == 0:
+            end = time.perf_counter() + seconds
+            while time.perf_counter() < end:
+                pass
+            os._exit(0)
+        pids.append(pid)
+    cpu = 0.0
+    for pid in pids:
+        _, _, usage = os.wait4(pid, 0)
+        cpu += usage.ru_utime + usage.ru_stime
+    return cpu / seconds
 
 
 def disk_gb(path: Path) -> float:
@@ -125,19 +157,25 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scans", type=int, nargs="+", default=[1000, 5000])
     parser.add_argument("--keep", type=Path, default=None, help="work folder (default: a temporary one)")
-    parser.add_argument("--skip", nargs="*", default=[], help="stages to skip: population build-rre build-vertex "
-                                                               "measure measure-posed pca")
+    parser.add_argument("--skip", nargs="*", default=[], help="stages to skip: population-1-worker population "
+                                                               "build-rre build-vertex measure measure-posed pca")
+    parser.add_argument("--baseline-scans", type=int, nargs="*", default=None,
+                        help="the N at which the --workers 1 population baseline runs (default: every N)")
     parser.add_argument("--pca-scans", type=int, default=1000, help="size of the PCA side-by-side (0: skip)")
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench-scale-"))
     work.mkdir(parents=True, exist_ok=True)
-    print(f"bench_scale: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, work in {work}")
+    print(f"bench_scale: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}, work in {work}; "
+          f"cores one / two busy processes of this session get now: {cores_obtained(1):.2f} / "
+          f"{cores_obtained(2):.2f}", flush=True)
     rows = []
     stats: dict[str, list[tuple[int, float, float]]] = {}
     for n in args.scans:
         subjects = -(-n // (1 + POSES))
         db = work / f"db{n}"
         stages = {
+            "population-1-worker": (["population", "--subjects", str(subjects), "--poses", str(POSES), "--seed",
+                                     "0", "--out", str(db), "--force", "--workers", "1"], db),
             "population": (["population", "--subjects", str(subjects), "--poses", str(POSES), "--seed", "0",
                             "--out", str(db), "--force"], db),
             "build-rre": (["build", str(db), "--out", str(work / f"rre{n}.npz"), "--selection", "all",
@@ -149,21 +187,28 @@ def main() -> None:
                               work / f"p{n}.csv"),
         }
         for stage, (cli, output) in stages.items():
-            if stage in args.skip or (stage != "population" and not db.exists()):
+            if stage == "population-1-worker" and args.baseline_scans is not None and n not in args.baseline_scans:
+                continue
+            if stage in args.skip or (not stage.startswith("population") and not db.exists()):
                 continue
             if output.is_file():
                 output.unlink()  # CSV files carry no signature for --force
-            wall, cpu, peak, said = _spawn_measured(cli)
+            load = os.getloadavg()[0]
+            wall, cpu, pss, rss, said = _spawn_measured(cli)
             scans = subjects * (1 + POSES)
-            rows.append((stage, scans, wall, cpu, peak, disk_gb(output), said))
-            stats.setdefault(stage, []).append((scans, wall, cpu, peak))
-            print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
-                  f"{disk_gb(output):.2f} GB | {said} |", flush=True)
-    print("\n| work | scans | wall | CPU | rate (wall) | peak RSS | disk | output |")
-    print("|---|---|---|---|---|---|---|---|")
-    for stage, scans, wall, cpu, peak, disk, said in rows:
-        print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {peak:.2f} GB | "
-              f"{disk:.2f} GB | {said} |")
+            rows.append((stage, scans, wall, cpu, pss, rss, disk_gb(output), load, said))
+            stats.setdefault(stage, []).append((scans, wall, cpu, pss))
+            print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {pss:.2f} GB | "
+                  f"{rss:.2f} GB | {disk_gb(output):.2f} GB | {load:.1f} | {said} |", flush=True)
+            base = stats.get("population-1-worker", [(0,)])[-1]
+            if stage == "population" and base[0] == scans:  # the baseline at this N
+                report(f"population of {scans:,} scans (workers: one per core, against --workers 1)", wall, base[1],
+                       scans, "scans")
+    print("\n| work | scans | wall | CPU | rate (wall) | peak PSS | peak RSS (sum) | disk | load before | output |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for stage, scans, wall, cpu, pss, rss, disk, load, said in rows:
+        print(f"| {stage} | {scans:,} | {wall:.1f} s | {cpu:.1f} s | {scans / wall:,.1f} scans/s | {pss:.2f} GB | "
+              f"{rss:.2f} GB | {disk:.2f} GB | {load:.1f} | {said} |")
     print("\n| work | wall growth | CPU growth | peak memory growth |")
     print("|---|---|---|---|")
     for stage, points in stats.items():

@@ -5,7 +5,10 @@ bound measured in the same run.
 Cases: one 13,380-vertex body over 1,000 frames of the default rig (163 bones), and a batch of
 100 bodies x 10 frames (per-body rest meshes). The bound: a compiled streaming write of an
 output-sized array on both cores (GB/s), divided by the bytes a vertex-frame writes (24 for
-float64, 12 for float32).
+float64, 12 for float32); beside it the bound of non-temporal stores (no read of a line before
+it is written). Each kernel is timed in float64 and float32 output (the arithmetic is done in the
+output's dtype), on two lanes (wall clock) and on one lane in CPU seconds of its thread
+(``time.thread_time``: less disturbed by other jobs on a shared machine).
 
 Run: python benchmarks/bench_skinning.py [--frames 1000]
 """
@@ -13,6 +16,7 @@ Run: python benchmarks/bench_skinning.py [--frames 1000]
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -85,6 +89,17 @@ def write_bandwidth(nbytes: int, nontemporal: bool = False) -> float:
     return nbytes / best_time(fn, 5) / 1e9
 
 
+def best_thread_time(fn, repeat: int = 3) -> float:
+    """Best CPU seconds of the calling thread over ``repeat`` calls (a one-lane call runs
+    entirely on it)."""
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.thread_time()
+        fn()
+        best = min(best, time.thread_time() - t)
+    return best
+
+
 def frames_of(library, rig, n: int, rng) -> np.ndarray:
     """(n, B, 3, 3) rotations: the library's poses in turn, each bone jittered a little so no
     two frames are equal (an animation, not 25 repeated poses)."""
@@ -109,6 +124,7 @@ def main(frames: int = 1000) -> None:
     gbps = write_bandwidth(vf * 24)
     nt_gbps = write_bandwidth(vf * 24, nontemporal=True)
     bound = {np.dtype(np.float64): gbps * 1e9 / 24, np.dtype(np.float32): gbps * 1e9 / 12}
+    nt_bound = {np.dtype(np.float64): nt_gbps * 1e9 / 24, np.dtype(np.float32): nt_gbps * 1e9 / 12}
     print(f"memory bandwidth (compiled streaming write, 2 cores): {gbps:.1f} GB/s -> bound "
           f"{bound[np.dtype(np.float64)] / 1e6:,.0f} M vertex-frames/s for float64 output, "
           f"{bound[np.dtype(np.float32)] / 1e6:,.0f} M for float32")
@@ -131,9 +147,10 @@ def main(frames: int = 1000) -> None:
         for out in (out64, out32):
             t = best_time(lambda: compiled(body, W, G, out=out), 5)
             report(f"{name} {out.dtype}, out= (written in place)", t, baseline_s, vf, "vertex-frames")
-            print(f"  {100 * vf / t / bound[out.dtype]:.0f} % of the plain-store bound for {out.dtype} output")
-        t1 = best_time(lambda: compiled(body, W, G, out=out64, lanes=1), 3)
-        print(f"  {name} float64 one lane: {vf / t1 / 1e6:,.0f} M vertex-frames/s")
+            print(f"  {100 * vf / t / bound[out.dtype]:.0f} % of the plain-store bound, "
+                  f"{100 * vf / t / nt_bound[out.dtype]:.0f} % of the non-temporal bound for {out.dtype} output")
+            t1 = best_thread_time(lambda: compiled(body, W, G, out=out, lanes=1), 3)
+            print(f"  {name} {out.dtype} one lane: {vf / t1 / 1e6:,.0f} M vertex-frames per CPU second")
         t = best_time(lambda: compiled(body, W, G), 3)
         report(f"{name} float64, new output array each call", t, baseline_s, vf, "vertex-frames")
         del ref
@@ -145,6 +162,8 @@ def main(frames: int = 1000) -> None:
         return linear_blend_skinning_numpy(body, W, Gn)
     t_old = best_time(numpy_pipeline, 1)
     report("pose_bodies one body over the frames (heads + FK + LBS)", t_new, t_old, vf, "vertex-frames")
+    t32 = best_time(lambda: pose_bodies(body, rig, R, dtype=np.float32), 3)
+    report("pose_bodies, float32 output", t32, t_old, vf, "vertex-frames")
 
     # a batch of 100 bodies x 10 frames: per-body rest meshes
     n_bodies, per = 100, 10
@@ -153,13 +172,16 @@ def main(frames: int = 1000) -> None:
     Rb = frames_of(library, rig, n_bodies * per, rng)
     Gb = forward_kinematics(Rb, rig.heads(rest), rig.parents)
     vfb = n_bodies * per * V
-    outb = np.zeros((n_bodies * per, V, 3))
     for name, compiled, reference in (("LBS", linear_blend_skinning, linear_blend_skinning_numpy),
                                       ("DQS", dual_quaternion_skinning, dual_quaternion_skinning_numpy)):
-        t = best_time(lambda: compiled(rest, W, Gb, out=outb), 3)
         tn = best_time(lambda: reference(rest, W, Gb), 1)
-        report(f"{name} {n_bodies} bodies x {per} frames (per-body rest), out=", t, tn, vfb, "vertex-frames")
-    print(f"measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+        for dtype in (np.float64, np.float32):
+            outb = np.zeros((n_bodies * per, V, 3), dtype=dtype)
+            t = best_time(lambda: compiled(rest, W, Gb, out=outb), 3)
+            report(f"{name} {n_bodies} bodies x {per} frames (per-body rest), {outb.dtype} out=", t, tn, vfb,
+                   "vertex-frames")
+    print(f"measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load average "
+          f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

@@ -1,12 +1,14 @@
 """Skin weights compared over the whole pose library: MakeHuman's CC0 weights as shipped, the
 smoothed ones (``weights="smoothed"``) and bone heat (``weights="bone_heat"``, Baran & Popović
-2007), all with linear blend skinning of the default rig on the template topology.
+2007) with its cut to four bones smoothed within each bone's support (the default) and with the
+cut alone (``smoothing=0``), all with linear blend (or ``--skinning dqs`` dual-quaternion)
+skinning of the default rig on the template topology.
 
 Per pose, summed or worst over a few bodies: folded triangles added to the rest mesh
 (``count_folded_triangles``), the change of the enclosed volume (``capped_volume``), and the
 chest girth change in ``arms_overhead`` (the hm08 measurement set). Prints markdown tables.
 
-Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0]
+Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0] [--smoothing 0.03] [--skinning lbs]
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from bodyspace.measure.evaluate import measure
 from bodyspace.mesh.geometry import capped_volume
 from bodyspace.rig.kinematics import forward_kinematics
 from bodyspace.rig.posing import count_folded_triangles, smoothed_weights
-from bodyspace.rig.skinning import linear_blend_skinning
-from bodyspace.rig.weights import bone_heat_weights
+from bodyspace.rig.skinning import dual_quaternion_skinning, linear_blend_skinning
+from bodyspace.rig.weights import DEFAULT_SMOOTHING, bone_heat_weights
 from bodyspace.synth.phenotype import PhenotypeModel
 from bodyspace.synth.poses import load_pose_library
 
@@ -33,29 +35,33 @@ BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 
           "height": [0.6, 0.4, 0.5]}
 
 
-def weight_sets(template, rig, influences: int, heat: float) -> dict:
+def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -> dict:
     """name → (V, B) weights; bone heat on the template's mean body, MakeHuman's deforming bones."""
     v = template.vertices
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
+    args = (v, template.faces, rig.heads(v), rig.tails(v), influences)
+    cut = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=0.0)
     t = time.perf_counter()
-    heat_w = bone_heat_weights(v, template.faces, rig.heads(v), rig.tails(v), influences, deform=deform, heat=heat)
+    heat_w = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
     print(f"bone heat: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
           f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
-    return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat": heat_w}
+    return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat, cut only": cut,
+            "bone heat": heat_w}
 
 
-def evaluate(template, rig, library, bodies, weights) -> dict:
+def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs") -> dict:
     """Per weight set: folds added (P, N), volume change (P, N) and chest change in arms_overhead (N,)."""
     faces = template.faces
     R = library.stack(library.names, rig)
     mset = load_measurement_set()
     k = library.names.index("arms_overhead")
+    skin = dual_quaternion_skinning if skinning == "dqs" else linear_blend_skinning
     out = {}
     for name, W in weights.items():
         folds, volume, chest = [], [], []
         for body in bodies:
             G = forward_kinematics(R, rig.heads(body), rig.parents)
-            posed = linear_blend_skinning(body, W, G)
+            posed = skin(body, W, G)
             folds.append(count_folded_triangles(posed, faces) - count_folded_triangles(body, faces))
             volume.append(capped_volume(posed, faces) / capped_volume(body, faces) - 1.0)
             girth = measure(mset, np.stack([body, posed[k]]), faces)["chest_girth"]
@@ -88,14 +94,15 @@ def print_tables(names, results) -> None:
               + ", ".join(f"{100 * c:+.1f} cm" for c in chest) + " |")
 
 
-def main(influences: int = 4, heat: float = 1.0) -> None:
+def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOOTHING, skinning: str = "lbs") -> None:
     template = load_template()
     rig = template.rigs["default"]
     library = load_pose_library()
     bodies = PhenotypeModel(template).vertices(BODIES)
-    print(f"{len(bodies)} bodies x {len(library.names)} poses, LBS, default rig; bone heat with at most "
-          f"{influences} influences, c = {heat}")
-    results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat))
+    print(f"{len(bodies)} bodies x {len(library.names)} poses, {skinning.upper()}, default rig; bone heat with at "
+          f"most {influences} influences, c = {heat}, smoothing {smoothing}")
+    results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat, smoothing),
+                       skinning)
     print_tables(library.names, results)
     print(f"\nmeasured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
 
@@ -104,5 +111,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--influences", type=int, default=4)
     parser.add_argument("--heat", type=float, default=1.0)
+    parser.add_argument("--smoothing", type=float, default=DEFAULT_SMOOTHING)
+    parser.add_argument("--skinning", choices=("lbs", "dqs"), default="lbs")
     a = parser.parse_args()
-    main(a.influences, a.heat)
+    main(a.influences, a.heat, a.smoothing, a.skinning)

@@ -20,7 +20,7 @@ from bodyspace.cli import app
 from bodyspace.errors import ParameterError
 from bodyspace.export.gltf import SkeletonAnimation, gltf_bytes, influences_matrix, top_influences
 from bodyspace.export.sequence import read_mesh_sequence
-from bodyspace.mesh.io import save_mesh
+from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel
 from bodyspace.motion.bvh import Motion, read_bvh
 from bodyspace.motion.ik import foot_vertices, lock_feet, sole_points
@@ -58,13 +58,15 @@ def semantic_model_file(template, tmp_path_factory):
     return root / "model.npz"
 
 
-def api_clip(template, frames=slice(200, 440, 12)):
+def api_clip(template, frames=slice(200, 440, 12), ik=True):
     """What the command computes, through the API: the retargeted, foot-locked clip on the template."""
     rig = template.rigs["default"]
     sk = body_skeleton(rig, template.vertices, rest_vertices=template.vertices)
     clip = read_bvh(CLIPS[0]).frames(frames)
     clip = Motion(clip.skeleton, clip.values, clip.frame_time * frames.step, clip.unit, "given", clip.translation)
     out = retarget(clip, sk, target_floor=float(template.vertices[:, 1].min()))
+    if not ik:
+        return out
     return lock_feet(out, sole=sole_points(out, rig.weights, template.vertices))[0]
 
 
@@ -157,6 +159,38 @@ def test_bvh_and_mesh_sequence_outputs(template, template_mesh, tmp_path):
     code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", "0:20:4", "--out", seq, "--gif",
                      gif, "--force")
     assert code == 0, text
+
+
+@needs_clips
+def test_numbered_mesh_files_and_a_folder_of_them(template, template_mesh, tmp_path):
+    """--out walk_%03d.obj: one mesh a frame, numbered from 0; --out DIR: frame_0000.ply, ... in a
+    folder; present files are refused without --force; they equal the .npz sequence's frames."""
+    frames = "200:230:10"                                  # 3 frames
+    V = linear_blend_skinning(template.vertices, template.rigs["default"].weights,
+                              api_clip(template, slice(200, 230, 10), ik=False).transforms())
+    code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out",
+                     tmp_path / "walk_%03d.obj", "--no-ik")
+    assert code == 0, text
+    assert sorted(p.name for p in tmp_path.glob("walk_*.obj")) == ["walk_000.obj", "walk_001.obj", "walk_002.obj"]
+    for k in range(3):
+        v, f = load_mesh(tmp_path / f"walk_{k:03d}.obj")
+        assert np.array_equal(f, template.faces) and np.abs(v - V[k]).max() < 1e-5     # float32 skinning
+    code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out",
+                     tmp_path / "walk_%03d.obj", "--no-ik")
+    assert code == 2 and "walk_000.obj: already exists" in text, text
+    code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out", tmp_path / "seq",
+                     "--no-ik")
+    assert code == 0, text
+    assert sorted(p.name for p in (tmp_path / "seq").glob("*.ply")) == [f"frame_{k:04d}.ply" for k in range(3)]
+    v, f = load_mesh(tmp_path / "seq" / "frame_0002.ply")
+    assert np.array_equal(f, template.faces) and np.abs(v - V[2]).max() < 1e-5
+    code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out", tmp_path / "seq",
+                     "--no-ik")
+    assert code == 2 and "already exists" in text, text
+    for bad, message in ((tmp_path / "walk.ply", "needs a frame field"), (tmp_path / "w_%d_%d.ply", "one frame field"),
+                         (tmp_path / "w_%04d.stl", ".ply or .obj")):
+        code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out", bad)
+        assert code == 2 and message in text and "Traceback" not in text, text
 
 
 @needs_clips

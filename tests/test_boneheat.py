@@ -13,7 +13,8 @@ from bodyspace.mesh.operators import cotangent_laplacian
 from bodyspace.rig.kinematics import forward_kinematics
 from bodyspace.rig.posing import bone_heat_rig_weights, count_folded_triangles, pose_bodies
 from bodyspace.rig.skinning import linear_blend_skinning
-from bodyspace.rig.weights import bone_heat_weights, nearest_visible_bones, segments_blocked
+from bodyspace.rig.weights import (DEFAULT_SMOOTHING, bone_heat_weights, nearest_visible_bones, segments_blocked,
+                                   smooth_within_support)
 from bodyspace.synth.foreign import punch_holes, remesh, shuffle_vertices, to_frame, transfer
 
 from _meshes import open_tube
@@ -149,6 +150,45 @@ def test_at_most_max_influences_cut_continuously():
         assert jump.max() < 3 * full_jump.max(), (k, jump.max(), full_jump.max())
 
 
+def test_smoothing_after_the_cut_is_a_heat_step_within_each_support():
+    """The smoothing after the cut, against a dense solve per bone: on its support D (the
+    vertices where the cut left it weight) ``(M + t L)_DD x = M_DD w[D]``, zero outside; then
+    negatives to zero and rows renormalized. No vertex gains a bone, rows sum to one, and the
+    kinks of the cut are rounded: the largest change between neighbouring vertices is smaller."""
+    v, f = capsule(length=2.0, radius=0.5, rings=41, around=16)
+    y = np.linspace(0, 2, 9)
+    heads = np.stack([np.zeros(8), y[:-1], np.zeros(8)], 1)
+    tails = np.stack([np.zeros(8), y[1:], np.zeros(8)], 1)
+    cut = bone_heat_weights(v, f, heads, tails, max_influences=2, smoothing=0.0)
+    W = bone_heat_weights(v, f, heads, tails, max_influences=2)
+    assert np.diff(W.indptr).max() <= 2
+    np.testing.assert_allclose(np.asarray(W.sum(1)).ravel(), 1.0, atol=1e-12)
+    assert ((W != 0).astype(int) - (cut != 0).astype(int)).max() <= 0        # no new bones
+    L = cotangent_laplacian(v, f).toarray()
+    dbl = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    mass = np.bincount(f.ravel(), np.repeat(dbl / 6, 3), minlength=len(v))
+    t = DEFAULT_SMOOTHING ** 2 * mass.sum()                     # a fraction of sqrt(area)
+    C = cut.toarray()
+    ref = np.zeros_like(C)
+    for b in range(C.shape[1]):
+        D = np.flatnonzero(C[:, b])
+        if len(D):
+            ref[D, b] = np.linalg.solve(np.diag(mass[D]) + t * L[np.ix_(D, D)], mass[D] * C[D, b])
+    ref = np.maximum(ref, 0)
+    ref /= ref.sum(1, keepdims=True)
+    np.testing.assert_allclose(W.toarray(), ref, atol=1e-10)
+    np.testing.assert_allclose(smooth_within_support(cut, cotangent_laplacian(v, f), mass, np.sqrt(t)).toarray(),
+                               ref, atol=1e-10)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    jump = np.abs(W[e[:, 0]] - W[e[:, 1]]).max(axis=1).toarray().ravel()
+    cut_jump = np.abs(cut[e[:, 0]] - cut[e[:, 1]]).max(axis=1).toarray().ravel()
+    assert jump.max() < 0.8 * cut_jump.max(), (jump.max(), cut_jump.max())
+    # smoothing=0 keeps the cut; nothing to cut (as many influences as bones): no smoothing
+    full = bone_heat_weights(v, f, heads, tails, max_influences=8, min_weight=0.0)
+    np.testing.assert_array_equal(full.toarray(), bone_heat_weights(v, f, heads, tails, max_influences=8,
+                                                                    min_weight=0.0, smoothing=0.0).toarray())
+
+
 def test_deform_mask_loose_parts_and_unused_vertices():
     """Only deforming bones get weights; a loose part that sees no bone takes its nearest;
     a vertex no face uses takes its nearest bone with weight 1."""
@@ -191,6 +231,11 @@ def test_bad_inputs_raise_clear_errors():
         bone_heat_weights(v, f, h, t, min_weight=1.5)
     with pytest.raises(ParameterError, match="lanes=3"):
         bone_heat_weights(v, f, h, t, lanes=3)
+    with pytest.raises(ParameterError, match="smoothing=-0.1"):
+        bone_heat_weights(v, f, h, t, smoothing=-0.1)
+    W = bone_heat_weights(v, f, h, t)
+    with pytest.raises(MeshError, match=r"stiffness \(10, 10\)"):
+        smooth_within_support(W, sp.eye(10), np.ones(10), 0.1)
 
 
 # ------------------------------------------------------------------------ template, foreign
@@ -220,10 +265,13 @@ def test_template_weights_agree_with_makehuman_on_the_limbs(template, rig, heat_
     strong = (np.asarray(mh.max(1).toarray()).ravel() > 0.9) & ~face
     assert (dm == dh)[strong].mean() > 0.9
     # mirror symmetric up to the triangulation (not exactly mirror-symmetric): vertex i on
-    # bone b <-> mirror[i] on bone b's mirror
+    # bone b <-> mirror[i] on bone b's mirror. The worst vertex is on the midline of the groin,
+    # where pelvis.L/R, spine03 and upperleg01.L/R meet: four influences must drop one of a
+    # mirror pair, and the smoothing after the cut carries the kept one's weight there (0.107;
+    # 0.052 with the cut alone)
     from bodyspace.rig.posing import mirror_bones
     asym = abs(W[template.mirror][:, mirror_bones(rig)] - W).max(axis=1).toarray().ravel()
-    assert asym.max() < 0.1 and np.percentile(asym, 99) < 0.02, (asym.max(), np.percentile(asym, 99))
+    assert asym.max() < 0.15 and np.percentile(asym, 99) < 0.02, (asym.max(), np.percentile(asym, 99))
 
 
 def test_pose_bodies_with_bone_heat_weights(template, rig, heat_weights, phenotype_model):
@@ -243,6 +291,23 @@ def test_pose_bodies_with_bone_heat_weights(template, rig, heat_weights, phenoty
     assert heat.sum() < original.sum(), (heat, original)
     with pytest.raises(ParameterError, match="'original', 'smoothed' or 'bone_heat'"):
         pose_bodies(body, rig, R[0], weights="heat")
+
+
+def test_smoothed_cut_folds_less_than_the_cut_alone_on_the_template(template, rig, heat_weights, phenotype_model):
+    """The template and its 124 deforming bones, four influences, the poses where the cut folds
+    most (docs/skinning.md, 3 bodies: 178 folds added with the cut alone, 72 smoothed): the
+    smoothing after the cut must keep most of that gain on one body."""
+    from bodyspace.synth.poses import load_pose_library
+    v = template.vertices
+    deform = np.asarray(abs(rig.weights).sum(0)).ravel() > 0
+    cut = bone_heat_weights(v, template.faces, rig.heads(v), rig.tails(v), deform=deform, smoothing=0.0)
+    body = phenotype_model.vertices({"gender": [1.0]})[0]
+    R = load_pose_library().stack(["arms_overhead", "hands_behind_head", "sitting", "squat"], rig)
+    G = forward_kinematics(R, rig.heads(body), rig.parents)
+    rest = count_folded_triangles(body, template.faces)
+    folds = {name: int((count_folded_triangles(linear_blend_skinning(body, W, G), template.faces) - rest).sum())
+             for name, W in (("cut", cut), ("smoothed", heat_weights))}
+    assert folds["smoothed"] < 0.6 * folds["cut"], folds
 
 
 def test_foreign_bodies_get_the_same_weights(template, rig, heat_weights):

@@ -184,3 +184,55 @@ def test_mass_takes_one_sex_per_body(mset, mean_body, template):
     assert np.isfinite(m).all() and m[0] != m[1]
     one = evaluate(mset, mean_body, template.faces, male=1.0)
     assert m[0] == pytest.approx(one["mass"].value)
+
+
+def _tilted(template, body, bones, degrees):
+    """``body`` with the head tilted sideways (about the front axis) by ``degrees``, shared by ``bones``."""
+    from bodyspace.rig.kinematics import rotvec_to_matrix
+    rig = template.rigs["default"]
+    rv = np.zeros((rig.n_bones, 3))
+    for b in bones:
+        rv[rig.bone_index(b)] = [0.0, 0.0, np.radians(degrees / len(bones))]
+    return pose_bodies(body, rig, rotvec_to_matrix(rv), on_ground=True)
+
+
+def test_neck_plane_follows_the_neck_when_the_head_tilts(mset, mean_body, template):
+    """Issue 12 §3: the neck girth's plane leans sideways with the neck's own axis (neck joint to
+    head joint), so a head tilted sideways by 20-30° keeps the neck girth within 1 cm of upright
+    (here within 0.8 cm); the old axis, neck to head top, leaned with the head (1.4-2 cm at 30°)."""
+    neck = next(m for m in mset.measurements if m["name"] == "neck_girth")
+    assert isinstance(neck["normal"], dict)
+    new, old = _one(mset, "neck_girth"), _one(mset, "neck_girth", normal=neck["normal"]["fallback"])
+    cases = [(["neck01", "neck02", "neck03", "head"], 20), (["neck01", "neck02", "neck03", "head"], -30),
+             (["head"], 25), (["head"], -30)]
+    bodies = np.stack([mean_body] + [_tilted(template, mean_body, bones, deg) for bones, deg in cases])
+    got = evaluate(new, bodies, template.faces)["neck_girth"].value
+    assert np.abs(got[1:] - got[0]).max() < 0.008, got[1:] - got[0]
+    before = evaluate(old, bodies, template.faces)["neck_girth"].value
+    assert np.abs(before[1:] - before[0]).max() > 0.01
+    assert abs(got[0] - before[0]) < 1e-4           # standing, the same girth (the lean forward is the landmarks')
+    # Looking down (a forward turn of neck and head) keeps the old plane: the sideways part only.
+    lib = load_pose_library()
+    down = pose_bodies(mean_body, template.rigs["default"], lib.rotations("look_down", template.rigs["default"]),
+                       on_ground=True)
+    assert evaluate(new, down, template.faces)["neck_girth"].value == pytest.approx(
+        evaluate(old, down, template.faces)["neck_girth"].value, abs=1e-4)
+
+
+def test_joint_axis_is_checked_and_becomes_its_fallback_on_another_topology(mset, foreign):
+    neck = next(m for m in mset.measurements if m["name"] == "neck_girth")
+    d = mset.to_dict()
+    joint = neck["normal"]["from"]
+    for bad, words in (({"from": joint, "to": {"vertices": [1, 2], "weights": [0.5]}, "fallback": neck["normal"]["fallback"]},
+                        "weights"),
+                       ({"from": joint, "to": joint}, "field 'fallback'"),
+                       ({"from": joint, "to": joint, "fallback": ["x", "head_top"]}, "unknown landmark 'x'"),
+                       ({"from": joint, "to": joint, "fallback": neck["normal"]["fallback"], "via": 1}, "via"),
+                       ({"from": joint, "to": joint, "fallback": neck["normal"]["fallback"], "sideways": ["x"]},
+                        "field 'sideways'")):
+        with pytest.raises(MeasurementError, match=words):
+            measurement_set_from_dict(dict(d, measurements=[dict(neck, normal=bad)]))
+    back = measurement_set_from_dict(json.loads(json.dumps(d)))
+    assert next(m for m in back.measurements if m["name"] == "neck_girth")["normal"] == neck["normal"]
+    _, fset = foreign
+    assert next(m for m in fset.measurements if m["name"] == "neck_girth")["normal"] == neck["normal"]["fallback"]

@@ -134,9 +134,17 @@ def _population_bytes(folder):
                                                              "scans.csv", "faces.npy")}
 
 
+def _children(pid):
+    """Process ids of ``pid``'s children (Linux /proc)."""
+    import pathlib
+    return {int(c) for task in pathlib.Path(f"/proc/{pid}/task").iterdir()
+            for c in (task / "children").read_text().split()}
+
+
 def test_build_population_resumes_after_a_kill(template, tmp_path):
-    """A run killed (SIGKILL) after some chunks is resumed from its last complete chunk and
-    writes the same database as an uninterrupted run; the folder never exists half-written."""
+    """A run of two worker processes killed (SIGKILL) after some chunks is resumed from its last
+    complete chunk and writes the same database as an uninterrupted run in one process; the
+    folder never exists half-written and the killed run's workers die with it."""
     import os
     import signal
     import subprocess
@@ -146,27 +154,59 @@ def test_build_population_resumes_after_a_kill(template, tmp_path):
     from bodyspace.synth.population import STATE_FILE, unfinished_folder
 
     whole = tmp_path / "whole"
-    build_population(template, whole, n_subjects=10, n_poses=1, rng=9, chunk=2)
+    build_population(template, whole, n_subjects=10, n_poses=1, rng=9, chunk=2, workers=1)
     out = tmp_path / "killed"
     work = unfinished_folder(out)
     # The child runs the same population slowed down after each chunk so the kill lands between chunks.
     code = ("import time, sys; from bodyspace.data.template import load_template; "
             "from bodyspace.synth.population import build_population; "
-            f"build_population(load_template(), {str(out)!r}, 10, 1, rng=9, chunk=2, "
+            f"build_population(load_template(), {str(out)!r}, 10, 1, rng=9, chunk=2, workers=2, "
             "progress=lambda m, f: time.sleep(0.5) if m.startswith('wrote') else None)")
     child = subprocess.Popen([sys.executable, "-c", code], env=dict(os.environ))
     deadline = time.time() + 120
     while time.time() < deadline and not (work / STATE_FILE).is_file():
         time.sleep(0.05)
+    workers = _children(child.pid)
     child.send_signal(signal.SIGKILL)
     child.wait()
     assert (work / STATE_FILE).is_file() and not out.exists()
+    assert len(workers) == 2
+    deadline = time.time() + 30
+    while time.time() < deadline and any(os.path.exists(f"/proc/{w}") for w in workers):
+        time.sleep(0.05)
+    assert not any(os.path.exists(f"/proc/{w}") for w in workers), "a worker outlived its killed parent"
     lines = []
-    build_population(template, out, n_subjects=10, n_poses=1, rng=9, chunk=2, log=lines.append)
+    build_population(template, out, n_subjects=10, n_poses=1, rng=9, chunk=2, log=lines.append, workers=2)
     assert lines[0].startswith("resumed an interrupted run from its last complete chunk")
     assert not work.exists()
     assert _population_bytes(out) == _population_bytes(whole)
     assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in whole.iterdir())
+
+
+def test_build_population_same_bytes_for_any_number_of_workers(template, tmp_path, monkeypatch):
+    """Two subjects in different chunks are out of reach (BMI 40 women): each is redrawn the same
+    way whether one process or two make the chunks, so the databases are byte for byte equal."""
+    import bodyspace.synth.population as population
+
+    seed_draw = population.draw_subjects
+
+    def unreachable_women(n, rng=None, survey="ansur1988"):
+        draw = seed_draw(n, rng, survey)
+        for woman in np.flatnonzero(~draw.male)[[0, -1]]:
+            draw.target_bmi[woman] = 40.0
+        draw.drawn_moments = target_moments(draw.male, draw.target_stature_m, draw.target_bmi)
+        return draw
+
+    monkeypatch.setattr(population, "draw_subjects", unreachable_women)
+    lines = {}
+    for workers in (1, 2):
+        lines[workers] = []
+        build_population(template, tmp_path / f"w{workers}", n_subjects=6, n_poses=0, rng=6, chunk=2,
+                         workers=workers, log=lines[workers].append)
+    assert _population_bytes(tmp_path / "w1") == _population_bytes(tmp_path / "w2")
+    assert lines[1] == lines[2] and lines[2][1].startswith("2 subject(s) redrawn")
+    meta = json.loads((tmp_path / "w2" / "meta.json").read_text())
+    assert len(meta["provenance"]["redrawn_subjects"]) == 2
 
 
 def test_build_population_starts_cleanly_over_another_request(template, tmp_path):
@@ -187,3 +227,14 @@ def test_build_population_starts_cleanly_over_another_request(template, tmp_path
     assert lines[0].startswith("started cleanly (removed the unfinished run") and "another request" in lines[0]
     assert db.n_scans == 6 and not unfinished_folder(out).exists()
     assert lines[1].startswith("no subject redrawn")
+
+
+def test_remaining_time_is_the_rate_of_the_run_since_its_first_report():
+    from bodyspace.cli.common import remaining_seconds
+
+    assert remaining_seconds((3.0, 0.0), (3.0, 0.0)) is None  # no rate yet
+    # 10 s for the first 10 % of the work: 90 s left (start-up before the first report not counted).
+    assert remaining_seconds((5.0, 0.0), (15.0, 0.1)) == pytest.approx(90.0)
+    # A resumed run reports 60 % first: that jump is not speed; 10 s for the next 10 % leaves 30 s.
+    assert remaining_seconds((100.0, 0.6), (110.0, 0.7)) == pytest.approx(30.0)
+    assert remaining_seconds((0.0, 0.0), (50.0, 1.0)) == 0.0

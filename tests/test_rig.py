@@ -386,6 +386,10 @@ def test_pose_bodies_batches_and_shapes(rig, body, library):
     shared = pose_bodies(np.stack([body, body]), rig, R[1])
     np.testing.assert_allclose(shared[0], batch[1], atol=1e-12)
     np.testing.assert_array_equal(pose_bodies(body, rig, R[0]), body)
+    for skinning in ("lbs", "dqs"):                      # float32 output, computed in float32
+        single = pose_bodies(np.stack([body] * 3), rig, R, skinning=skinning, dtype=np.float32)
+        assert single.dtype == np.float32
+        np.testing.assert_allclose(single, pose_bodies(np.stack([body] * 3), rig, R, skinning=skinning), atol=2e-6)
     with pytest.raises(ParameterError):
         pose_bodies(body, rig, R[:, :10])
     # ground placement: lowest vertex at 0 and the pelvis over its rest x/z

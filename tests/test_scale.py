@@ -50,6 +50,58 @@ def test_measure_database_one_row_per_scan(small_db, tmp_path):
         assert abs(float(rows[i]["stature_cm"]) - float(rows[same]["stature_cm"])) < 2.0
 
 
+def _per_body(db, i, mset, rig):
+    """Scan ``i`` measured as ``bodyspace measure MESH`` does it: unposed by the fit, then measured."""
+    from bodyspace.rig.unpose import unpose
+    row = db.scan_subject_index()[i]
+    rest = unpose(db.mesh(i), rig)[0] if db.scans["pose"][i] != "rest" else db.mesh(i)
+    return evaluate(mset, rest, db.faces, age_years=db.subjects["age_years"][row],
+                    male=float(db.subjects["sex"][row] == "male"))
+
+
+def test_measure_database_equals_the_per_body_path(small_db, template, tmp_path):
+    """Posed scans are unposed with their recorded rotations (exact inverse skinning): every
+    value equals the subject's rest scan to 0.01 mm, and the per-body path's (pose fitted from the
+    mesh) to 0.1 mm, except shoulder width and size, where the fit itself is up to 1 mm off (the
+    clavicle chain is weakly determined by the skin). A database whose recorded rotations do not
+    explain its scans falls back to that fit, and gives the per-body path's values."""
+    import shutil
+
+    mset, rig = load_measurement_set(), template.rigs["default"]
+    out = tmp_path / "m.csv"
+    assert runner.invoke(app, ["measure", str(small_db.folder), "--csv", str(out)]).exit_code == 0
+    rows = _rows(out)
+    names = [m["name"] for m in mset.measurements if m["unit"] == "m"]
+    loose = {"shoulder_width", "shoulder_size"}
+    scans = small_db.scans
+    posed = np.flatnonzero(scans["pose"] != "rest")[:3]
+    alone = {i: _per_body(small_db, i, mset, rig) for i in posed}
+    for i in posed:
+        rest = np.flatnonzero((scans["subject"] == scans["subject"][i]) & (scans["pose"] == "rest"))[0]
+        for name in names:
+            got, want = rows[i][f"{name}_cm"], alone[i][name].value * 100
+            assert (got == "") == (not np.isfinite(want)) == (rows[rest][f"{name}_cm"] == ""), (i, name)
+            if got:
+                assert float(got) == pytest.approx(float(rows[rest][f"{name}_cm"]), abs=0.001), (i, name)
+                assert float(got) == pytest.approx(want, abs=0.1 if name in loose else 0.01), (i, name)
+    # Rotations that posed other scans: each scan is fitted instead, as the per-body path does.
+    copy = tmp_path / "swapped"
+    shutil.copytree(small_db.folder, copy)
+    rot = np.load(copy / "rotations.npy")
+    moved = np.flatnonzero(scans["pose"] != "rest")           # (all-zero rotations would mean "standing")
+    rot[moved] = rot[np.roll(moved, 1)]
+    np.save(copy / "rotations.npy", rot)
+    out2 = tmp_path / "m2.csv"
+    result = runner.invoke(app, ["measure", str(copy), "--csv", str(out2)])
+    assert result.exit_code == 0, result.output
+    swapped = _rows(out2)
+    for i in posed:
+        for name in names:
+            if swapped[i][f"{name}_cm"]:
+                assert float(swapped[i][f"{name}_cm"]) == pytest.approx(alone[i][name].value * 100,
+                                                                        abs=0.1 if name in loose else 0.01)
+
+
 def test_measure_database_as_posed_and_refusals(small_db, tmp_path):
     out = tmp_path / "posed.csv"
     result = runner.invoke(app, ["measure", str(small_db.folder), "--csv", str(out), "--as-posed"])

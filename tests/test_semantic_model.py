@@ -14,6 +14,7 @@ from bodyspace.errors import SemanticsFileError
 from bodyspace.measure import measure
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel, ModelError
+from bodyspace.register.detail import Detail, apply_detail, faces_digest, load_detail, midpoint_subdivide, save_detail
 from bodyspace.report.semantic_report import format_request_report, write_request_report
 from bodyspace.semantics.masks import MaskedPoissonBlend
 from bodyspace.semantics.model import SemanticModel, TargetError, tolerance
@@ -179,6 +180,21 @@ def test_cli_generate_and_morph(setup, app, tmp_path):
     v2, _ = load_mesh(tmp_path / "b.obj")
     w = sm.regions_["upper_body"]
     assert np.linalg.norm(v2 - v, axis=1)[w == 0].max() < 0.002
+    # --detail: a relief (here 1 mm outward everywhere, 2 mm on the first vertices) re-added on the morph
+    sub, _ = midpoint_subdivide(v, f, 1)
+    offsets = np.full(len(sub), 0.001)
+    offsets[:100] = 0.002
+    save_detail(tmp_path / "detail.npz", Detail(offsets, np.ones(len(sub), bool), 1, len(v), len(f), faces_digest(f)))
+    r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
+                            "--keep", "mass", "--mask", "upper_body", "--detail", str(tmp_path / "detail.npz"),
+                            "--out", str(tmp_path / "b_detail.obj")])
+    assert r.exit_code == 0, r.output
+    vd, fd = load_mesh(tmp_path / "b_detail.obj")
+    want, want_faces = apply_detail(v2, f, load_detail(tmp_path / "detail.npz"))
+    assert np.array_equal(fd, want_faces) and np.abs(vd - want).max() < 1e-5
+    r = runner.invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "a.obj"), "--set", "stature=+5cm",
+                            "--detail", str(tmp_path / "a.obj"), "--out", str(tmp_path / "b_bad.obj")])
+    assert r.exit_code == 2 and "bodyspace register --detail" in " ".join(r.output.split())
     r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=260cm", "--out",
                             str(tmp_path / "c.obj")])
     assert r.exit_code == 2 and "can reach" in r.output and "cm to" in r.output
@@ -396,3 +412,23 @@ def test_morph_accepts_the_models_own_folds(setup, tmp_path):
         warnings.simplefilter("error")
         result = sm.morph(x, {"stature": 0.02})
     assert abs(result.values["stature"] - result.targets["stature"]) <= tolerance("stature")
+
+
+def test_cli_crowd_streams_random_bodies_with_a_bounded_line_up(setup, app, tmp_path, monkeypatch):
+    """Nothing asked: the crowd is the model's random sample for the seed, decoded in chunks and
+    written as made; the line-up holds only the first SHEET_MAX (here 2 of 3)."""
+    import bodyspace.cli.semantics as cli_semantics
+    monkeypatch.setattr(cli_semantics, "SHEET_MAX", 2)
+    monkeypatch.setattr(cli_semantics, "SAMPLE_CHUNK", 2)
+    root, _, _, _ = setup
+    r = CliRunner().invoke(app, ["crowd", str(root / "model.npz"), "-n", "3", "--seed", "5",
+                                 "--out", str(tmp_path / "c")])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader(open(tmp_path / "c" / "crowd.csv")))
+    assert [row["mesh"] for row in rows] == ["body_000.obj", "body_001.obj", "body_002.obj"]
+    model = BodyModel.load(root / "model.npz")
+    expected = model.sample(3, sigma_range=2.0, rng=5)
+    for i in range(3):
+        written, _ = load_mesh(tmp_path / "c" / f"body_{i:03d}.obj")
+        assert np.abs(written - expected[i]).max() < 1e-5
+    assert (tmp_path / "c" / "lineup.png").stat().st_size > 0

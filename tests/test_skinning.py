@@ -22,6 +22,7 @@ from bodyspace.rig.kinematics import (
     linear_blend_skinning_numpy,
     rotvec_to_matrix,
 )
+from bodyspace.rig import skinning
 from bodyspace.rig.skinning import FRAME_BLOCK, dual_quaternion_skinning, linear_blend_skinning
 
 SKINNERS = [(linear_blend_skinning, linear_blend_skinning_numpy), (dual_quaternion_skinning, dual_quaternion_skinning_numpy)]
@@ -52,7 +53,7 @@ def random_rigid(rng, N, B, scale=1.0):
 @pytest.mark.parametrize("N", [1, 3, FRAME_BLOCK + 5])
 def test_kernels_equal_the_numpy_reference(compiled, reference, N):
     rng = np.random.default_rng(N)
-    V, B = 120, 11
+    V, B = 123, 11          # full vertex tiles (8 float64, 16 float32 lanes) and a partial one
     W = random_weights(rng, V, B)
     G = random_rigid(rng, N, B, scale=1.5)
     per_body = rng.normal(size=(N, V, 3))
@@ -81,6 +82,54 @@ def test_identity_pose_returns_the_input_bit_for_bit(compiled, reference):
     identity = np.tile(np.eye(4), (N, B, 1, 1))
     np.testing.assert_array_equal(compiled(rest, W, identity), rest)
     np.testing.assert_array_equal(compiled(rest[0], W, identity), np.broadcast_to(rest[0], (N, V, 3)))
+    # float32 arithmetic: the input rounded to float32, bit for bit
+    np.testing.assert_array_equal(compiled(rest, W, identity, dtype=np.float32), rest.astype(np.float32))
+
+
+@pytest.mark.parametrize("compiled, reference", SKINNERS)
+def test_float32_arithmetic_error_on_a_body_scale_mesh(compiled, reference):
+    """float32 output is computed in float32 (tables, blend, apply): the error against the
+    float64 reference stays within a few float32 roundings of a 1 m body (1 ulp: 0.06 um)."""
+    rng = np.random.default_rng(11)
+    V, B, N = 200, 9, FRAME_BLOCK + 3
+    W = random_weights(rng, V, B, max_influences=5)
+    G = random_rigid(rng, N, B, scale=1.0)
+    G[..., :3, 3] *= 0.5                                  # metres, a body's bone offsets
+    rest = rng.uniform(-1.0, 1.0, size=(V, 3))
+    ref = reference(rest, W, G)
+    got = compiled(rest, W, G, dtype=np.float32)
+    assert np.abs(got - ref).max() < 2e-6                 # metres: 0.002 mm
+    assert np.abs(got - ref).max() > 0                    # (float32 arithmetic, not a rounded float64 result)
+
+
+@pytest.mark.parametrize("compiled, reference", SKINNERS)
+def test_streaming_stores_write_the_same(compiled, reference, monkeypatch):
+    """Outputs past STREAM_MIN_BYTES go out through staged runs and non-temporal stores (whole
+    aligned lines streamed, partial ones stored plainly): same values, every alignment of a row."""
+    rng = np.random.default_rng(13)
+    V, B, N = 301, 7, 45                     # rows of 903 values: each frame's run starts at another offset
+    W = random_weights(rng, V, B)
+    G = random_rigid(rng, N, B)
+    rest = rng.normal(size=(N, V, 3))
+    plain = {dt: compiled(rest, W, G, dtype=dt, lanes=1) for dt in (np.float64, np.float32)}
+    monkeypatch.setattr(skinning, "STREAM_MIN_BYTES", 0)
+    for dt, expected in plain.items():
+        for lanes in (1, 2):
+            np.testing.assert_array_equal(compiled(rest, W, G, dtype=dt, lanes=lanes), expected)
+    np.testing.assert_allclose(plain[np.float64], reference(rest, W, G), rtol=0, atol=1e-12 * np.abs(rest).max() * 10)
+
+
+@pytest.mark.parametrize("compiled", [linear_blend_skinning, dual_quaternion_skinning])
+def test_non_contiguous_out_is_written(compiled):
+    rng = np.random.default_rng(12)
+    V, B, N = 37, 5, 6
+    W = random_weights(rng, V, B)
+    G = random_rigid(rng, N, B)
+    rest = rng.normal(size=(N, V, 3))
+    base = np.zeros((V, N, 3))
+    out = base.transpose(1, 0, 2)                         # (N, V, 3) view, not C-contiguous
+    assert compiled(rest, W, G, out=out) is out
+    np.testing.assert_array_equal(out, compiled(rest, W, G))
 
 
 def test_dqs_hemisphere_flip():

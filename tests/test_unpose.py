@@ -202,3 +202,25 @@ def test_pose_spread_study_small(template):
     assert np.abs(result.change("posed")[0, 0]).max() < 1e-6           # the rest pose as posed is the rest body
     text = pose_spread_markdown(result, "header line")
     assert text.startswith("header line") and "| stature | cm |" in text and "within 1 cm" in text
+
+
+def test_unpose_known_is_exact_and_refuses_a_pose_that_does_not_explain_the_mesh(rig, library_case):
+    """With the rotations that posed them, inverse skinning gives the true rest bodies (float
+    rounding), the fit's within its tolerance, and the fit's report; other rotations leave the
+    body far from the rest-shape space (so ``measure DB`` fits those instead)."""
+    posed, truth, fitted, _, fit_info, R = library_case
+    rest, rotations, info = U.unpose_known(posed, rig, R)
+    assert _shape_error(rest, truth).max() < 1e-8
+    assert np.abs(rest[..., 1].min(axis=1)).max() < 1e-12                      # on the ground, as unpose
+    assert np.abs(rest - fitted).max() < 5e-4
+    assert (info.shape_distance_m < U.KNOWN_POSE_TOLERANCE).all()
+    assert np.abs(info.largest_rotation_deg - fit_info.largest_rotation_deg).max() < 3.0
+    again = pose_bodies(rest, rig, rotations) + info.translation[:, None, :]
+    assert np.abs(again - posed).max() < 1e-8
+    # Axis-angle rotations (as a database stores them) give the same bodies.
+    from bodyspace.rig.kinematics import matrix_to_rotvec
+    assert np.abs(U.unpose_known(posed[:2], rig, matrix_to_rotvec(R[:2]))[0] - rest[:2]).max() < 1e-8
+    wrong = U.unpose_known(posed, rig, np.roll(R, 1, axis=0))[2]
+    assert (wrong.shape_distance_m > 10 * U.KNOWN_POSE_TOLERANCE).all()
+    with pytest.raises(ParameterError, match="rotations of shape"):
+        U.unpose_known(posed, rig, R[:, :5])

@@ -496,13 +496,16 @@ class BodyModel:
 
     def crowd(self, n: int, targets: dict, rng=None, progress=None, accept_misses: bool = False) -> list:
         """``n`` bodies meeting ``targets`` (values or ranges) as ``generate`` does, the rest random."""
+        return list(self.iter_crowd(n, targets, rng=rng, progress=progress, accept_misses=accept_misses))
+
+    def iter_crowd(self, n: int, targets: dict, rng=None, progress=None, accept_misses: bool = False):
+        """The bodies of ``crowd`` one at a time (a generator of ``GenerationResult``), so a crowd
+        of any size is written as it is made; the same bodies as ``crowd`` for the same ``rng``."""
         gen = np.random.default_rng(rng)
-        out = []
         for i in range(int(n)):
-            out.append(self.generate(targets, rng=gen, accept_misses=accept_misses))
+            yield self.generate(targets, rng=gen, accept_misses=accept_misses)
             if progress:
                 progress(f"body {i + 1}/{n}", (i + 1) / n)
-        return out
 
     def _asks_lengths(self, targets) -> bool:
         """Does the request name a length the exact refinement meets (``request_tolerance``)?"""

@@ -9,16 +9,43 @@ the first. numba's own ``parallel=True`` was not used: its default threading lay
 what a threaded batch does.
 
 Callers ask for two lanes only for a single body; a batch keeps one lane per thread.
+
+Long streamed jobs made of independent chunks (a population) use both cores with processes
+instead: ``in_order`` runs a chunk function in forked worker processes and yields the results
+in chunk order. Each worker is one lane (``run_both`` runs both halves in turn there), so two
+workers keep two cores busy without four threads fighting for them.
 """
 
 from __future__ import annotations
 
 import atexit
+import ctypes
+import multiprocessing
+import os
+import signal
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Callable, Iterable, Iterator
+
+from threadpoolctl import threadpool_limits
+
+from bodyspace.errors import BodyspaceError
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
+_one_lane = False  # set in in_order's workers: a process that is one of several runs one lane
+
+
+def _forget_worker_thread() -> None:
+    """After a fork: the parent's lane thread does not exist in the child, so an inherited pool
+    would take work it never runs (the child would wait forever); the child makes its own."""
+    global _pool, _lock
+    _pool, _lock = None, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_worker_thread)
 
 
 def _worker() -> ThreadPoolExecutor:
@@ -38,6 +65,8 @@ def run_both(first, second):
     it (correct, only not faster), which is why batches should not ask for lanes. ``second``
     must not call ``run_both`` itself (it would wait for the worker it runs on).
     """
+    if _one_lane:
+        return first(), second()
     future = _worker().submit(second)
     try:
         a = first()
@@ -50,3 +79,74 @@ def halves(n: int) -> tuple[tuple[int, int], tuple[int, int]]:
     """The ranges ``(0, m), (m, n)`` splitting ``n`` items into two nearly equal parts."""
     m = n // 2
     return (0, m), (m, n)
+
+
+def cores() -> int:
+    """The cores this process may run on (its affinity mask, not the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _start_worker(parent: int) -> None:
+    """Initializer of ``in_order``'s processes: one lane, one BLAS thread, die with the parent.
+
+    Without PR_SET_PDEATHSIG a parent killed with SIGKILL leaves its workers waiting forever on
+    their task queue (and a chunk still being written by an orphan). SIGINT is ignored: Ctrl-C
+    reaches the whole process group, and the parent, not each worker, decides what stops.
+    """
+    global _one_lane
+    _one_lane = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG (Linux)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before the line above took effect
+        os._exit(1)
+    threadpool_limits(1, user_api="blas")
+
+
+def in_order(fn: Callable, tasks: Iterable[tuple], workers: int, ahead: int = 2,
+             died: str = "run the same command again") -> Iterator:
+    """``fn(*task)`` for each task, yielded in the tasks' order.
+
+    ``workers`` > 1: in that many forked processes, at most ``ahead`` tasks each in flight, so
+    memory is bounded and ``tasks`` (an iterator) is consumed in order, a few tasks ahead of the
+    results. ``fn`` and what it reads are inherited at the fork, so only the task's arguments
+    and the result cross the process boundary: keep both small (a chunk's rows go to disk from
+    the worker). The results must not depend on which process computed them (the caller's
+    contract; ``fn`` runs with one BLAS thread everywhere, here included, so a chunk's
+    floating-point work is the same whatever the number of workers; ``run_both``'s two lanes
+    compute the same halves either way).
+    ``workers`` <= 1 (or inside a daemon process, which may not fork): here, one task at a time.
+    A worker that dies (killed, out of memory) raises a BodyspaceError ending in ``died`` (what
+    the user should do about it).
+    """
+    tasks = iter(tasks)
+    if workers <= 1 or multiprocessing.current_process().daemon:
+        for task in tasks:
+            with threadpool_limits(1, user_api="blas"):
+                result = fn(*task)
+            yield result
+        return
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_start_worker, initargs=(os.getpid(),))
+    finished = False
+    try:
+        queue = deque(pool.submit(fn, *task) for _, task in zip(range(workers * ahead), tasks))
+        while queue:
+            try:
+                result = queue.popleft().result()
+            except BrokenProcessPool:
+                raise BodyspaceError(f"a worker process died (killed, or out of memory); {died}") from None
+            following = next(tasks, None)
+            if following is not None:
+                queue.append(pool.submit(fn, *following))
+            yield result
+        finished = True
+    finally:
+        if not finished:
+            # Interrupted (Ctrl-C, an error, a generator closed early): the chunks in flight are
+            # abandoned, not awaited; a resumed run computes them again.
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.kill()
+        pool.shutdown(wait=True, cancel_futures=True)

@@ -1,5 +1,5 @@
-"""``bodyspace animate MODEL|MESH --motion CLIP.bvh --out walk.glb|walk.bvh|walk.npz``: a motion
-capture clip on a body (Rupprecht §3.3.3).
+"""``bodyspace animate MODEL|MESH --motion CLIP.bvh --out walk.glb|walk.bvh|walk.npz|walk_%04d.ply|DIR``:
+a motion capture clip on a body (Rupprecht §3.3.3).
 
 The body is a model's (``--set stature=185cm ...`` through the semantic model, as ``generate``
 does; without ``--set`` the model's mean body) or a mesh: of the template topology (the template
@@ -9,7 +9,9 @@ any closed humanoid mesh in an A- or T-pose (the rig embedded into it and bone-h
 The clip is matched to the rig by structure (``motion.matching``), retargeted
 (``motion.retarget``), its feet locked where the source's are planted (``motion.ik``; ``--no-ik``
 leaves them), skinned (LBS with the rig's weights), and written as a rigged glTF with the
-animation, a BVH of the clip on the body's skeleton, or an ``.npz`` of the posed meshes. A table
+animation, a BVH of the clip on the body's skeleton, an ``.npz`` of the posed meshes, or one mesh
+file a frame (``walk_%04d.ply`` or ``.obj``; a name without suffix: a folder of
+``frame_0000.ply``, ...). A table
 says what the clip does to the body: foot skating and floor penetration against the source,
 before and after the foot locking, and arms through the torso.
 """
@@ -29,8 +31,10 @@ from bodyspace.cli.common import (
     ForceOption,
     SeedOption,
     check_file_output,
+    check_folder_output,
     console,
     out_console,
+    output_folder,
     progress,
 )
 from bodyspace.cli.export import skeleton_and_weights
@@ -39,7 +43,12 @@ from bodyspace.cli.semantics import ClampOption, DatabaseOption, RefitOption, Se
 from bodyspace.data.template import RIG_NAMES, load_template
 from bodyspace.errors import MotionError, ParameterError
 from bodyspace.export.gltf import SkeletonAnimation, write_gltf
-from bodyspace.export.sequence import write_mesh_sequence
+from bodyspace.export.sequence import (
+    NUMBERED_SUFFIXES,
+    numbered_mesh_paths,
+    write_mesh_sequence,
+    write_numbered_meshes,
+)
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.motion.bvh import Motion, read_bvh, write_bvh
@@ -52,6 +61,9 @@ from bodyspace.report.animation import animated_gif, filmstrip
 from bodyspace.rig.kinematics import linear_blend_skinning
 
 OUT_SUFFIXES = (".glb", ".bvh", ".npz")
+# A folder --out (a name without suffix) holds one PLY a frame under this pattern.
+FOLDER_FRAME_PATTERN = "frame_%04d.ply"
+FOLDER_KIND = "animate mesh sequence"
 _FILMSTRIP_PANELS = 8
 _GIF_MAX_FRAMES = 60
 
@@ -133,8 +145,10 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
                                                   "T-pose (rigged by embedding, as bodyspace rig)."),
             motion: Path = typer.Option(..., "--motion", help="The motion capture clip (.bvh)."),
             out: Path = typer.Option(..., "--out", help="walk.glb (rigged glTF with the animation), walk.bvh (the clip "
-                                                        "on the body's skeleton) or walk.npz (posed meshes, "
-                                                        "frames x V x 3, metres)."),
+                                                        "on the body's skeleton), walk.npz (posed meshes, "
+                                                        "frames x V x 3, metres), walk_%04d.ply or .obj (one mesh "
+                                                        "a frame, numbered from 0) or a folder name without "
+                                                        "suffix (frame_0000.ply, ... inside)."),
             sets: Optional[List[str]] = SetOption,
             rig_name: str = typer.Option("default", "--rig", help="The CC0 rig: " + ", ".join(RIG_NAMES) + "."),
             frames: Optional[str] = typer.Option(None, "--frames", help="Frames of the clip to use, START:STOP[:STEP] "
@@ -156,7 +170,15 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             force: bool = ForceOption) -> None:
     """Put a motion capture clip on a body: retargeted (Rupprecht §3.3.3), feet kept still where the clip's feet are
     planted (two-bone IK), skinned; written as an animated rigged glTF, a BVH or a mesh sequence."""
-    check_file_output(out, "--out", force, OUT_SUFFIXES, example="walk.glb")
+    numbered = "%" in out.name
+    folder = not numbered and out.suffix == ""
+    if folder:
+        check_folder_output(out, "--out", force, FOLDER_KIND)
+    elif not numbered:
+        check_file_output(out, "--out", force, OUT_SUFFIXES + NUMBERED_SUFFIXES, example="walk.glb")
+        if out.suffix.lower() in NUMBERED_SUFFIXES:
+            raise ParameterError(f"--out {out}: one mesh a frame needs a frame field in the name, e.g. --out "
+                                 f"{out.with_name(out.stem + '_%04d' + out.suffix)}")
     for flag, path, suffix in (("--filmstrip", filmstrip_png, ".png"), ("--gif", gif, ".gif"),
                                ("--report", report, ".json")):
         if path is not None:
@@ -171,6 +193,9 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
     chosen = parse_frames(frames, clip.n_frames)
     original_dt = clip.frame_time
     clip = clip.frames(chosen)
+    frame_files = numbered_mesh_paths(out, clip.n_frames) if numbered else None
+    for path in frame_files or ():
+        check_file_output(path, "--out", force, NUMBERED_SUFFIXES, example="walk_0000.ply")
     if chosen.step > 1:             # every STEP-th frame: the time between kept frames grows
         clip = Motion(clip.skeleton, clip.values, clip.frame_time * chosen.step, clip.unit, clip.unit_note,
                       clip.translation, clip.name)
@@ -211,6 +236,11 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
                        animation=SkeletonAnimation(transforms, clip.frame_time, name=clip.name))
         elif suffix == ".bvh":
             write_bvh(out, to_bvh(final))
+        elif numbered:
+            write_numbered_meshes(frame_files, posed, faces)
+        elif folder:
+            with output_folder(out, "--out", force, FOLDER_KIND) as tmp:
+                write_numbered_meshes(numbered_mesh_paths(tmp / FOLDER_FRAME_PATTERN, clip.n_frames), posed, faces)
         else:
             write_mesh_sequence(out, posed, faces, clip.frame_time, extras={"motion": extras})
         root = int(np.flatnonzero(skeleton.parents < 0)[0])
@@ -269,7 +299,8 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
                                                            "other_skin_penetration_m": others[1],
                                                            "fastest_knee_deg_per_s": knees[2]},
                             "arm_torso_intersections": crossing.to_dict()})
-    written = ", ".join(str(p) for p in (out, filmstrip_png, gif, report) if p is not None)
+    said_out = f"{frame_files[0]} ... {frame_files[-1].name}" if numbered else out
+    written = ", ".join(str(p) for p in (said_out, filmstrip_png, gif, report) if p is not None)
     console.print(f"wrote {written}: {clip.name} ({clip.n_frames} frames, {clip.duration:.2f} s) on {said_body}, rig "
                   f"{rig_name} ({skeleton.n_bones} bones), leg ratio {retargeted.leg_ratio:.3f}; "
                   f"{time.perf_counter() - started:.1f} s", highlight=False)

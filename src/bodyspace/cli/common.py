@@ -20,6 +20,7 @@ import contextlib
 import functools
 import os
 import re
+import time
 import traceback
 import warnings
 from pathlib import Path
@@ -32,10 +33,11 @@ from rich.markup import escape
 from rich.progress import (
     BarColumn,
     Progress,
+    ProgressColumn,
     TextColumn,
     TimeElapsedColumn,
-    TimeRemainingColumn,
 )
+from rich.text import Text
 
 from bodyspace.atomic import (
     SIGNATURES,
@@ -52,6 +54,11 @@ out_console = Console()  # results: tables, JSON, CSV
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL_ERROR = 3
 MESH_SUFFIXES = (".obj", ".ply", ".glb")
+# Bodies decoded at once by `sample` and `crowd` (bounds memory: 64 bodies of 19k vertices are
+# 30 MB), and bodies drawn on a contact sheet (a sheet of thousands is unreadable and would
+# hold them all).
+SAMPLE_CHUNK = 64
+SHEET_MAX = 100
 
 AssetsOption = typer.Option(None, "--assets", help="An MPFB2-style asset folder to use instead of the cache "
                                                     "(or set BODYSPACE_ASSETS).")
@@ -135,18 +142,49 @@ def guarded(fn: Callable) -> Callable:
 
 
 # ----------------------------------------------------------------------------- progress
+def remaining_seconds(first: tuple[float, float], last: tuple[float, float]) -> float | None:
+    """Seconds left at ``last`` = (time, fraction done), at the rate since ``first``; None
+    before there is a rate.
+
+    The rate is the whole run's since its first report, not a recent window: a chunk of work
+    can take longer than any window (so a windowed rate has no samples and shows nothing), the
+    start-up before the first report (imports, compiling) is not work that is left, and a
+    resumed run's jump to the fraction done before the interruption is not speed.
+    """
+    (t0, f0), (t, f) = first, last
+    if f <= f0 or t <= t0:
+        return None
+    return max(0.0, (1.0 - f) * (t - t0) / (f - f0))
+
+
+class _RemainingColumn(ProgressColumn):
+    """``remaining_seconds`` at the last report, counted down since it (``-:--:--`` before a rate)."""
+
+    def render(self, task) -> Text:
+        left = task.fields.get("eta_left")
+        if left is None or task.finished:
+            return Text("-:--:--" if not task.finished else "0:00:00", style="progress.remaining")
+        left = max(0, int(round(left - (time.monotonic() - task.fields["eta_at"]))))
+        return Text(f"{left // 3600}:{left // 60 % 60:02d}:{left % 60:02d}", style="progress.remaining")
+
+
 @contextlib.contextmanager
 def progress(description: str, eta: bool = False) -> Iterator[Callable[[str, float], None]]:
-    """A rich progress bar on stderr driven by ``callback(message, fraction)``."""
+    """A rich progress bar on stderr driven by ``callback(message, fraction)``; ``eta``: with the
+    remaining time (``remaining_seconds``: the rate since the first report)."""
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                TimeElapsedColumn()]
     if eta:
-        columns += [TextColumn("eta"), TimeRemainingColumn()]
+        columns += [TextColumn("eta"), _RemainingColumn()]
     with Progress(*columns, TextColumn("{task.fields[message]}"), console=console, transient=False) as bar:
-        task = bar.add_task(description, total=1.0, message="")
+        task = bar.add_task(description, total=1.0, message="", eta_left=None, eta_at=0.0)
+        first: list[tuple[float, float]] = []
 
         def callback(message: str, fraction: float) -> None:
-            bar.update(task, completed=fraction, message=message)
+            now = time.monotonic()
+            first[:] = first or [(now, fraction)]
+            bar.update(task, completed=fraction, message=message,
+                       eta_left=remaining_seconds(first[0], (now, fraction)), eta_at=now)
 
         yield callback
 

@@ -1,27 +1,45 @@
 """``bodyspace import``: a scan database from a user's own folder of registered meshes and a
-labels CSV (``ScanDatabase.from_meshes``), without writing Python."""
+labels CSV (``ScanDatabase.from_meshes``), without writing Python; with ``--register``, from a
+folder of raw scans, each registered to the template first (``register.batch``)."""
 
 from __future__ import annotations
 
+import csv
+import io
+import tempfile
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 
 from bodyspace.cli.common import ForceOption, check_choice, check_folder_output, console, out_console, progress
 from bodyspace.data.database import (
     DATABASE_KIND,
     LANDMARKS_FILE,
+    MESH_COLUMN,
     REST_POSE_FIELD,
     REST_POSE_FIRST,
+    SEX_COLUMN,
+    SUBJECT_ID_COLUMN,
     UP_ROTATIONS,
     ScanDatabase,
+    check_label_columns,
     choose_rest_pose,
+    read_csv_columns,
     rest_pose_rows,
 )
-from bodyspace.model import check_landmark_file
+from bodyspace.data.template import load_template
+from bodyspace.errors import DatabaseError
+from bodyspace.measure.conventions import MESH_UNITS
+from bodyspace.model import BodyModel, check_landmark_file
+from bodyspace.register.batch import register_files
+from bodyspace.register.pipeline import DEFAULT_STEPS
+from bodyspace.register.user_model import basis_from_model, check_model_topology
 
 LENGTH_UNITS = ("m", "cm", "mm")
+# The per-scan report ``import --register`` writes into the database folder.
+REGISTRATION_REPORT = "registration.csv"
 
 
 def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of registered meshes of one topology: OBJ, "
@@ -36,8 +54,9 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
                       help="The pose that counts as the rest pose (build --selection rest): a pose name, or "
                            "'first' (each subject's first mesh in the CSV). Default: 'rest' if every subject "
                            "has it."),
-                  units: str = typer.Option("m", "--units", help="Length unit of the mesh coordinates: m, cm or mm "
-                                                                 "(stored in metres)."),
+                  units: Optional[str] = typer.Option(None, "--units", help="Length unit of the mesh coordinates: m, "
+                                                      "cm or mm (stored in metres); default m. With --register: "
+                                                      "the scans' unit (m, cm, mm, in), default found per scan."),
                   landmarks: Optional[Path] = typer.Option(
                       None, "--landmarks", help="Landmark file of the meshes' topology (docs/measurements.md): "
                                                 "checked on the rest scans and copied into the database as "
@@ -48,9 +67,25 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
                   faces: Optional[Path] = typer.Option(
                       None, "--faces", help="The faces of NPY meshes: a mesh file of the same topology, or an (F, 3) "
                                             "integer .npy. Default: the first mesh of the CSV that has faces."),
+                  register: bool = typer.Option(False, "--register", help="MESH_FOLDER holds raw scans (point clouds "
+                                                "or meshes in any frame, PLY/OBJ/STL/GLB/XYZ/TXT/CSV/NPY): register "
+                                                "each to the template first (as bodyspace register; landmarks from "
+                                                "NAME.lnd or NAME.landmarks.json beside a scan). Scans refused by "
+                                                "quality are listed with the reason and left out."),
+                  model: Optional[Path] = typer.Option(None, "--model", help="With --register: a BodyModel file of "
+                                                       "the template's topology whose shape space the fits use."),
+                  steps: int = typer.Option(DEFAULT_STEPS, "--steps", min=1, max=40, help="With --register: stiffness "
+                                            "levels of the non-rigid refinement."),
                   force: bool = ForceOption):
-    """Import a folder of your own registered meshes and a labels CSV as a scan database."""
-    units = check_choice(units, "--units", LENGTH_UNITS)
+    """Import a folder of your own registered meshes (or, with --register, raw scans) and a labels CSV as a scan
+    database."""
+    if register:
+        return _import_scans(mesh_folder, labels, out, rest_pose=rest_pose, units=units, up=up, landmarks=landmarks,
+                             faces=faces, model=model, steps=steps, force=force)
+    if model is not None or steps != DEFAULT_STEPS:
+        raise DatabaseError(f"{'--model' if model is not None else '--steps'} is used with --register (raw scans "
+                            "are fitted with it); registered meshes are imported as they are")
+    units = check_choice(units or "m", "--units", LENGTH_UNITS)
     if up is not None:
         up = check_choice(up, "--up", UP_ROTATIONS)
     check_folder_output(out, "--out", force, DATABASE_KIND)  # a bad --out is said before reading meshes
@@ -80,3 +115,96 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
     if landmarks is not None:
         out_console.print(f"landmarks: {landmarks} measures the rest scans; stored as {out / LANDMARKS_FILE} "
                           "(bodyspace build uses it)", highlight=False, soft_wrap=True)
+
+
+def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up, landmarks, faces, model, steps,
+                  force) -> None:
+    """``import --register``: register each scan the labels CSV names, build the database of the
+    accepted ones (``ScanDatabase.from_meshes`` on their registered meshes), list the refused."""
+    if landmarks is not None:
+        raise DatabaseError("--landmarks gives the landmarks of your own meshes' topology; with --register the "
+                            "meshes are the template's (its landmarks are known) and each scan's own landmarks "
+                            "are read from NAME.lnd or NAME.landmarks.json beside it")
+    if faces is not None:
+        raise DatabaseError("--faces is for NPY meshes of your own topology; with --register it is not used")
+    if units is not None:
+        units = check_choice(units, "--units", MESH_UNITS)
+    if up is not None:
+        up = check_choice(up, "--up", UP_ROTATIONS)
+    check_folder_output(out, "--out", force, DATABASE_KIND)
+    if not folder.is_dir():
+        raise DatabaseError(f"{folder}: not a folder; expected a folder of raw scans")
+    # The CSV before minutes of registration: its columns, and that every scan it names is there.
+    cells, lines = read_csv_columns(labels)
+    check_label_columns(cells, (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose", SEX_COLUMN), str(labels))
+    if MESH_COLUMN not in cells or not lines:
+        raise DatabaseError(f"{labels}: expected a '{MESH_COLUMN}' column naming the scan files in {folder} and one "
+                            f"row per scan; found columns {list(cells)} and {len(lines)} row(s)")
+    names = cells[MESH_COLUMN]
+    missing = [(n, line) for n, line in zip(names, lines) if not (folder / n).is_file()]
+    if missing:
+        listed = ", ".join(f"'{n}' (line {line})" for n, line in missing[:5])
+        raise DatabaseError(f"{labels}: {len(missing)} scan(s) not found in {folder}: {listed}; expected file "
+                            "names relative to the scan folder")
+    template = load_template()
+    basis, mset = None, None
+    if model is not None:
+        user = BodyModel.load(model, semantics=False)
+        check_model_topology(user, template, where=f"--model {model}")
+        basis = basis_from_model(user, where=f"--model {model}")
+        mset = user.measurement_set if user.has_measurement_set else None
+    with progress("import --register", eta=True) as cb:
+        outcomes = register_files([folder / n for n in names], template=template, units=units, up=up, basis=basis,
+                                  mset=mset, steps=steps, progress=cb)
+    for o in outcomes:
+        if o.accepted:
+            console.print(f"{o.path.name}: registered in {o.seconds:.0f} s, {o.quality.describe()}"
+                          f"{'' if o.landmarks is None else f'; landmarks {o.landmarks.name}'}",
+                          markup=False, highlight=False, soft_wrap=True)
+        else:
+            console.print(f"{o.path.name}: REFUSED, left out: {o.reason}", markup=False, highlight=False,
+                          soft_wrap=True)
+    kept = [i for i, o in enumerate(outcomes) if o.accepted]
+    if not kept:
+        raise DatabaseError(f"{folder}: none of the {len(outcomes)} scans could be registered (each one's reason is "
+                            "listed above); expected scans of one person standing alone")
+    with tempfile.TemporaryDirectory(prefix="bodyspace-import-") as tmp:
+        tmp = Path(tmp)
+        np.save(tmp / "faces.npy", template.faces)
+        table = {k: [v[i] for i in kept] for k, v in cells.items()}
+        # The subject defaults to the scan's file stem: said explicitly, the meshes are renamed here.
+        stems = [Path(names[i]).stem for i in kept]
+        table[SUBJECT_ID_COLUMN] = [s or stem for s, stem in zip(table.get(SUBJECT_ID_COLUMN, [""] * len(kept)),
+                                                                   stems)]
+        table[MESH_COLUMN] = [f"{k}.npy" for k in range(len(kept))]
+        for k, i in enumerate(kept):
+            np.save(tmp / f"{k}.npy", outcomes[i].vertices.astype(np.float32))
+        with open(tmp / labels.name, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(list(table))
+            w.writerows(zip(*table.values()))
+        try:
+            db = ScanDatabase.from_meshes(tmp, tmp / labels.name, length_unit="m", rest_pose=rest_pose,
+                                          faces=tmp / "faces.npy", spelling="cli")
+        except DatabaseError as exc:
+            raise DatabaseError(f"{labels} (the rows of the {len(kept)} registered scans): {exc}") from None
+    db.meta[REST_POSE_FIELD] = choose_rest_pose(db.scans, rest_pose, str(labels))
+    db.meta["provenance"].update({"source": "bodyspace import --register", "folder": str(folder),
+                                  "labels": str(labels), "model": None if model is None else str(model)})
+    db.meta["template"] = template.template_id
+    report = io.StringIO()
+    w = csv.writer(report)
+    w.writerow(["scan", "accepted", "quality", "explained_share", "coverage_share", "mean_distance_mm", "seconds",
+                "landmarks", "reason"])
+    for o in outcomes:
+        q = o.quality
+        w.writerow([o.path.name, int(o.accepted), "" if q is None else f"{q.quality:.4f}",
+                    "" if q is None else f"{q.explained:.4f}", "" if q is None else f"{q.coverage:.4f}",
+                    "" if not np.isfinite(o.mean_distance) else f"{1000 * o.mean_distance:.3f}", f"{o.seconds:.1f}",
+                    "" if o.landmarks is None else o.landmarks.name, o.reason])
+    db.save(out, overwrite=force, extra_files={REGISTRATION_REPORT: report.getvalue()})
+    refused = [o for o in outcomes if not o.accepted]
+    out_console.print(f"wrote {out}: {db.n_scans} registered scans of {db.n_subjects} subjects ({db.n_vertices} "
+                      f"vertices, the template's topology); {len(refused)} refused and left out"
+                      f"{': ' + ', '.join(o.path.name for o in refused) if refused else ''}; per-scan quality in "
+                      f"{out / REGISTRATION_REPORT}", highlight=False, soft_wrap=True)

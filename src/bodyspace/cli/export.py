@@ -26,6 +26,7 @@ from bodyspace.measure.conventions import MESH_UNITS
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
+from bodyspace.register.landmarks import load_carried_weights
 from bodyspace.rig.embed import embed_skeleton, embedded_skeleton
 from bodyspace.rig.skeleton import body_skeleton
 from bodyspace.rig.weights import bone_heat_weights
@@ -65,11 +66,12 @@ def check_rig_options(out: Path, rig: Optional[str], morphs: Optional[str], png:
 
 
 def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str, where: str, *,
-                         up: Optional[str] = None, units: Optional[str] = None):
+                         up: Optional[str] = None, units: Optional[str] = None, weights_file: Optional[Path] = None):
     """``(vertices, skeleton, weights, how)`` of a body for rig ``rig_name``: the template's rig and
     MakeHuman's weights when the body has the template topology (vertices as given); else the
     rig embedded into the mesh and bone-heat weights, the vertices in metres, our axes (``up``,
-    ``units``: the mesh's, found from it when None). ``how`` says which, for people."""
+    ``units``: the mesh's, found from it when None). ``how`` says which, for people.
+    weights_file: a ``bodyspace landmarks`` file whose carried skin weights replace bone heat."""
     template = load_template()
     v, f = np.asarray(vertices, dtype=float), np.asarray(faces)
     rig = template.rigs.get(rig_name)
@@ -77,25 +79,34 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
         raise ParameterError(f"--rig {rig_name!r}: the asset folder has no such rig; it has "
                              f"{', '.join(template.rigs)}")
     if v.shape == template.vertices.shape and np.array_equal(f, template.faces) and up is None and units is None:
+        if weights_file is not None:
+            raise ParameterError(f"--weights {weights_file}: {where} has the template's topology, whose own skin "
+                                 "weights are used; --weights is for meshes of another topology")
         return v, body_skeleton(rig, v, rest_vertices=template.vertices), rig.weights, "template topology"
     embedding = embed_skeleton(v, f, up=up, units=units, mesh_name=where)
     skeleton = embedded_skeleton(embedding, rig)
     body = embedding.frame.to_internal(v)
+    how = (f"skeleton embedded (mesh up {embedding.frame.up}, {embedding.frame.units}; fit residual "
+           f"{1000 * embedding.residual_m:.1f} mm), ")
+    if weights_file is not None:
+        # MakeHuman's weights carried by the registration (bodyspace landmarks): no bone heat.
+        return body, skeleton, load_carried_weights(weights_file, len(v), rig), how + f"skin weights of {weights_file}"
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0     # the bones MakeHuman's weights move
     weights = bone_heat_weights(body, f, skeleton.heads, skeleton.tails, deform=deform)
-    how = (f"skeleton embedded (mesh up {embedding.frame.up}, {embedding.frame.units}; fit residual "
-           f"{1000 * embedding.residual_m:.1f} mm), bone-heat weights")
+    how += "bone-heat weights"
     return body, skeleton, weights, how
 
 
 def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: str, *, body_model=None,
                  morphs: Optional[str] = None, png: Optional[Path] = None, bones: Optional[str] = None,
-                 where: str = "the body", up: Optional[str] = None, units: Optional[str] = None) -> str:
+                 where: str = "the body", up: Optional[str] = None, units: Optional[str] = None,
+                 weights_file: Optional[Path] = None) -> str:
     """Write the rigged ``.glb`` (and the ``--png``); returns a line saying what was written."""
     names = [b.strip() for b in bones.split(",")] if bones else None
     if morphs is not None and body_model is None:
         raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
-    vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units)
+    vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units,
+                                                            weights_file=weights_file)
     for b in names or []:
         if b not in skeleton.bone_names:
             raise ParameterError(f"--bones {b!r}: not a bone of rig {rig_name}; expected names such as "
@@ -130,6 +141,9 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
                                                             "the mesh when left out."),
         units: Optional[str] = typer.Option(None, "--units", help="The mesh's length unit (m, cm, mm, in); found "
                                                                   "from its size when left out."),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Another topology: the landmark file of "
+                                               "bodyspace landmarks MESH, whose carried MakeHuman skin weights are "
+                                               "used instead of bone heat."),
         force: bool = ForceOption):
     """A rigged glTF 2.0 of a body, bind pose = the mesh as given. Template topology: skeleton regressed from its
     vertices, MakeHuman's CC0 skin weights, optional morph targets of a model's semantic variables. Any other
@@ -150,7 +164,7 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
             raise ParameterError(f"--model {model}: holds no semantic regressors; fit them once with bodyspace generate "
                                  f"{model} --database DB ... (they are saved into the model file)")
         said = write_rigged(out, v, f, rig_name, body_model=body_model, morphs=morphs, png=png, bones=bones,
-                            where=str(mesh), up=up, units=units)
+                            where=str(mesh), up=up, units=units, weights_file=weights)
     except BodyspaceError as exc:
         fail(exc)
     console.print(said, highlight=False)

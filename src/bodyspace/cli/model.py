@@ -11,6 +11,8 @@ import typer
 
 from bodyspace.cli.common import (
     MESH_SUFFIXES,
+    SAMPLE_CHUNK,
+    SHEET_MAX,
     ForceOption,
     SeedOption,
     check_choice,
@@ -21,7 +23,7 @@ from bodyspace.cli.common import (
     output_folder,
     progress,
 )
-from bodyspace.cli.resources import check_disk, check_memory, mesh_bytes
+from bodyspace.cli.resources import check_bodies_fit
 from bodyspace.data.database import LANDMARKS_FILE, META_FILE, ScanDatabase
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure import load_measurement_set
@@ -31,16 +33,9 @@ from bodyspace.report.render import contact_sheet
 from bodyspace.shape import BASES
 
 SAMPLES_KIND = "samples"
-# Bodies decoded at once by `sample` (bounds memory: 64 bodies of 19k vertices are 30 MB), and
-# bodies drawn on its contact sheet (a sheet of thousands is unreadable and would hold them all).
-SAMPLE_CHUNK = 64
-SHEET_MAX = 100
 # The widest truncation --sigma takes: beyond 10 SD a Gaussian shape space gives no body
 # (and inf would be an untruncated draw, not a truncation).
 SIGMA_MAX = 10.0
-# Bytes of memory a body's coefficients take while drawn (truncnorm's temporaries) and named.
-COEFFICIENT_TEMPORARIES = 4
-NAME_BYTES = 80
 
 
 def build(database: Path = typer.Argument(..., help="Scan database folder (bodyspace population, ScanDatabase.save)."),
@@ -146,7 +141,7 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
         raise ParameterError(f"--components {components}: {model_file} has {model.n_components} components; "
                              f"expected at most {model.n_components}")
     check_folder_output(out, "--out", force, SAMPLES_KIND)  # a bad --out is said first
-    _check_sample_size(n, fmt, model, out)
+    check_bodies_fit(n, fmt, model.n_components, len(model.template_vertices), len(model.faces), out)
     names = [f"body_{i:0{max(3, len(str(n - 1)))}d}.{fmt}" for i in range(n)]
     with output_folder(out, "--out", force, SAMPLES_KIND) as tmp, progress("sample") as cb:
         coefficients = model.sample_coefficients(n, n_components=components, sigma_range=sigma, rng=seed)
@@ -168,12 +163,3 @@ def sample(model_file: Path = typer.Argument(..., help="Model file (.npz, bodysp
     out_console.print(f"wrote {n} bodies to {out}" + (" and samples.png" if png else "")
                       + (f" (the sheet shows the first {SHEET_MAX})" if png and n > SHEET_MAX else ""))
 
-
-def _check_sample_size(n: int, fmt: str, model: BodyModel, out: Path) -> None:
-    """Refuse an -n whose coefficients do not fit in memory or whose meshes do not fit on the
-    disk, before anything is written."""
-    fix = "ask for fewer bodies (a smaller -n)"
-    check_memory(n * (model.n_components * 8 * COEFFICIENT_TEMPORARIES + NAME_BYTES), f"-n {n}", fix)
-    per_body = mesh_bytes(fmt, len(model.template_vertices), len(model.faces))
-    smaller = "" if fmt != "obj" else " or a smaller format (--format ply)"
-    check_disk(n * per_body, out, f"-n {n} --format {fmt}", f"{fix}{smaller}")

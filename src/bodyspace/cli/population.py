@@ -50,6 +50,9 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
                poses: int = typer.Option(5, "--poses", min=0, help="Poses per subject besides the rest pose "
                                                                    "(at most the library's 38)."),
                seed: int = SeedOption(),
+               workers: Optional[int] = typer.Option(None, "--workers", min=1,
+                                                     help="Processes making subjects side by side (default: one "
+                                                          "per core). The database is the same for any number."),
                force: bool = ForceOption,
                assets: Optional[Path] = AssetsOption):
     """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."""
@@ -58,6 +61,6 @@ def population(out: Path = typer.Option(..., "--out", help="Database folder to w
     template = load_template(assets)
     check_population_size(subjects, poses, len(template.vertices), out)
     with progress("population", eta=True) as cb:
-        db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb,
+        db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb, workers=workers,
                               log=lambda line: console.print(line, highlight=False, soft_wrap=True))
     console.print(f"wrote {db!r} to {out}")

@@ -4,7 +4,6 @@ landmarks`` (a mesh of any topology → a landmark file for ``measure --landmark
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Optional
 
@@ -18,8 +17,12 @@ from bodyspace.errors import MeshError, RegistrationError
 from bodyspace.measure import evaluate, load_measurement_set, to_json
 from bodyspace.measure.conventions import MESH_UNITS, UP_AXES
 from bodyspace.mesh.io import load_mesh, save_mesh
-from bodyspace.register.landmarks import landmark_document, mesh_landmarks
+from bodyspace.register.detail import MAX_LEVELS, apply_detail, save_detail
+from bodyspace.register.landmark_files import read_scan_landmarks
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document, mesh_landmarks
+from bodyspace.model import BodyModel
 from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
+from bodyspace.register.user_model import basis_from_model, check_model_topology
 from bodyspace.register.prepare import read_scan
 from bodyspace.report.registration import distance_figure
 from bodyspace.report.render import contact_sheet
@@ -34,29 +37,17 @@ UpOption = typer.Option(None, "--up", help="The scan's up axis: y, -y, x, -x, z 
 
 
 def _read_landmarks(path: Path) -> dict:
-    """--landmarks FILE: {"landmarks": {name: [x, y, z]}} in the scan's frame and units."""
-    try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RegistrationError(f"--landmarks {path}: could not read it as JSON ({exc}); expected "
-                                "{\"landmarks\": {name: [x, y, z], ...}} in the scan's units") from None
-    raw = d.get("landmarks", d) if isinstance(d, dict) else None
-    if not isinstance(raw, dict) or not raw:
-        raise RegistrationError(f"--landmarks {path}: expected {{\"landmarks\": {{name: [x, y, z], ...}}}} in the "
-                                "scan's frame and units")
-    out = {}
-    for name, v in raw.items():
-        a = np.asarray(v, dtype=float) if isinstance(v, list) else None
-        if a is None or a.shape != (3,) or not np.isfinite(a).all():
-            raise RegistrationError(f"--landmarks {path}: landmark {name!r} is {v!r}; expected [x, y, z] (three "
-                                    "numbers in the scan's units)")
-        out[str(name)] = a
-    return out
+    """--landmarks FILE (JSON or CAESAR .lnd, ``register.landmark_files``), notes printed."""
+    lms, notes = read_scan_landmarks(path, flag="--landmarks")
+    for note in notes:
+        console.print(f"[landmarks] {note}", markup=False, highlight=False)
+    return lms
 
 
-def _standing_measurements(vertices: np.ndarray, faces: np.ndarray, template) -> dict:
-    """Measurements of the registered body (metres, +Y up) brought back to the rest pose."""
-    mset = load_measurement_set()
+def _standing_measurements(vertices: np.ndarray, faces: np.ndarray, template, mset=None) -> dict:
+    """Measurements of the registered body (metres, +Y up) brought back to the rest pose, with
+    ``mset`` (default the shipped set)."""
+    mset = mset if mset is not None else load_measurement_set()
     try:
         rest, _, info = unpose(vertices, template.rigs["default"], mesh_name="the registered mesh")
         note = f"measured standing: unposed first ({info.describe()})"
@@ -72,10 +63,20 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
              out: Path = typer.Option(..., "--out", help="Output folder (refused if it exists, unless --force)."),
              landmarks: Optional[Path] = typer.Option(None, "--landmarks", help="JSON {\"landmarks\": {name: [x, y, z]}} "
                                                       "of measurement-set landmarks on the scan (its frame and "
-                                                      "units; at least 3): a similarity alignment, weighted in."),
+                                                      "units; at least 3), or a CAESAR .lnd file: a similarity "
+                                                      "alignment, weighted in."),
+             model: Optional[Path] = typer.Option(None, "--model", help="A BodyModel file (bodyspace build) of the "
+                                                  "template's topology: its shape space, mean body and measurement "
+                                                  "set are used instead of the default ones."),
              units: Optional[str] = UnitsOption, up: Optional[str] = UpOption,
              steps: int = typer.Option(DEFAULT_STEPS, "--steps", min=1, max=40, help="Stiffness levels of the "
                                        "non-rigid refinement (3000 → 1)."),
+             detail: bool = typer.Option(False, "--detail", help="Also keep the scan's fine relief (wrinkles, face) as "
+                                         "normal offsets on the fit subdivided at mid-edges (Hasler §3): writes "
+                                         "detail.npz (bodyspace morph --detail re-adds it) and the detailed mesh."),
+             detail_levels: int = typer.Option(1, "--detail-levels", min=1, max=MAX_LEVELS, help="Mid-edge "
+                                               "subdivisions for --detail: 1 (107 k faces, 3 mm edges) or 2 "
+                                               "(428 k faces, 1.6 mm)."),
              no_check: bool = typer.Option(False, "--no-check", help="Write the fit even when its quality is below "
                                            "the threshold (it is refused by default)."),
              force: bool = ForceOption):
@@ -84,18 +85,26 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
         units = check_choice(units, "--units", MESH_UNITS)
     if up is not None:
         up = check_choice(up, "--up", UP_AXES)
+    template = load_template()
+    basis, mset = None, None
+    if model is not None:
+        user = BodyModel.load(model, semantics=False)
+        check_model_topology(user, template, where=f"--model {model}")
+        basis = basis_from_model(user, where=f"--model {model}")
+        mset = user.measurement_set if user.has_measurement_set else None
     points, faces = read_scan(scan)
     lms = _read_landmarks(landmarks) if landmarks is not None else None
-    template = load_template()
     with progress("register") as report:
         try:
             reg = register_scan(points, faces, template=template, units=units, up=up, landmarks=lms, steps=steps,
-                                check=not no_check, name=str(scan), progress=report)
+                                basis=basis, mset=mset,
+                                check=not no_check, name=str(scan), progress=report,
+                                detail_levels=detail_levels if detail else None)
         except RegistrationError as exc:
             raise RegistrationError(f"{exc}{'' if no_check or 'refused' not in str(exc) else ' (--no-check writes it anyway)'}") from None
     for line in reg.assumed:
         console.print(f"[assumed] {line}", markup=False, highlight=False)
-    measurements = _standing_measurements(reg.internal, reg.faces, template)
+    measurements = _standing_measurements(reg.internal, reg.faces, template, mset)
     rig = template.rigs["default"]
     with output_folder(out, "--out", force, REGISTRATION_KIND) as tmp:
         save_mesh(tmp / "registered.obj", reg.vertices, reg.faces)
@@ -119,17 +128,28 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
                 w.writerow([name, "" if e["value"] is None else e["value"], e["unit"], e.get("note", "")])
         q = reg.quality
         write_json(tmp / "summary.json", {
-            "written_by": "bodyspace", "scan": str(scan), "units": reg.units, "up": reg.up, "assumed": reg.assumed,
+            "written_by": "bodyspace", "scan": str(scan), "model": None if model is None else str(model),
+            "shape_space": "the default (MakeHuman phenotype range)" if basis is None else
+            f"{model}: {len(basis.sigma)} components", "units": reg.units, "up": reg.up, "assumed": reg.assumed,
             "quality": round(q.quality, 4), "explained_share": round(q.explained, 4),
             "coverage_share": round(q.coverage, 4), "accepted": q.accepted,
             "mean_vertex_distance_mm": round(1000 * float(np.mean(reg.distance)), 3),
             "seconds": {k: round(v, 2) for k, v in reg.seconds.items()}})
+        if reg.detail is not None:
+            save_detail(tmp / "detail.npz", reg.detail, written_by="bodyspace register", scan=str(scan),
+                        base_mesh="registered_standard.obj")
+            dv, df = apply_detail(reg.internal, reg.faces, reg.detail, name="the registered mesh")
+            save_mesh(tmp / "detailed_standard.obj", dv, df)
+            save_mesh(tmp / "detailed.obj", dv @ reg.to_scan[:3, :3].T + reg.to_scan[:3, 3], df)
         distance_figure(reg.points[q.point_index], q.point_distance, tmp / "distance.png",
                         title=f"{scan.name}: scan points coloured by distance to the fit; {q.describe()}")
     console.print(f"{q.describe()}", markup=False, highlight=False)
+    if reg.detail is not None:
+        console.print(f"detail: {reg.detail.describe()}", markup=False, highlight=False)
     console.print(f"wrote {out}/ (registered.obj in the scan's frame, registered_standard.obj in metres +Y up, "
-                  "distance.csv, pose.json, measurements.json/csv, summary.json, distance.png)", markup=False,
-                  highlight=False)
+                  "distance.csv, pose.json, measurements.json/csv, summary.json, distance.png"
+                  f"{'; detail.npz, detailed.obj, detailed_standard.obj' if reg.detail is not None else ''})",
+                  markup=False, highlight=False)
 
 
 def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology (OBJ/PLY/GLB/STL; any frame and unit)."),
@@ -150,8 +170,11 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     template = load_template()
     with progress("landmarks") as report:
         lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
-    doc = landmark_document(lms, len(vertices), written_by="bodyspace",
-                            note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}")
+    carried = carry_vertex_data(reg.vertices, template, vertices, faces)
+    doc = landmark_document(lms, len(vertices), carried, written_by="bodyspace",
+                            note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}; "
+                                 "vertex_parts and skin_weights are the template's body parts and skin weights "
+                                 "carried to this mesh")
     write_json(out, doc)
     if png is not None:
         to_internal = np.linalg.inv(reg.to_scan)
@@ -164,6 +187,7 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
         contact_sheet([v], [faces], png, labels=[f"{mesh.name}: {len(lms)} landmarks"], views=("front", "side"),
                       polylines=[crosses], title="bodyspace landmarks", panel_height=6.0)
     console.print(f"{reg.quality.describe()}", markup=False, highlight=False)
-    console.print(f"wrote {out} ({len(lms)} landmarks for {len(vertices)} vertices; bodyspace measure {mesh} "
-                  f"--landmarks {out}{'' if units is None else f' --units {units}'}"
-                  f"{'' if up is None else f' --up {up}'})", markup=False, highlight=False)
+    console.print(f"wrote {out} ({len(lms)} landmarks, the body part and skin weights of each of the "
+                  f"{len(vertices)} vertices; bodyspace measure {mesh} "
+                  f"--landmarks {out} --units {units or reg.units}{'' if up is None else f' --up {up}'})",
+                  markup=False, highlight=False)

@@ -14,6 +14,9 @@ from bodyspace.errors import ParameterError
 # 28 bytes a "v x y z" line and 20 an "f a b c" line; PLY: binary float32 xyz, a count byte and
 # three int32; glb: float32 xyz and uint32 indices).
 MESH_BYTES = {"obj": (28, 20), "ply": (12, 13), "glb": (12, 12)}
+# Bytes of memory a body's coefficients take while drawn (truncnorm's temporaries) and named.
+COEFFICIENT_TEMPORARIES = 4
+NAME_BYTES = 80
 
 
 def format_bytes(n: float) -> str:
@@ -72,3 +75,12 @@ def check_disk(need: float, out: Path, request: str, fix: str) -> None:
     if have is not None and need > have:
         raise ParameterError(f"{request}: would write about {format_bytes(need)} to {out}, the disk has "
                              f"{format_bytes(have)} free; {fix}")
+
+
+def check_bodies_fit(n: int, fmt: str, n_components: int, n_vertices: int, n_faces: int, out: Path) -> None:
+    """Refuse ``-n n`` bodies (``sample``, ``crowd``) whose coefficients and names do not fit in
+    memory or whose meshes do not fit on the disk, before anything is written."""
+    fix = "ask for fewer bodies (a smaller -n)"
+    check_memory(n * (n_components * 8 * COEFFICIENT_TEMPORARIES + NAME_BYTES), f"-n {n}", fix)
+    smaller = "" if fmt != "obj" else " or a smaller format (--format ply)"
+    check_disk(n * mesh_bytes(fmt, n_vertices, n_faces), out, f"-n {n} --format {fmt}", f"{fix}{smaller}")

@@ -23,6 +23,8 @@ from rich.table import Table
 from bodyspace.atomic import MARKDOWN_SIGNATURE, WRITTEN_BY, atomic_path
 from bodyspace.cli.common import (
     MESH_SUFFIXES,
+    SAMPLE_CHUNK,
+    SHEET_MAX,
     ForceOption,
     SeedOption,
     check_file_output,
@@ -35,6 +37,7 @@ from bodyspace.cli.common import (
     report_warnings,
 )
 from bodyspace.cli.export import BonesOption, MorphsOption, PngOption, RigOption, check_rig_options, write_rigged
+from bodyspace.cli.resources import check_bodies_fit
 from bodyspace.data.database import ScanDatabase
 from bodyspace.errors import BodyspaceError
 from bodyspace.mapping.gradients import SUBSTITUTES
@@ -42,6 +45,7 @@ from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel, request_tolerance
+from bodyspace.register.detail import apply_detail, load_detail
 from bodyspace.report.render import contact_sheet
 from bodyspace.semantics.evaluation import (
     RegressionTable,
@@ -290,6 +294,9 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
           mask: Optional[List[str]] = typer.Option(None, "--mask", help="Confine the change to a region: upper_body, "
                                                    "lower_body, arms, legs, torso, head, left, right (repeatable)."),
           out: Path = typer.Option(..., "--out", help="Mesh file to write (.obj, .ply or .glb; metres)."),
+          detail: Optional[Path] = typer.Option(None, "--detail", help="detail.npz of bodyspace register --detail "
+                                                "(MESH its registered_standard.obj): the scan's relief re-added "
+                                                "on the morphed body (the output is then the subdivided mesh)."),
           clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
           accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
@@ -297,6 +304,7 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
     try:
         if not sets:
             raise BodyspaceError("nothing to change; pass --set NAME=VALUE or NAME=+CHANGE, e.g. --set stature=+5cm")
+        relief = load_detail(detail) if detail is not None else None
         sm = load_semantics(model_file, database, refit, clamp)
         changes = parse_targets(sets, None, allow_delta=True, sm=sm)
         v, f = load_mesh(mesh)
@@ -307,14 +315,18 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
             warnings.simplefilter("always", RuntimeWarning)
             result = sm.body_model.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None,
                                          accept_misses=accept_misses)
-        _save_mesh(out, result.vertices, f)
+        if relief is None:
+            _save_mesh(out, result.vertices, f)
+        else:
+            _save_mesh(out, *apply_detail(result.vertices, f, relief, name=f"{mesh} (--detail {detail})"))
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
     out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result,
                                     sm))
     moved = np.linalg.norm(result.vertices - v, axis=1)
-    out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm",
+    out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm"
+                      f"{'' if relief is None else f'; the relief of {detail} re-added ({relief.describe()})'}",
                       highlight=False)
 
 
@@ -335,53 +347,66 @@ def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
             raise BodyspaceError(f"--format {fmt!r}, expected obj, ply or glb")
         sm = load_semantics(model_file, database, refit, clamp)
         targets = parse_targets(sets, ranges, allow_delta=False, sm=sm)
+        bm = sm.body_model
+        check_bodies_fit(n, fmt.lower(), bm.n_components, len(bm.template_vertices), len(bm.faces), out)
         with _progress("crowd") as cb, warnings.catch_warnings(record=True) as caught, \
                 output_folder(out, "--out", force, CROWD_KIND) as folder:
             warnings.simplefilter("always", RuntimeWarning)
-            # nothing asked: random bodies from the shape-only model
-            results = (sm.body_model.crowd(n, targets, rng=seed, progress=lambda m, f: cb(m, 0.8 * f),
-                                           accept_misses=accept_misses) if targets else [])
-            bodies = (np.array([r.vertices for r in results]) if results
-                      else sm.body_model.sample(n, sigma_range=2.0, rng=seed))
-            names = [f"body_{i:03d}.{fmt.lower()}" for i in range(n)]
-            rows = []
-            for i, (name, body) in enumerate(zip(names, bodies)):
-                _save_mesh(folder / name, body, sm.body_model.faces)
-                meas = to_json(_measure_one(sm, body))
-                row = {"mesh": name}
-                if results:
-                    row["converged"] = results[i].converged
-                    row["iterations"] = results[i].iterations
-                    c = results[i].coefficients
-                else:
-                    c = np.asarray(sm.body_model.project(body)).reshape(-1)
-                for lab in sm.labels_:
-                    if lab not in sm.measured_:
-                        row[f"{lab} (model)"] = round(float(sm.regressors_[lab].predict(c)), 4)
-                row.update({f"{k} ({e['unit']})": e["value"] for k, e in meas.items()})
-                rows.append(row)
-                cb(f"wrote {name}", 0.8 + 0.1 * (i + 1) / n)
-            _write_csv(folder / "crowd.csv", rows)
+            model = sm.body_model
+            names = [f"body_{i:0{max(3, len(str(n - 1)))}d}.{fmt.lower()}" for i in range(n)]
+            # One body at a time (or SAMPLE_CHUNK random ones), written as it is made: memory does
+            # not grow with -n; the line-up keeps the first SHEET_MAX.
+            if targets:
+                made = ((r.vertices, r.coefficients, r) for r in
+                        model.iter_crowd(n, targets, rng=seed, accept_misses=accept_misses))
+            else:   # nothing asked: random bodies from the shape-only model, their coefficients known
+                made = _random_bodies(model, model.sample_coefficients(n, sigma_range=2.0, rng=seed))
+            sheet, missed = [], 0
+            with open(folder / "crowd.csv", "w", newline="") as fh:
+                writer = None
+                for i, (name, (body, c, result)) in enumerate(zip(names, made)):
+                    _save_mesh(folder / name, body, model.faces)
+                    meas = to_json(_measure_one(sm, body))
+                    row = {"mesh": name}
+                    if result is not None:
+                        row["converged"] = result.converged
+                        row["iterations"] = result.iterations
+                        missed += not result.converged
+                    c = np.asarray(c, dtype=float).reshape(-1)
+                    for lab in sm.labels_:
+                        if lab not in sm.measured_:
+                            row[f"{lab} (model)"] = round(float(sm.regressors_[lab].predict(c)), 4)
+                    row.update({f"{k} ({e['unit']})": e["value"] for k, e in meas.items()})
+                    if writer is None:
+                        writer = csv.DictWriter(fh, fieldnames=list(row))
+                        writer.writeheader()
+                    writer.writerow(row)
+                    if i < SHEET_MAX:
+                        sheet.append(body)
+                    cb(f"wrote {name}", 0.9 * (i + 1) / n)
             if png:
                 cb("rendering lineup.png", 0.9)
-                contact_sheet(bodies, sm.body_model.faces, folder / "lineup.png", labels=names,
-                              title=f"crowd of {n}: " + (", ".join(sets or []) + " " + ", ".join(ranges or [])).strip())
+                shown = f" (the first {len(sheet)})" if n > len(sheet) else ""
+                contact_sheet(np.asarray(sheet), model.faces, folder / "lineup.png", labels=names[:len(sheet)],
+                              title=f"crowd of {n}{shown}: "
+                                    + (", ".join(sets or []) + " " + ", ".join(ranges or [])).strip())
             cb("done", 1.0)
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
-    missed = sum(1 for r in (results or []) if not r.converged)
     out_console.print(f"wrote {n} bodies, crowd.csv" + (" and lineup.png" if png else "") + f" to {out}"
                       + (f"; {missed} missed a target (see warnings)" if missed else ""), highlight=False)
+
+
+def _random_bodies(model: BodyModel, coefficients: np.ndarray):
+    """(body (V, 3), its coefficients (K,), None) for each row of ``coefficients`` (N, K),
+    decoded SAMPLE_CHUNK at a time."""
+    for start in range(0, len(coefficients), SAMPLE_CHUNK):
+        chunk = coefficients[start:start + SAMPLE_CHUNK]
+        for body, c in zip(model.reconstruct(chunk), chunk):
+            yield body, c, None
 
 
 def _measure_one(sm, body):
     return evaluate_measurements(sm.mset, body, sm.body_model.faces)
 
-
-def _write_csv(path: Path, rows: list) -> None:
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)

@@ -23,7 +23,10 @@ has a joint centre (a cruder but valid choice; docs/measurements.md).
 
 A *point* in a measurement is a landmark name or a list of names (their mean: the mean of a
 front and a back landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a
-pair of points ``[from, to]`` (so it follows a limb or the torso in any pose) (``points``).
+pair of points ``[from, to]`` (so it follows a limb or the torso in any pose), or a joint axis
+``{"from", "to", "fallback"}`` between two joint centres given inline as weighted vertices of the
+set's topology (the neck girth's: neck joint to head joint), which a landmark file for another
+topology turns into its fallback pair (``points``).
 
 Methods are registered in ``methods.METHODS`` (one function per method, each with a check of
 its fields that runs here); a set naming an unregistered method is refused on load. The
@@ -71,7 +74,7 @@ import scipy.sparse as sp
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
 from bodyspace.measure.parts import decode_parts, encode_parts
-from bodyspace.measure.points import check_axis, fail, point_names
+from bodyspace.measure.points import axis_points, check_axis, fail, point_names
 
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
@@ -377,6 +380,21 @@ def load_landmarks(path: str | os.PathLike) -> tuple[dict[str, tuple[np.ndarray,
     return lms, n
 
 
+def load_landmark_parts(path: str | os.PathLike) -> np.ndarray | None:
+    """The body part of every vertex (V,) int8 a landmark file carries (its optional
+    ``"vertex_parts"``, one letter a vertex as in a measurement set; ``bodyspace landmarks``
+    writes it), or None."""
+    path = Path(path)
+    d = _read_json(path)
+    text = d.get("vertex_parts") if isinstance(d, dict) else None
+    if text is None:
+        return None
+    if not isinstance(text, str):
+        raise MeasurementError(f"{path}: field 'vertex_parts' is {type(text).__name__}; expected a string of one "
+                               "letter a vertex (as bodyspace landmarks writes), or no such field")
+    return decode_parts(text, f"{path} field 'vertex_parts'")
+
+
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,
                    source: str = "<landmarks>") -> MeasurementSet:
     """The topology-free part of ``base`` re-pointed at another topology's ``landmarks``.
@@ -393,7 +411,7 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
     conditions = {}
     for cname, c in base.conditions.items():
         axes = c["axes"] + [c.get("relative_to", "up")]
-        if all(point_names(p) <= set(landmarks) for a in axes if a != "up" for p in a):
+        if all(point_names(p) <= set(landmarks) for a in axes for p in axis_points(a)):
             conditions[cname] = c
     kept, have = [], set()
     for m in base.measurements:
@@ -404,6 +422,8 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
             continue
         if any(m.get(k) not in have for k in ("stature", "mass") if k in m):
             continue                       # derived from a dropped measurement
+        # A joint axis's inline vertices are the template's: another topology takes its fallback.
+        m = dict(m, **{k: m[k]["fallback"] for k in ("normal", "axis") if isinstance(m.get(k), dict)})
         kept.append(m)
         have.add(m["name"])
     if not any(m["method"] not in ("volume", "surface_area") for m in kept):
@@ -424,7 +444,7 @@ def _closest(base: MeasurementSet, landmarks) -> str:
         need = _point_fields(m)
         for r in m["requires"]:
             c = base.conditions[r]
-            need |= {n for a in c["axes"] + [c.get("relative_to", "up")] if a != "up" for p in a
+            need |= {n for a in c["axes"] + [c.get("relative_to", "up")] for p in axis_points(a)
                      for n in point_names(p)}
         missing = sorted(need - set(landmarks) - {"floor"})
         if missing and (best is None or len(missing) < len(best[1])):
@@ -445,8 +465,7 @@ def _point_fields(m: dict) -> set:
         if m.get(key) is not None:
             pts.append(m[key])
     for key in ("normal", "axis"):
-        if isinstance(m.get(key), list):
-            pts += m[key]
+        pts += axis_points(m.get(key))
     if m.get("band"):
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])

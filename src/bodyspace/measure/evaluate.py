@@ -23,7 +23,7 @@ from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
 from bodyspace.measure.parts import parts_from_landmarks
-from bodyspace.measure.points import axis, format_point
+from bodyspace.measure.points import axis, format_point, inline_key, inline_points
 from bodyspace.mesh.geometry import check_mesh
 
 CHUNK = 64
@@ -128,6 +128,9 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
     P = _landmarks(L, v)
     chunk = Chunk(v, {name: P[:, i] for i, name in enumerate(mset.landmarks)}, topology, keep_polylines,
                   age_years, male, parts)
+    # The inline joint centres of joint axes (the neck joint and the head joint of the neck girth).
+    for p in inline_points([m.get(k) for m in mset.measurements for k in ("normal", "axis")]):
+        chunk.landmarks[inline_key(p)] = np.einsum("k,nki->ni", np.asarray(p["weights"], float), v[:, p["vertices"]])
     cond = _conditions(mset, chunk.landmarks, n)
     res: dict = {}
     for m in mset.measurements:

@@ -18,10 +18,12 @@ import numpy as np
 from bodyspace.measure.definitions import (
     MeasurementError,
     MeasurementSet,
+    load_landmark_parts,
     load_landmarks,
     load_measurement_set,
     point_fields,
     with_landmarks,
+    with_vertex_parts,
 )
 from bodyspace.measure.evaluate import check_compatible, evaluate
 
@@ -56,7 +58,9 @@ def landmark_measurement_set(path, n_vertices: int | None = None, base: Measurem
         raise MeasurementError(f"{where}: the landmark file is for meshes of {declared} vertices (its n_vertices), "
                                f"but these meshes have {n_vertices}; give the landmark file of this topology")
     base = load_measurement_set() if base is None else base
-    return with_landmarks(base, landmarks, n_vertices if n_vertices is not None else declared, str(path))
+    mset = with_landmarks(base, landmarks, n_vertices if n_vertices is not None else declared, str(path))
+    parts = load_landmark_parts(path)      # the template's body parts, carried by bodyspace landmarks
+    return mset if parts is None else with_vertex_parts(mset, parts)
 
 
 def check_set_on_bodies(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray,

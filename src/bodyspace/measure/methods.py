@@ -26,12 +26,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numba
 import numpy as np
 
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.composition import mass_from_volume
 from bodyspace.measure.parts import PART_INDEX, PARTS
-from bodyspace.measure.points import axis, check_axis, check_point, fail, point
+from bodyspace.measure.points import axis, check_axis, check_point, fail, inline_points, point
 from bodyspace.measure.slicing import (
     approx_heights,
     band_contours,
@@ -372,6 +373,27 @@ def _check_earlier(*fields: str):
     return check
 
 
+@numba.njit(cache=True, nogil=True)
+def _volume_area_kernel(v, f0, f1, f2, vol, area):
+    """Per body n of (N, V, 3): vol[n] = sum a.(e1 x e2) / 6, area[n] = sum |e1 x e2| / 2 over the
+    faces in order (sequential sums: the same rounding as ``np.cumsum(...)[-1]``; no fastmath)."""
+    for n in range(v.shape[0]):
+        sv = 0.0
+        sa = 0.0
+        for k in range(len(f0)):
+            a, b, c = f0[k], f1[k], f2[k]
+            ax, ay, az = v[n, a, 0], v[n, a, 1], v[n, a, 2]
+            e1x, e1y, e1z = v[n, b, 0] - ax, v[n, b, 1] - ay, v[n, b, 2] - az
+            e2x, e2y, e2z = v[n, c, 0] - ax, v[n, c, 1] - ay, v[n, c, 2] - az
+            nx = e1y * e2z - e1z * e2y
+            ny = e1z * e2x - e1x * e2z
+            nz = e1x * e2y - e1y * e2x
+            sa += np.sqrt(nx * nx + ny * ny + nz * nz)
+            sv += ax * nx + ay * ny + az * nz
+        area[n] = 0.5 * sa
+        vol[n] = sv / 6.0
+
+
 def volume_and_area(chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
     """Capped volume (N,) and surface area (N,) from one cross product per face, cached per chunk.
 
@@ -388,17 +410,18 @@ def volume_and_area(chunk: Chunk) -> tuple[np.ndarray, np.ndarray]:
     # One body at a time: its (F,) temporaries stay in cache (2x faster than (N, F) arrays).
     # Summed in the order numpy summed the (N, F) gathers (column-major, so sequential; one
     # body: pairwise), to keep every bit of the earlier values.
-    total = np.sum if n == 1 else (lambda a: np.cumsum(a)[-1])
-    for i in range(n):
-        x, y, z = (np.ascontiguousarray(v[i, :, k]) for k in range(3))
+    if n == 1:   # one body: numpy's pairwise sums, as before
+        x, y, z = (np.ascontiguousarray(v[0, :, k]) for k in range(3))
         ax, ay, az = x[f0], y[f0], z[f0]
         e1x, e1y, e1z = x[f1] - ax, y[f1] - ay, z[f1] - az
         e2x, e2y, e2z = x[f2] - ax, y[f2] - ay, z[f2] - az
         nx = e1y * e2z - e1z * e2y
         ny = e1z * e2x - e1x * e2z
         nz = e1x * e2y - e1y * e2x
-        area[i] = 0.5 * total(np.sqrt(nx * nx + ny * ny + nz * nz))
-        vol[i] = total(ax * nx + ay * ny + az * nz) / 6.0
+        area[0] = 0.5 * np.sum(np.sqrt(nx * nx + ny * ny + nz * nz))
+        vol[0] = np.sum(ax * nx + ay * ny + az * nz) / 6.0
+    else:        # a batch: one compiled pass a body, summed in order as numpy's (N, F) sums did
+        _volume_area_kernel(np.ascontiguousarray(v), f0, f1, f2, vol, area)
     if geo.loops:
         vol = vol + capped_volume(v, np.zeros((0, 3), dtype=np.int64), geo.loops)
     chunk.cache["volume_area"] = (vol, area)
@@ -446,6 +469,7 @@ def known_methods() -> str:
 
 def template_vertices(m: dict) -> list:
     """The template vertex ids a measurement uses directly: the ``vertices`` field of a
-    template-only method (a loop's ring), else none."""
+    template-only method (a loop's ring), and the inline joints of a joint axis; else none."""
     method = METHODS.get(m["method"])
-    return list(m.get("vertices", [])) if method is not None and not method.topology_free else []
+    ids = list(m.get("vertices", [])) if method is not None and not method.topology_free else []
+    return ids + [i for p in inline_points([m.get("normal"), m.get("axis")]) for i in p["vertices"]]

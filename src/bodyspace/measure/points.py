@@ -1,8 +1,14 @@
 """The point and axis grammar every measurement method shares: checked on load, evaluated per batch.
 
 A *point* is a landmark name or a list of names (their mean: the mean of a front and a back
-landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a pair of points
-``[from, to]`` (so it follows a limb or the torso in any pose). Evaluated on a batch, a point
+landmark is a point inside the body). An *axis* is ``"up"`` (world +Y), a pair of points
+``[from, to]`` (so it follows a limb or the torso in any pose), or a *joint axis*
+``{"from": J, "to": J, "fallback": [from, to]}`` whose ends J are joint centres given inline as
+weighted vertices of the set's own topology (``{"vertices": [...], "weights": [...]}``, e.g. a row of
+the template's joint regressor): the neck's axis from the neck joint to the head joint follows the
+neck itself, so a head tilted on its neck does not tilt the neck girth's plane. Its points are
+computed per chunk (``inline_key``); on another topology (``with_landmarks``) the axis becomes its
+``fallback``, a pair of landmark points. Evaluated on a batch, a point
 is (N, 3) and an axis (N, 3) of unit vectors; ``landmarks`` maps a name to its (N, 3) points.
 """
 
@@ -35,15 +41,49 @@ def check_point(where: str, p: Any, landmarks, allow_floor: bool = False) -> Non
 
 
 def check_axis(where: str, a: Any, landmarks, required: bool = True) -> None:
-    """Raise MeasurementError unless ``a`` is "up" or a pair of points (or None when optional)."""
+    """Raise MeasurementError unless ``a`` is "up", a pair of points or a joint axis (or None when optional)."""
     if a is None and not required:
         return
     if a == "up":
         return
+    if isinstance(a, dict):
+        extra = set(a) - {"from", "to", "fallback", "sideways"}
+        if extra:
+            raise fail(where, f"unknown field(s) {', '.join(sorted(extra))} of a joint axis; expected from, to, "
+                              "fallback, sideways")
+        if a.get("sideways") is not None:
+            side = a["sideways"]
+            if not (isinstance(side, list) and len(side) == 2):
+                raise fail(where + " field 'sideways'", f"got {side!r}, expected a pair of points [right, left]")
+            for p in side:
+                check_point(where + " field 'sideways'", p, landmarks)
+        for key in ("from", "to"):
+            check_inline_point(where + f" field {key!r}", a.get(key))
+        fallback = a.get("fallback")
+        if not (isinstance(fallback, list) and len(fallback) == 2):
+            raise fail(where + " field 'fallback'", f"got {fallback!r}, expected a pair of points [from, to] "
+                                                    "(the axis on another topology)")
+        for p in fallback:
+            check_point(where + " field 'fallback'", p, landmarks)
+        return
     if not (isinstance(a, list) and len(a) == 2):
-        raise fail(where, f"got {a!r}, expected \"up\" or a pair of points [from, to]")
+        raise fail(where, f"got {a!r}, expected \"up\", a pair of points [from, to] or a joint axis "
+                          "{\"from\", \"to\", \"fallback\"}")
     for p in a:
         check_point(where, p, landmarks)
+
+
+def check_inline_point(where: str, p: Any) -> None:
+    """Raise MeasurementError unless ``p`` is ``{"vertices": [ids], "weights": [w]}``: non-negative
+    vertex ids and as many non-negative weights summing to 1 (a convex combination)."""
+    if not isinstance(p, dict) or set(p) != {"vertices", "weights"}:
+        raise fail(where, f"got {p!r}, expected {{\"vertices\": [ids], \"weights\": [weights]}}")
+    ids, w = p["vertices"], p["weights"]
+    if not (isinstance(ids, list) and ids and all(isinstance(i, int) and i >= 0 for i in ids)):
+        raise fail(where + ".vertices", f"got {ids!r}, expected a non-empty list of vertex ids")
+    if not (isinstance(w, list) and len(w) == len(ids) and all(isinstance(x, (int, float)) and x >= 0 for x in w)
+            and abs(sum(w) - 1.0) < 1e-6):
+        raise fail(where + ".weights", f"expected {len(ids)} non-negative weights summing to 1, got {w!r}")
 
 
 def point(spec, landmarks: dict) -> np.ndarray:
@@ -56,10 +96,41 @@ def point(spec, landmarks: dict) -> np.ndarray:
     return np.mean([landmarks[s] for s in spec], axis=0)
 
 
+def _unit(d: np.ndarray) -> np.ndarray:
+    return d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+
+
+def inline_key(p: dict) -> tuple:
+    """The key of an inline point's (N, 3) positions among a chunk's points (a tuple: never a
+    landmark name of a JSON file)."""
+    return ("inline",) + tuple(p["vertices"])
+
+
+def inline_points(specs) -> list:
+    """The inline points (dicts) the joint axes among ``specs`` (axis fields) use."""
+    return [a[k] for a in specs if isinstance(a, dict) for k in ("from", "to")]
+
+
 def axis(spec, landmarks: dict, n: int) -> np.ndarray:
-    """(N, 3) unit axis: "up" (or None) or a pair of points."""
+    """(N, 3) unit axis: "up" (or None), a pair of points, or a joint axis (its inline points from
+    ``landmarks``, ``inline_key``; the fallback where they are missing or coincide)."""
     if spec is None or spec == "up":
         return np.broadcast_to(UP, (n, 3)).copy()
+    if isinstance(spec, dict):
+        fallback = axis(spec["fallback"], landmarks, n)
+        a, b = landmarks.get(inline_key(spec["from"])), landmarks.get(inline_key(spec["to"]))
+        if a is None or b is None:
+            return fallback
+        d = b - a
+        if spec.get("sideways") is not None:
+            # Only the joints' lean along the body's left-right direction s; the rest of the
+            # direction is the fallback's (see ``check_axis``).
+            s = axis(spec["sideways"], landmarks, n)
+            d = fallback + (np.sum(_unit(d) * s, axis=-1, keepdims=True)
+                            - np.sum(fallback * s, axis=-1, keepdims=True)) * s
+        length = np.linalg.norm(d, axis=-1, keepdims=True)
+        ok = np.isfinite(length) & (length > 1e-6)
+        return np.where(ok, d / np.where(ok, length, 1.0), fallback)
     a = point(spec[1], landmarks) - point(spec[0], landmarks)
     return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
 
@@ -72,3 +143,12 @@ def format_point(p) -> str:
 def point_names(p) -> set:
     """The landmark names a point uses."""
     return {p} if isinstance(p, str) else set(p)
+
+
+def axis_points(a) -> list:
+    """The landmark points an axis field needs on any topology: none for "up", the pair, or a
+    joint axis's fallback (what ``with_landmarks`` turns it into; its ``sideways`` pair is only
+    used with the inline joints, on the set's own topology)."""
+    if isinstance(a, dict):
+        return list(a.get("fallback") or [])
+    return list(a) if isinstance(a, list) else []

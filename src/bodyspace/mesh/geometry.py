@@ -5,6 +5,7 @@ All functions take ``vertices`` of shape (V, 3) or a batch (N, V, 3) and ``faces
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from bodyspace.errors import MeshError
@@ -96,24 +97,55 @@ def cap_holes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.n
     return np.concatenate(verts), np.concatenate(new_faces)
 
 
+@numba.njit(cache=True, nogil=True)
+def _capped_volume_kernel(v, faces, loop_vertices, loop_starts, out):
+    """Six times the capped volume of each body of ``v`` (N, V, 3) into ``out`` (N,): the
+    faces' signed tetrahedra, then each loop's cap fan (q, p, centre) as in ``cap_holes``.
+    Loop k is ``loop_vertices[loop_starts[k]:loop_starts[k + 1]]``."""
+    for n in range(v.shape[0]):
+        total = 0.0
+        for f in range(faces.shape[0]):
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            bx, by, bz = v[n, b, 0], v[n, b, 1], v[n, b, 2]
+            cx, cy, cz = v[n, c, 0], v[n, c, 1], v[n, c, 2]
+            total += (v[n, a, 0] * (by * cz - bz * cy) + v[n, a, 1] * (bz * cx - bx * cz)
+                      + v[n, a, 2] * (bx * cy - by * cx))
+        for k in range(loop_starts.shape[0] - 1):
+            s, e = loop_starts[k], loop_starts[k + 1]
+            mx = my = mz = 0.0
+            for j in range(s, e):
+                mx += v[n, loop_vertices[j], 0]
+                my += v[n, loop_vertices[j], 1]
+                mz += v[n, loop_vertices[j], 2]
+            mx, my, mz = mx / (e - s), my / (e - s), mz / (e - s)
+            for j in range(s, e):
+                p, q = loop_vertices[j], loop_vertices[j + 1 if j + 1 < e else s]
+                px, py, pz = v[n, p, 0], v[n, p, 1], v[n, p, 2]
+                total += (v[n, q, 0] * (py * mz - pz * my) + v[n, q, 1] * (pz * mx - px * mz)
+                          + v[n, q, 2] * (px * my - py * mx))
+        out[n] = total
+
+
 def capped_volume(vertices: np.ndarray, faces: np.ndarray, loops: list[np.ndarray] | None = None) -> np.ndarray:
-    """Enclosed volume (...,) of a mesh whose holes are capped by centroid fans, in units^3.
+    """Enclosed volume (...,) of a mesh (..., V, 3) whose holes are capped by centroid fans, in units^3.
 
     Divergence theorem: the sum of signed tetrahedra from the origin; the caps are added
-    analytically so no capped mesh is built. Works on batches (N, V, 3).
+    analytically so no capped mesh is built. Works on batches (N, V, 3). A compiled loop over
+    the faces (``_capped_volume_kernel``): the population's height/weight solve measures tens
+    of bodies per subject, and numpy's gathered (N, F, 3) copies and ``cross`` cost ~50x more.
     """
     v = np.asarray(vertices, dtype=float)
+    if v.ndim < 2 or v.shape[-1] != 3:
+        raise MeshError(f"vertices: shape {v.shape}, expected (V, 3) or (N, V, 3)")
     if loops is None:
         loops = boundary_loops(faces)
-    a, b, c = v[..., faces[:, 0], :], v[..., faces[:, 1], :], v[..., faces[:, 2], :]
-    vol = np.einsum("...i,...i->...", a, np.cross(b, c)).sum(axis=-1)
-    for loop in loops:
-        p = v[..., loop, :]
-        q = v[..., np.roll(loop, -1), :]
-        centre = p.mean(axis=-2, keepdims=True)
-        # Cap triangles (q, p, centre), matching cap_holes.
-        vol = vol + np.einsum("...i,...i->...", q, np.cross(p, np.broadcast_to(centre, p.shape))).sum(axis=-1)
-    return vol / 6.0
+    flat = np.ascontiguousarray(v.reshape((-1,) + v.shape[-2:]))
+    loop_vertices = np.concatenate([np.asarray(loop, dtype=np.int64) for loop in loops] or [np.zeros(0, np.int64)])
+    loop_starts = np.concatenate([[0], np.cumsum([len(loop) for loop in loops])]).astype(np.int64)
+    out = np.empty(len(flat))
+    _capped_volume_kernel(flat, np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3), loop_vertices,
+                          loop_starts, out)
+    return (out / 6.0).reshape(v.shape[:-2])
 
 
 def surface_area(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

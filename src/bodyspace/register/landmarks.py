@@ -7,18 +7,88 @@ landmark of the measurement set (a weighted set of template vertices) is carried
 mesh by ``synth.foreign.carry_landmarks``: every template vertex it uses replaced by its closest
 point of the mesh's surface (three vertices, barycentric weights). The result is a
 ``load_landmarks`` document for the mesh's own vertex ids.
+
+The template's body-part groups and skin weights are carried the other way
+(``carry_vertex_data``): each vertex of the mesh finds its closest point on the registered
+template (a face and barycentric weights); its body part is that of the face's corner nearest
+it (parts are labels, not mixed), its skin weights the barycentric mix of the corners' weights,
+cut to the ``MAX_INFLUENCES`` largest and renormalised. ``landmark_document`` stores them beside
+the landmarks (``vertex_parts``: one letter a vertex as in a measurement set; ``skin_weights``:
+bone names and (V2, 4) bone ids and weights), so ``measure --landmarks`` and ``build
+--landmarks`` measure girths round the template's own parts, and ``rig MESH --weights FILE``
+skins the mesh with MakeHuman's weights instead of bone heat.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import json
+import os
+from pathlib import Path
+
 import numpy as np
+import scipy.sparse as sp
 
-from bodyspace.data.template import Template, load_template
+from bodyspace.data.template import Rig, Template, load_template
+from bodyspace.errors import RigError
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
+from bodyspace.measure.parts import encode_parts
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.register.pipeline import Registration, register_scan
-from bodyspace.synth.foreign import carry_landmarks
+from bodyspace.synth.foreign import carry_landmarks, closest_points
 
-__all__ = ["mesh_landmarks", "landmark_document"]
+__all__ = ["mesh_landmarks", "landmark_document", "carry_vertex_data", "CarriedData", "MAX_INFLUENCES",
+           "load_carried_weights"]
+
+# Bones kept per vertex of carried skin weights (glTF skins take 4 per vertex).
+MAX_INFLUENCES = 4
+
+
+@dataclass(frozen=True)
+class CarriedData:
+    """The template's per-vertex data on a mesh of another topology.
+
+    vertex_parts: (V2,) int8 body part (``measure.parts.PARTS``; -1 none); bones: the rig's bone
+    names; bone_ids: (V2, MAX_INFLUENCES) int, weights: (V2, MAX_INFLUENCES) float, rows summing
+    to 1 (unused slots: bone 0, weight 0); rig: the rig's name; distance: (V2,) from each vertex
+    to the registered template, in the mesh's units.
+    """
+
+    vertex_parts: np.ndarray | None
+    bones: tuple
+    bone_ids: np.ndarray
+    weights: np.ndarray
+    rig: str
+    distance: np.ndarray
+
+
+def carry_vertex_data(registered: np.ndarray, template: Template, vertices: np.ndarray, faces: np.ndarray,
+                      mset: MeasurementSet | None = None, rig: str = "default") -> CarriedData:
+    """The template's body parts (``mset.vertex_parts``) and ``rig``'s skin weights on a mesh.
+
+    registered: (V, 3) the template registered to the mesh, in the mesh's frame; vertices
+    (V2, 3), faces (F2, 3): the mesh. Module docstring.
+    """
+    mset = mset if mset is not None else load_measurement_set()
+    vertices = np.asarray(vertices, dtype=float)
+    corr, dist = closest_points(vertices, registered, template.faces,
+                                vertex_normals(vertices, np.asarray(faces, dtype=np.int64)))
+    corners = template.faces[corr.face]                                     # (V2, 3)
+    parts = None
+    if mset.vertex_parts is not None and len(mset.vertex_parts) == template.n_vertices:
+        nearest = corners[np.arange(len(corners)), np.argmax(corr.barycentric, axis=1)]
+        parts = np.asarray(mset.vertex_parts)[nearest].astype(np.int8)
+    r = template.rigs[rig]
+    mixed = (corr.matrix(template.faces, template.n_vertices) @ r.weights).toarray()    # (V2, B)
+    k = min(MAX_INFLUENCES, mixed.shape[1])
+    ids = np.argsort(-mixed, axis=1)[:, :k]
+    w = np.take_along_axis(mixed, ids, axis=1)
+    w = np.where(w > 0, w, 0.0)
+    total = w.sum(axis=1, keepdims=True)
+    w = np.where(total > 0, w / np.maximum(total, 1e-300), 0.0)
+    ids = np.where(w > 0, ids, 0)
+    return CarriedData(parts, tuple(r.bone_names), ids.astype(np.int64), w, r.name, dist)
 
 
 def mesh_landmarks(vertices: np.ndarray, faces: np.ndarray, *, template: Template | None = None,
@@ -38,10 +108,62 @@ def mesh_landmarks(vertices: np.ndarray, faces: np.ndarray, *, template: Templat
     return carry_landmarks(mset, reg.vertices, template.faces, vertices, faces), reg
 
 
-def landmark_document(landmarks: dict[str, tuple[np.ndarray, np.ndarray]], n_vertices: int, **extra) -> dict:
-    """The landmarks as a ``load_landmarks`` JSON document (``extra`` fields added first)."""
+def landmark_document(landmarks: dict[str, tuple[np.ndarray, np.ndarray]], n_vertices: int,
+                      carried: CarriedData | None = None, **extra) -> dict:
+    """The landmarks as a ``load_landmarks`` JSON document (``extra`` fields added first), with
+    the carried body parts and skin weights when given (module docstring)."""
     out = {}
     for name, (ids, w) in landmarks.items():
         out[name] = int(ids[0]) if len(ids) == 1 else {"vertices": [int(i) for i in ids],
                                                        "weights": [float(x) for x in w]}
-    return {**extra, "landmarks": out, "n_vertices": int(n_vertices)}
+    doc = {**extra, "landmarks": out, "n_vertices": int(n_vertices)}
+    if carried is not None:
+        if carried.vertex_parts is not None:
+            doc["vertex_parts"] = encode_parts(carried.vertex_parts)
+        doc["skin_weights"] = {"rig": carried.rig, "bones": list(carried.bones),
+                               "bone_ids": carried.bone_ids.tolist(),
+                               "weights": np.round(carried.weights, 5).tolist()}
+    return doc
+
+
+def load_carried_weights(path: str | os.PathLike, n_vertices: int, rig: Rig, flag: str = "--weights") -> sp.csr_matrix:
+    """The skin weights (V2, B) of ``rig`` a landmark file of ``bodyspace landmarks`` carries
+    (its ``skin_weights``), for a mesh of ``n_vertices``; rows renormalised to sum to 1."""
+    path = Path(path)
+    made = "a landmark file written by bodyspace landmarks MESH (it carries the template's skin weights)"
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RigError(f"{flag} {path}: could not read it as JSON ({exc}); expected {made}") from None
+    sw = d.get("skin_weights") if isinstance(d, dict) else None
+    if not isinstance(sw, dict):
+        raise RigError(f"{flag} {path}: has no 'skin_weights' field; expected {made}")
+    if sw.get("rig") != rig.name:
+        raise RigError(f"{flag} {path}: its skin weights are of rig {sw.get('rig')!r}, not {rig.name!r}; pass "
+                       f"--rig {sw.get('rig')} or carry the weights again")
+    try:
+        bones = [str(b) for b in sw["bones"]]
+        ids = np.asarray(sw["bone_ids"], dtype=np.int64)
+        w = np.asarray(sw["weights"], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise RigError(f"{flag} {path}: field 'skin_weights' lacks or garbles {exc}; expected {made}") from None
+    if ids.ndim != 2 or ids.shape != w.shape or len(ids) != n_vertices:
+        raise RigError(f"{flag} {path}: skin weights of shape {ids.shape} / {w.shape}; expected ({n_vertices}, k) "
+                       "for this mesh's vertices (the file is for another mesh?)")
+    if ids.size and (ids.min() < 0 or ids.max() >= len(bones)) or not np.isfinite(w).all() or (w < 0).any():
+        raise RigError(f"{flag} {path}: skin weights with bone ids outside 0..{len(bones) - 1}, or negative or "
+                       "non-finite weights; expected " + made)
+    index = {b: i for i, b in enumerate(rig.bone_names)}
+    unknown = sorted(set(bones) - set(index))
+    if unknown:
+        raise RigError(f"{flag} {path}: bones {', '.join(unknown[:5])} are not in rig {rig.name}")
+    cols = np.array([index[b] for b in bones], dtype=np.int64)[ids]
+    total = w.sum(axis=1, keepdims=True)
+    if (total <= 0).any():
+        raise RigError(f"{flag} {path}: {int((total <= 0).sum())} vertices have no weight; expected every vertex "
+                       "weighted (re-run bodyspace landmarks)")
+    w = w / total
+    rows = np.repeat(np.arange(n_vertices), ids.shape[1])
+    m = sp.csr_matrix((w.ravel(), (rows, cols.ravel())), shape=(n_vertices, rig.n_bones))
+    m.sum_duplicates()
+    return m

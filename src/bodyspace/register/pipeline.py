@@ -9,7 +9,9 @@
 4. ``pose_fit.fit_pose``: the skeleton's pose by twist ICP with the shape held, then pose, shape
    and scale together in one Gauss-Newton problem (``POSE_ROUNDS``, gates narrowing);
 5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 30;
-6. ``quality.assess``: how much of the scan the fit explains; refused below ``MIN_QUALITY``.
+6. ``quality.assess``: how much of the scan the fit explains; refused below ``MIN_QUALITY``;
+7. optionally ``detail.detail_offsets``: the scan's relief as normal offsets on the fit
+   subdivided at mid-edges (Hasler §3, end), to be re-added after a morph.
 
 The result is in the template's topology, both in the scan's own frame and units (to lay over
 it) and in bodyspace's (metres, +Y up, +Z front: to measure, to morph, to add to a database).
@@ -29,6 +31,7 @@ from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment
 from bodyspace.register.correspondences import orient_normals
+from bodyspace.register.detail import Detail, detail_offsets
 from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
@@ -70,6 +73,8 @@ class Registration:
     quality: the ``Quality`` figure; to_scan: (4, 4) internal → the scan file's frame.
     points: (P, 3) the scan points used, internal frame. units, up: the scan's; assumed: what
         was found rather than given; seconds: time per stage.
+    detail: the scan's relief over ``internal`` subdivided (``register_scan(detail_levels=...)``),
+        or None.
     """
 
     vertices: np.ndarray
@@ -85,6 +90,7 @@ class Registration:
     up: str
     assumed: list[str] = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
+    detail: Detail | None = None
 
 
 def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, to_prepared) -> tuple:
@@ -106,7 +112,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                   units: str | None = None, up: str | None = None, landmarks: dict | None = None,
                   basis: ShapeBasis | None = None, steps: int = DEFAULT_STEPS, inner: int = DEFAULT_INNER,
                   pose_iterations: int = 12, align_iterations: int = SCORE_ITERATIONS, check: bool = True,
-                  name: str = "the scan",
+                  name: str = "the scan", detail_levels: int | None = None, mset: MeasurementSet | None = None,
                   progress=None, trace=None, rng=0) -> Registration:
     """Register the template to a raw scan (module docstring).
 
@@ -116,6 +122,9 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     ``phenotype_basis``). steps, inner: NICP stiffness levels and iterations per level.
     pose_iterations, align_iterations: pose-fit iterations per round and per alignment candidate.
     check: refuse (``RegistrationError``) a fit whose quality is below ``MIN_QUALITY``.
+    detail_levels: 1 or 2 to also take the scan's relief (``detail.detail_offsets`` on all the
+    prepared scan's points), None not to. mset: the measurement set whose landmark names
+    ``landmarks`` uses (default the shipped hm08 set; a user model's own: ``--model``).
     progress: callback(message, fraction). trace: callback(stage, vertices (V, 3) in the scan
     file's frame) after each stage, to see where the error comes from (benchmarks/diag_register.py).
     """
@@ -141,7 +150,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         def to_prepared(p):    # the file's frame → the prepared scan's (units and up applied)
             return np.linalg.solve(prep.to_scan[:3, :3], p.T).T
 
-        M, lm_scan = _landmark_pairs(landmarks, load_measurement_set(), template, to_prepared)
+        M, lm_scan = _landmark_pairs(landmarks, mset if mset is not None else load_measurement_set(), template,
+                                     to_prepared)
         lm_template = M @ basis.mean
         lm_pairs = (M, lm_scan)
     report("initial alignment", 0.05)
@@ -169,7 +179,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
 
     _trace("align", align.state)
 
-    # The shape first (the alignment's short fit holds the pose), then pose and shape in turn
+    # The shape first (the alignment's short fit holds the pose), then the pose, then both jointly
     # with the gates narrowing: a thin template's pose fitted to a heavy body first drifts (on a
     # heavy 1.46 m man: 46 → 34 mm with the pose first, 46 → 16 mm with the shape first).
     report("model fit", 0.25)
@@ -209,7 +219,13 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                                 "are refused)")
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
+    detail = None
+    if detail_levels is not None:
+        report("detail", 0.97)
+        t = time.perf_counter()
+        detail = detail_offsets(nicp.vertices, template.faces, align.apply(prep.points), levels=detail_levels)
+        seconds["detail"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
-                        prep.units, prep.up, list(prep.assumed), seconds)
+                        prep.units, prep.up, list(prep.assumed), seconds, detail)

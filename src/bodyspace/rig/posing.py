@@ -181,7 +181,7 @@ def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: n
 
 def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_ground: bool = False,
                 return_joints: bool = False, skinning: str = "lbs", weights: str = "original",
-                faces: np.ndarray | None = None):
+                faces: np.ndarray | None = None, dtype=np.float64):
     """Pose bodies of the template topology: joints from the rig regressors, FK, then LBS.
 
     vertices: (N, V, 3) rest-pose bodies, or (V, 3) for one body (posed once, or once per
@@ -202,6 +202,8 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         weights computed on the template's mean body (``bone_heat_rig_weights``, Baran &
         Popović 2007; docs/skinning.md compares the three).
     faces: (F, 3) template faces for the smoothing; by default the shipped template's.
+    dtype: float64 (default) or float32 posed vertices; float32 skins in float32 arithmetic
+        (``skinning.linear_blend_skinning``: within 0.001 mm, about 1.5x as fast).
     FK and skinning are the compiled kernels of ``kinematics`` / ``skinning`` (two lanes for
     large batches).
     Returns posed vertices (N, V, 3) (or (V, 3) for a single (V, 3) input and one pose); with
@@ -242,9 +244,9 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
     else:
         raise ParameterError(f"weights={weights!r}; expected 'original', 'smoothed' or 'bone_heat'")
     if skinning == "lbs":
-        posed = linear_blend_skinning(v, W, G)                     # (N, V, 3)
+        posed = linear_blend_skinning(v, W, G, dtype=dtype)        # (N, V, 3)
     elif skinning == "dqs":
-        posed = dual_quaternion_skinning(v, W, G)
+        posed = dual_quaternion_skinning(v, W, G, dtype=dtype)
     else:
         raise ParameterError(f"skinning={skinning!r}; expected 'lbs' or 'dqs'")
     joints = np.einsum("nbij,nbj->nbi", G[..., :3, :3], np.broadcast_to(heads, (n,) + heads.shape[1:])) + G[..., :3, 3]

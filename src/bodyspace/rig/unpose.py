@@ -59,10 +59,10 @@ from scipy.linalg.lapack import dposv
 from bodyspace.data.template import Rig, Template, load_template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.rig.kinematics import matrix_to_rotvec, rotvec_to_matrix, topological_order
+from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
 from bodyspace.rig.posing import smoothed_weights
 
-__all__ = ["RestShapePrior", "UnposeInfo", "fits_template", "solved_bones", "unpose"]
+__all__ = ["RestShapePrior", "UnposeInfo", "fits_template", "solved_bones", "unpose", "unpose_known"]
 
 # A bone is solved when its subtree's skin reaches at least this share of the body's height from
 # its head (fingers, toes, eyes and lips reach a few centimetres and follow their parents; so do
@@ -106,6 +106,11 @@ MIN_BLEND_DETERMINANT = 0.05
 # order (a library body: < 0.001 mm; with 3 mm noise per coordinate: 2.5 mm; a shuffled vertex
 # order: hundreds of mm).
 MAX_SHAPE_DISTANCE = 0.03
+# ``unpose_known``: a recorded pose explains a scan when the body it gives back is within this RMS
+# distance (metres) of the rest-shape space on the sample vertices. The exact pose of a library
+# body gives about 1e-7 m (the float32 rounding of the stored vertices and rotations); a wrong
+# pose, or a body posed by another skinning, gives millimetres or more (then ``unpose`` fits it).
+KNOWN_POSE_TOLERANCE = 1e-4
 # Largest side of a posed body's bounding box, metres (a child curled up .. a tall adult in a star
 # jump or reaching overhead), and the unit mistakes named when a mesh is outside it (their factor
 # to metres; as ``measure`` names them).
@@ -1038,4 +1043,136 @@ def unpose(vertices: np.ndarray, rig: Rig, *, prior: RestShapePrior | None = Non
     if single:
         info = UnposeInfo(*(getattr(info, f)[0] for f in info.__dataclass_fields__))
         return rest[0], R[0], info
+    return rest, R, info
+
+
+@lru_cache(maxsize=4)
+def _below_cached(parents: bytes) -> np.ndarray:
+    p = np.frombuffer(parents, dtype=np.int64)
+    below = np.eye(len(p), dtype=bool)                 # below[b, k]: bone b is k or one of k's descendants
+    for b in topological_order(p):
+        if p[b] >= 0:
+            below[b] |= below[p[b]]
+    return below
+
+
+def _below(parents: np.ndarray) -> np.ndarray:
+    """(B, B) bool: ``[b, k]`` when bone b is k or below k in the tree ``parents`` (B,)."""
+    return _below_cached(np.ascontiguousarray(parents, dtype=np.int64).tobytes())
+
+
+def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior: RestShapePrior | None = None,
+                 mesh_name: str = "vertices"):
+    """Inverse linear blend skinning with a *known* pose: the rest bodies of posed bodies whose
+    bone rotations were recorded (a scan database written by ``bodyspace population`` keeps
+    them), without ``unpose``'s fit; about a millisecond a body against tens.
+
+    vertices: (N, V, 3) posed bodies of the rig's topology (``pose_bodies(rest, rig, R)``, on the
+        ground or moved anywhere); rotations: (N, B, 3) axis-angle or (N, B, 3, 3) matrices, the
+        ``R`` that posed them (rest-pose world axes, about the bone heads).
+    Returns ``(rest, R, info)`` as ``unpose`` does (rest placed the same way: lowest vertex at
+    y = 0, the pelvis x/z where the posed one is; ``info.iterations`` 0). The caller checks
+    ``info.shape_distance_m`` (RMS distance of each rest body from the rest-shape space, as in
+    ``unpose``) against ``KNOWN_POSE_TOLERANCE``: above it the recorded pose does not explain
+    the mesh (another skinning, edited vertices) and ``unpose`` should estimate the pose instead.
+
+    The rest body x is unknown, and the bones' transforms depend on it through the rest heads
+    h = H x (``rig.head_regressor``). With the rotations fixed, FK is affine in the heads: bone b's
+    world transform is ``[A_b | c_b]``, ``c_b = sum_k D_k h_k`` over its ancestors-or-self k with
+    ``D_k = A_parent(k) - A_k`` (zero for an unrotated bone). So the posed vertex is
+    ``y_v = M_v x_v + sum_b w_vb c_b`` with ``M_v = sum_b w_vb A_b``, and the heads solve one
+    small linear system: ``h_j + sum_v H_jv M_v^-1 sum_k Wa_vk D_k h_k = sum_v H_jv M_v^-1 y_v``
+    over the rotated bones j, k (``Wa = W Anc``: a vertex's weight on bones below k), with only the
+    regressor's vertices v (175 for the default rig). Then every vertex is
+    ``x_v = M_v^-1 (y_v - sum_b w_vb c_b)`` (``_unpose_all``; a folded blend by its dominant bone,
+    as ``unpose``). A translation of the posed body translates the rest body alike (the regressor's
+    rows sum to one), so ``place_on_ground``'s offset needs no undoing.
+    """
+    y = np.ascontiguousarray(np.asarray(vertices, dtype=float))
+    V, B = rig.weights.shape
+    if y.ndim != 3 or y.shape[1:] != (V, 3):
+        raise MeshError(f"{mesh_name}: shape {np.shape(vertices)}, but rig {rig.name!r} skins meshes of {V} "
+                        f"vertices; expected (N, {V}, 3) in the template's vertex order")
+    N = len(y)
+    R = np.asarray(rotations, dtype=float)
+    if R.shape == (N, B, 3):
+        R = rotvec_to_matrix(R)
+    if R.shape != (N, B, 3, 3):
+        raise ParameterError(f"{mesh_name}: rotations of shape {np.shape(rotations)}, expected ({N}, {B}, 3) "
+                             f"axis-angle or ({N}, {B}, 3, 3) matrices for rig {rig.name!r}")
+    if not (np.isfinite(y).all() and np.isfinite(R).all()):
+        raise MeshError(f"{mesh_name}: holds NaN or infinite coordinates or rotations; expected finite values")
+    prior = prior if prior is not None else _default_prior()
+    W, wkey = _resolve_weights(rig, "original", None)
+    with single_threaded_blas():
+        plan = _plan(rig, W, wkey, prior)
+    parents = np.asarray(rig.parents)
+    A = forward_kinematics(R, np.zeros((B, 3)), parents)[..., :3, :3]            # (N, B, 3, 3) world rotations
+    rotated = np.flatnonzero((np.abs(R - np.eye(3)) > 0).any(axis=(0, 2, 3)))    # (r,) bones turned in any body
+    r = len(rotated)
+    heads = np.zeros((N, B, 3))
+    if r:
+        ancestor_of = _below(parents)[:, rotated].astype(float)                   # bone b is k or below k
+        A_parent = np.where((parents[rotated] >= 0)[None, :, None, None],
+                            A[:, np.maximum(parents[rotated], 0)], np.eye(3))
+        D = A_parent - A[:, rotated]                                              # (N, r, 3, 3)
+        Hr = rig.head_regressor[rotated].tocsc()
+        support = np.flatnonzero(np.diff(Hr.indptr))                              # (S,) regressor vertices
+        Hd = Hr[:, support].toarray()                                             # (r, S)
+        Wa = np.asarray(W[support] @ ancestor_of)                                 # (S, r)
+        M, _ = _blend(W[support].tocsr(), A, np.zeros((N, B, 3)))                 # (N, S, 3, 3)
+        K = np.linalg.inv(M)
+        # T[n, j, k] = sum_v Hd[j, v] Wa[v, k] K[n, v]: one (r*r, S) @ (S, N*9) product.
+        P = (Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support))
+        T = (P @ K.transpose(1, 0, 2, 3).reshape(len(support), N * 9)).reshape(r, r, N, 3, 3)
+        # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
+        # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
+        system = (T.transpose(2, 0, 1, 3, 4) @ D[:, None]).transpose(0, 1, 3, 2, 4).reshape(N, 3 * r, 3 * r)
+        system += np.eye(3 * r)
+        Ky = np.einsum("nvab,nvb->nva", K, y[:, support])                          # (N, S, 3)
+        rhs = np.einsum("jv,nva->nja", Hd, Ky).reshape(N, 3 * r, 1)
+        heads[:, rotated] = np.linalg.solve(system, rhs).reshape(N, r, 3)
+    G = forward_kinematics(R, heads, parents)
+    rest = np.empty_like(y)
+    if np.isin(rotated, plan.solved).all():
+        # Every turned bone is solved (as in the pose library): the others move exactly with their
+        # nearest solved ancestor, so the weights collapsed onto the solved bones (31 % fewer
+        # entries) give the same blend.
+        Wc, bones, dominant = plan.collapsed, plan.solved, plan.dominant
+    else:
+        Wc, bones, dominant = W.tocsr(), np.arange(B), plan.solved[plan.dominant]
+    Gb = G[:, bones]                     # (N, P, 4, 4); not G[:, bones, :3, 3] (numpy moves that axis first)
+    folded = _unpose_all(np.ascontiguousarray(Gb[..., :3, :3]), np.ascontiguousarray(Gb[..., :3, 3]), y,
+                         Wc.indptr.astype(np.int64), Wc.indices.astype(np.int64), Wc.data.astype(float),
+                         dominant.astype(np.int64), MIN_BLEND_DETERMINANT, rest)
+    # The shape check of ``unpose`` on the same sample vertices.
+    sample = plan.work[:plan.n_sample]
+    dev = rest[:, sample].reshape(N, -1) - plan.basis_mean
+    dev -= (dev @ plan.basis.T) @ plan.basis
+    shape_distance = np.sqrt(np.einsum("ni,ni->n", dev, dev) / dev.shape[1])
+
+    segments = plan.segments
+    bones = plan.solved[segments]
+    root = int(plan.solved[0])
+    turned = np.swapaxes(A[:, root:root + 1], -1, -2) @ A[:, bones]
+    angles = np.degrees(np.linalg.norm(matrix_to_rotvec(turned), axis=-1))        # (N, S)
+    pick = (np.round(angles, 1) * 1e6 + plan.segment_skin).argmax(1)
+    largest = angles[np.arange(N), pick]
+    orientation = np.degrees(np.linalg.norm(matrix_to_rotvec(A[:, root]), axis=-1))
+    anchor = int(plan.solved[plan.root_children[0]]) if len(plan.root_children) else root
+    # Only two heads are needed: the regressor rows on their vertices (``rig.heads`` would copy every body).
+    rest_heads = np.zeros((N, B, 3))
+    for b in {anchor, root}:
+        row = rig.head_regressor[b]
+        rest_heads[:, b] = np.einsum("v,nvi->ni", row.data, rest[:, row.indices])
+    posed_anchor = np.einsum("nij,nj->ni", G[:, anchor, :3, :3], rest_heads[:, anchor]) + G[:, anchor, :3, 3]
+    shift = np.zeros((N, 3))
+    shift[:, [0, 2]] = posed_anchor[:, [0, 2]] - rest_heads[:, anchor][:, [0, 2]]
+    shift[:, 1] = -rest[..., 1].min(1)
+    rest += shift[:, None, :]
+    translation = (np.einsum("nij,nj->ni", G[:, root, :3, :3], rest_heads[:, root]) + G[:, root, :3, 3]
+                   - rest_heads[:, root] - shift)
+    names = np.array(rig.bone_names, dtype=object)[bones[pick]]
+    info = UnposeInfo(largest, names, orientation, shape_distance, np.zeros(N), np.zeros(N, dtype=np.int64),
+                      np.ones(N, dtype=bool), folded, translation)
     return rest, R, info

@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
+from bodyspace import parallel
 from bodyspace.atomic import MARKER, WRITTEN_BY, atomic_path, check_replaceable_folder, install_folder, read_marker, write_json
 from bodyspace.data.database import (
     DATABASE_KIND,
@@ -54,6 +55,11 @@ UNFINISHED_FORMAT = 1
 STATE_FILE = "state.json"
 CHUNKS_FILE = "subjects.npz"
 LOCK_FILE = "lock"
+# The progress fraction at the end of the chunks. The rest (the NaN check reading vertices.npy
+# back, the tables, one process) took 9 % of the 10,000 x 10 population's wall time (143 of
+# 1,577 s, benchmarks/RESULTS.md); the remaining time the bar shows is the rate so far applied
+# to what is left, so this share is what it expects of the end.
+CHUNKS_SHARE = 0.9
 STATURE_TOL_M = 1e-4
 BMI_TOL = 5e-3
 # Redrawing an unreachable subject (``_redraw``): candidates solved per round, rounds before
@@ -316,13 +322,17 @@ def _solve_with_muscle(model: PhenotypeModel, phen: np.ndarray, age: np.ndarray,
     return phen, ok
 
 
-def _redraw(model: PhenotypeModel, draw: Draw, i: int, measurer: "_Measurer", survey: dict) -> None:
+def _redraw(model: PhenotypeModel, draw: Draw, i: int, measurer: "_Measurer", survey: dict,
+            reference: tuple[np.ndarray, np.ndarray]) -> None:
     """Replace subject ``i``, whose targets the body model cannot reach, by a reachable draw.
 
     Round r draws REDRAW_CANDIDATES subjects of the same sex from the survey distribution with
     the generator seeded by (redraw key, i, r), independent draws (not moment-matched), and
-    solves them in one batch; of those that converge, the one that moves the population's target
-    moments least takes the place. Deterministic from the seed, whatever else is redrawn.
+    solves them in one batch; of those that converge, the one that moves the target moments of
+    the ``reference`` population (its (N,) target statures and BMIs, as drawn) least when it
+    replaces subject ``i`` there takes the place. The choice depends on the seed and ``i`` only,
+    not on which other subjects were redrawn before it: chunks of a population solved in any
+    order, by any number of processes, make the same choices.
     """
     sex = "male" if draw.male[i] else "female"
     k = REDRAW_CANDIDATES
@@ -334,7 +344,7 @@ def _redraw(model: PhenotypeModel, draw: Draw, i: int, measurer: "_Measurer", su
         phen, ok = _solve_with_muscle(model, _free_parameters(male, age, rng), age, male, th, tb, measurer)
         best, best_shift = None, np.inf
         for c in np.flatnonzero(ok):
-            h, b = draw.target_stature_m.copy(), draw.target_bmi.copy()
+            h, b = reference[0].copy(), reference[1].copy()
             h[i], b[i] = th[c], tb[c]
             shift = _moment_shift(draw.drawn_moments, target_moments(draw.male, h, b))
             if shift < best_shift:
@@ -349,18 +359,24 @@ def _redraw(model: PhenotypeModel, draw: Draw, i: int, measurer: "_Measurer", su
 
 
 def solve_subjects(model: PhenotypeModel, draw: Draw, rows: np.ndarray, survey: str = "ansur1988",
-                   measurer: "_Measurer | None" = None) -> tuple[np.ndarray, ...]:
+                   measurer: "_Measurer | None" = None,
+                   reference: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, ...]:
     """Solve height and weight of subjects ``rows`` of ``draw`` in place, redrawing those the body
     model cannot bring to their targets (``_redraw``); returns their (stature m, volume m³,
-    mass kg, BMI, body fat %)."""
+    mass kg, BMI, body fat %), each (len(rows),).
+
+    ``reference``: the whole population's (N,) target statures and BMIs as drawn, against which
+    a redraw's moment shift is judged; by default ``draw``'s targets as they are on entry."""
     measure = measurer or _Measurer(model)
     rows = np.asarray(rows, dtype=np.int64)
+    if reference is None:
+        reference = (draw.target_stature_m.copy(), draw.target_bmi.copy())
     phen, ok = _solve_with_muscle(model, draw.phenotypes[rows], draw.age_years[rows], draw.male[rows],
                                   draw.target_stature_m[rows], draw.target_bmi[rows], measure)
     draw.phenotypes[rows] = phen
     sv = load_survey(survey)
     for i in rows[~ok]:
-        _redraw(model, draw, int(i), measure, sv)
+        _redraw(model, draw, int(i), measure, sv, reference)
     return measure(draw.phenotypes[rows], draw.age_years[rows], draw.male[rows])
 
 
@@ -440,9 +456,47 @@ def _open_unfinished(work: Path, request: dict) -> tuple[dict | None, str]:
     return None, f"started cleanly (removed the unfinished run at {work}: {why})"
 
 
+# What a chunk of build_population needs (_population_chunk), set before the worker processes
+# fork: they inherit it, so only a chunk's rows and chosen poses cross the process boundary.
+_JOB: dict = {}
+
+
+def _population_chunk(start: int, stop: int, chosen: list[list[str]]) -> dict:
+    """Subjects ``start..stop`` of the population in ``_JOB``: solved (and redrawn), made, posed
+    in ``chosen`` (each subject's pose names, rest first) and written into their rows of the
+    unfinished folder's ``vertices.npy`` / ``rotations.npy``. Returns ``rows`` (start, stop), the
+    subjects' rows of the draw (``phenotypes`` (k, 11), ``age_years``, ``target_stature_m``, ``target_bmi``,
+    ``redrawn`` (k,)) and their ``quantities`` (k, 5).
+
+    A pure function of the seed's draw and its arguments: the same bytes whichever process runs
+    it and whatever ran before it in that process (the draw is copied, not updated in place).
+    """
+    job = _JOB
+    drawn: Draw = job["drawn"]
+    model, skeleton, per_subject, work = job["model"], job["skeleton"], job["per_subject"], job["work"]
+    draw = copy.deepcopy(drawn)
+    rows = np.arange(start, stop)
+    quantities = np.stack(solve_subjects(model, draw, rows, measurer=job["measurer"],
+                                         reference=(drawn.target_stature_m, drawn.target_bmi)), axis=1)
+    rest = model.vertices(draw.phenotypes[rows])
+    flat = [name for names in chosen for name in names]
+    # Posed in batches of about POSE_BATCH scans: bounds the float64 temporaries.
+    step = max(1, POSE_BATCH // per_subject)
+    for s in range(0, len(rows), step):
+        names = flat[s * per_subject:(s + step) * per_subject]
+        posed = pose_bodies(np.repeat(rest[s:s + step], per_subject, axis=0), skeleton,
+                            np.stack([job["rotmat"][n] for n in names]), on_ground=True)
+        write_rows(work / VERTICES_FILE, (start + s) * per_subject, posed)
+        write_rows(work / ROTATIONS_FILE, (start + s) * per_subject, np.stack([job["rotvec"][n] for n in names]))
+    return {"rows": (start, stop), "phenotypes": draw.phenotypes[rows], "age_years": draw.age_years[rows],
+            "target_stature_m": draw.target_stature_m[rows], "target_bmi": draw.target_bmi[rows],
+            "redrawn": draw.redrawn[rows], "quantities": quantities}
+
+
 def build_population(template: Template, out, n_subjects: int, n_poses: int, rng=None, rig: str = "default",
                      overwrite: bool = False, progress: Callable[[str, float], None] | None = None,
-                     chunk: int = SUBJECT_CHUNK, log: Callable[[str], None] | None = None):
+                     chunk: int = SUBJECT_CHUNK, log: Callable[[str], None] | None = None,
+                     workers: int | None = None):
     """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
 
     Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (more
@@ -456,6 +510,11 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     the subjects so far and the generator's state). A run killed at any point is resumed by the
     same call from its last complete chunk, to the same database an uninterrupted run writes; the
     folder ``out`` itself appears only when complete (a rename).
+
+    ``workers``: processes solving and posing chunks side by side (None: one per core). The
+    database is byte for byte the same for any number of workers: the poses are drawn here in
+    chunk order, each chunk is computed from the seed's draw alone (``_population_chunk``), and
+    chunks are recorded as done in order.
     """
     if n_subjects < 1 or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
@@ -470,6 +529,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         raise ParameterError(f"poses = {n_poses}, but the pose library has {len(others)} poses besides the rest "
                              f"pose; expected at most {len(others)} (CLI: --poses)")
     rng = as_generator(rng)
+    if workers is not None and (isinstance(workers, bool) or int(workers) < 1):
+        raise ParameterError(f"workers = {workers!r}; expected a positive number of processes (CLI: --workers)")
     report = progress or (lambda msg, frac: None)
     say = log or (lambda line: None)
     model = PhenotypeModel(template)
@@ -490,40 +551,54 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         create_rows(work / ROTATIONS_FILE, (n_scans, skeleton.n_bones, 3), np.float32)
         report("drawing subjects", 0.0)
         draw = draw_subjects(n_subjects, rng)
+        drawn = copy.deepcopy(draw)
         quantities = np.full((n_subjects, 5), np.nan)
         poses = np.full(n_scans, "", dtype=f"<U{max(map(len, library.names))}")
         done = 0
     else:
         draw, quantities, poses = _load_chunks(work)
+        drawn = draw_subjects(n_subjects, rng)  # the seed's draw again (the saved one has redraws in it)
         rng.bit_generator.state = state["rng_after"]
         done = int(state["subjects_done"])
 
-    rotvec = {name: library.rotvecs(name, skeleton) for name in library.names}
-    rotmat = {name: library.rotations(name, skeleton) for name in library.names}
-    measurer = _Measurer(model)
-    with _exclusive(work):
+    n_workers = min(parallel.cores() if workers is None else int(workers), -(-(n_subjects - done) // chunk))
+    _JOB.update(drawn=drawn, model=model, skeleton=skeleton, per_subject=per_subject, work=work,
+                measurer=_Measurer(model),
+                rotvec={name: library.rotvecs(name, skeleton) for name in library.names},
+                rotmat={name: library.rotations(name, skeleton) for name in library.names})
+    # Poses are drawn here, in chunk order, as chunks are handed out (a few ahead of the ones
+    # recorded): the same generator stream for any number of workers. The generator's state
+    # after each chunk's poses is what state.json records once that chunk is done.
+    drawn_poses: dict[int, tuple[list[str], dict]] = {}
+
+    def tasks():
         for start in range(done, n_subjects, chunk):
             stop = min(n_subjects, start + chunk)
-            rows = np.arange(start, stop)
-            quantities[rows] = np.stack(solve_subjects(model, draw, rows, measurer=measurer), axis=1)
-            rest = model.vertices(draw.phenotypes[rows])
-            chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in rows]
-            flat = [name for names in chosen for name in names]
-            # Posed in batches of about POSE_BATCH scans: bounds the float64 temporaries.
-            step = max(1, POSE_BATCH // per_subject)
-            for s in range(0, len(rows), step):
-                names = flat[s * per_subject:(s + step) * per_subject]
-                posed = pose_bodies(np.repeat(rest[s:s + step], per_subject, axis=0), skeleton,
-                                    np.stack([rotmat[n] for n in names]), on_ground=True)
-                write_rows(work / VERTICES_FILE, (start + s) * per_subject, posed)
-                write_rows(work / ROTATIONS_FILE, (start + s) * per_subject, np.stack([rotvec[n] for n in names]))
-            poses[start * per_subject:stop * per_subject] = flat
-            _sync(work / VERTICES_FILE, work / ROTATIONS_FILE)
-            _save_chunks(work, draw, quantities, poses)
-            write_json(work / STATE_FILE, {"request": request, "chunks_done": -(-stop // chunk),
-                                           "subjects_done": stop,
-                                           "rng_after": json.loads(json.dumps(rng.bit_generator.state, default=int))})
-            report(f"wrote {stop}/{n_subjects} subjects ({stop * per_subject} scans)", 0.02 + 0.9 * stop / n_subjects)
+            chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in range(start, stop)]
+            drawn_poses[start] = ([name for names in chosen for name in names],
+                                  json.loads(json.dumps(rng.bit_generator.state, default=int)))
+            yield start, stop, chosen
+
+    with _exclusive(work):
+        try:
+            results = parallel.in_order(_population_chunk, tasks(), n_workers,
+                                        died="run the same command again: it resumes from the last complete chunk")
+            for result in results:
+                start, stop = result["rows"]
+                rows = np.arange(start, stop)
+                for name in ("phenotypes", "age_years", "target_stature_m", "target_bmi", "redrawn"):
+                    getattr(draw, name)[rows] = result[name]
+                quantities[rows] = result["quantities"]
+                flat, rng_after = drawn_poses.pop(start)
+                poses[start * per_subject:stop * per_subject] = flat
+                _sync(work / VERTICES_FILE, work / ROTATIONS_FILE)
+                _save_chunks(work, draw, quantities, poses)
+                write_json(work / STATE_FILE, {"request": request, "chunks_done": -(-stop // chunk),
+                                               "subjects_done": stop, "rng_after": rng_after})
+                report(f"wrote {stop}/{n_subjects} subjects ({stop * per_subject} scans)",
+                       CHUNKS_SHARE * stop / n_subjects)
+        finally:
+            _JOB.clear()
 
         redraws = redraw_report(draw)
         say(describe_redraws(redraws))
@@ -546,7 +621,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
         }
         if redraws["redrawn"]:
             meta["provenance"]["redraw_target_moments"] = redraws["moments"]
-        report("writing the tables", 0.95)
+        report("writing the tables", CHUNKS_SHARE)
         write_database_tables(work, template.faces, subjects.table(),
                               {"subject": np.repeat(ids, per_subject), "pose": poses.astype(str)}, meta,
                               joints=list(skeleton.bone_names))
@@ -554,7 +629,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
             (work / name).unlink()  # the lock stays held (flock on the open file) until the rename
         install_folder(work, out, DATABASE_KIND, "overwrite=True (CLI: --force)")
     report("done", 1.0)
-    return ScanDatabase.load(out)
+    return ScanDatabase.load(out, check_values=False)  # write_database_tables checked every value
 
 
 def _sync(*paths: Path) -> None:

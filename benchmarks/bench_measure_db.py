@@ -1,0 +1,100 @@
+"""``bodyspace measure DB --csv`` (issue 16): where a scan's time goes, and the database path
+against the per-body path in the same process.
+
+Stages, CPU milliseconds a scan on chunks of 128 scans of a population database: reading the rows,
+unposing with the recorded rotations (``rig.unpose.unpose_known``, exact inverse skinning), unposing
+by fitting the pose (``rig.unpose.unpose``, the per-body path's and the fallback; on a subset), and
+measuring the whole set (``measure.evaluate``). Then the whole command's rate on 2 worker processes
+(wall, this machine's load as printed), against the per-body path (fit + evaluate of each scan alone,
+extrapolated from a subset).
+
+    PYTHONPATH=src python benchmarks/bench_measure_db.py [--db DB] [--subjects 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import report  # noqa: E402
+
+from bodyspace.cli.measure import measure_database  # noqa: E402
+from bodyspace.data.database import ScanDatabase  # noqa: E402
+from bodyspace.data.template import load_template  # noqa: E402
+from bodyspace.measure import evaluate, load_measurement_set  # noqa: E402
+from bodyspace.rig.unpose import unpose, unpose_known  # noqa: E402
+from bodyspace.synth.population import build_population  # noqa: E402
+
+CHUNK = 128
+N_FIT = 32       # bodies the fit and the per-body path are timed on
+
+
+def _cpu() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--db", type=Path, default=None, help="a population database (default: build one)")
+    parser.add_argument("--subjects", type=int, default=200, help="subjects of the database built (x5 scans)")
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="bench-measure-db-"))
+    template = load_template()
+    if args.db is None:
+        args.db = work / "db"
+        build_population(template, args.db, args.subjects, 4, rng=0)
+    db = ScanDatabase.load(args.db, check_values=False)
+    rig, mset = template.rigs["default"], load_measurement_set()
+    n = min(db.n_scans, 4 * CHUNK)
+    print(f"bench_measure_db: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}; "
+          f"{db.n_scans} scans, stages timed on {n}")
+    evaluate(mset, db.read(np.arange(2)), db.faces)                      # warm the caches and kernels
+    unpose_known(db.read(np.arange(2)), rig, np.asarray(db.rotations[:2]))
+    cpu = dict.fromkeys(("read", "unpose_known", "evaluate"), 0.0)
+    for s in range(0, n, CHUNK):
+        c = _cpu()
+        v = db.read(np.arange(s, s + CHUNK))
+        cpu["read"] += _cpu() - c
+        c = _cpu()
+        rest, _, _ = unpose_known(v, rig, np.asarray(db.rotations[s:s + CHUNK]))
+        cpu["unpose_known"] += _cpu() - c
+        c = _cpu()
+        evaluate(mset, rest, db.faces, chunk=CHUNK)
+        cpu["evaluate"] += _cpu() - c
+    posed = np.flatnonzero(db.scans["pose"][:n] != "rest")[:N_FIT]
+    v = db.read(posed)
+    c = _cpu()
+    unpose(v, rig)
+    fit = (_cpu() - c) / len(posed)
+    c, t = _cpu(), time.perf_counter()
+    for i in posed:
+        evaluate(mset, unpose(db.mesh(i), rig)[0], db.faces)
+    per_body_wall, per_body_cpu = (time.perf_counter() - t) / len(posed), (_cpu() - c) / len(posed)
+    print("| stage | CPU ms a scan |\n|---|---|")
+    for k, x in cpu.items():
+        print(f"| {k} | {1000 * x / n:.2f} |")
+    print(f"| unpose (fit, batch of {len(posed)}) | {1000 * fit:.2f} |")
+    print(f"| per-body path (fit + evaluate, one scan at a time) | {1000 * per_body_cpu:.2f} |")
+    total = sum(cpu.values()) / n
+    print(f"stages of the database path: {1000 * total:.2f} ms CPU a scan, so at most {2 / total:,.0f} scans/s "
+          f"on 2 idle cores (1,000 scans/s needs 2.0 ms)")
+    out = work / "m.csv"
+    c, t = _cpu(), time.perf_counter()
+    measure_database(args.db, out, landmarks=None, model=None, json_out=False, png=None, units=None, up=None,
+                     flip_winding=False, as_posed=False, force=False)
+    wall, whole_cpu = time.perf_counter() - t, _cpu() - c
+    print(f"measure DB --csv: {db.n_scans} scans in {wall:.1f} s wall, {1000 * whole_cpu / db.n_scans:.2f} ms CPU a "
+          f"scan (parent + 2 workers), load average now {os.getloadavg()[0]:.1f}")
+    report("measure DB", wall, per_body_wall * db.n_scans, db.n_scans, "scans")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""A folder of raw scans registered one by one (``bodyspace import SCANDIR --register``).
+
+``register_files`` runs ``pipeline.register_scan`` on each scan in turn and keeps, per scan, the
+registered body (template topology, metres, +Y up) or the reason it was refused: a file that
+cannot be read, too few points (``prepare``), landmarks that cannot be used, or a fit whose
+quality is under the threshold (``quality``: two people, an object, a partial scan). Nothing is
+skipped silently: every refused scan comes back with its reason, and the caller lists them.
+
+A scan's landmarks, when it has any, are a file beside it: ``NAME.lnd`` (CAESAR) or
+``NAME.landmarks.json`` (``landmark_files.sidecar_landmarks``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bodyspace.data.template import Template
+from bodyspace.errors import MeshError, RegistrationError
+from bodyspace.measure.definitions import MeasurementSet
+from bodyspace.register.landmark_files import read_scan_landmarks, sidecar_landmarks
+from bodyspace.register.model_fit import ShapeBasis
+from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
+from bodyspace.register.prepare import read_scan
+from bodyspace.register.quality import Quality
+
+__all__ = ["ScanOutcome", "register_files"]
+
+
+@dataclass
+class ScanOutcome:
+    """One scan of a batch.
+
+    path: the scan file; accepted: registered and its quality accepted; reason: why not ('' if
+    accepted); vertices: (V, 3) the registered body, metres, +Y up (None if refused); quality:
+    the fit's ``Quality`` (None if it never got that far); mean_distance: metres, registered
+    vertices to the scan; seconds: wall time; landmarks: the sidecar landmark file used, if any;
+    notes: what was assumed (units, up axis) or read.
+    """
+
+    path: Path
+    accepted: bool
+    reason: str = ""
+    vertices: np.ndarray | None = None
+    quality: Quality | None = None
+    mean_distance: float = float("nan")
+    seconds: float = 0.0
+    landmarks: Path | None = None
+    notes: tuple = ()
+
+
+def register_files(paths: list[Path], *, template: Template, units: str | None = None, up: str | None = None,
+                   basis: ShapeBasis | None = None, mset: MeasurementSet | None = None, steps: int = DEFAULT_STEPS,
+                   progress=None, rng=0) -> list[ScanOutcome]:
+    """Register each scan of ``paths`` (module docstring); ``progress(message, fraction)`` is
+    called before each scan and within it. Returns one ``ScanOutcome`` per path, in order."""
+    report = progress or (lambda message, fraction: None)
+    out = []
+    n = len(paths)
+    for i, path in enumerate(paths):
+        path = Path(path)
+        start = time.perf_counter()
+        head = f"{path.name} ({i + 1}/{n})"
+        report(head, i / n)
+        lm_path = sidecar_landmarks(path)
+        try:
+            points, faces = read_scan(path)
+            lms, notes = (read_scan_landmarks(lm_path, flag="landmarks") if lm_path is not None else (None, []))
+
+            def inner(message, fraction, head=head, i=i):
+                report(f"{head}: {message}", (i + min(max(fraction, 0.0), 1.0)) / n)
+
+            reg = register_scan(points, faces, template=template, units=units, up=up, landmarks=lms, basis=basis,
+                                mset=mset, steps=steps, check=True, name=path.name, progress=inner, rng=rng)
+        except (MeshError, RegistrationError) as exc:
+            # A scan that cannot be read or fitted is refused with its reason; the batch goes on.
+            out.append(ScanOutcome(path, False, str(exc), seconds=time.perf_counter() - start, landmarks=lm_path))
+            continue
+        out.append(ScanOutcome(path, True, "", reg.internal, reg.quality, float(np.mean(reg.distance)),
+                               time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed)))
+    report("done", 1.0)
+    return out
