@@ -11,7 +11,8 @@ import numpy as np
 import typer
 
 from bodyspace.atomic import write_json
-from bodyspace.cli.common import ForceOption, check_choice, check_file_output, console, output_folder, progress
+from bodyspace.cli.common import (ForceOption, check_choice, check_file_output, check_folder_output, console,
+                                  output_folder, progress)
 from bodyspace.data.template import load_template
 from bodyspace.errors import MeshError, RegistrationError
 from bodyspace.measure import evaluate, load_measurement_set, to_json
@@ -70,7 +71,7 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
                                                   "set are used instead of the default ones."),
              units: Optional[str] = UnitsOption, up: Optional[str] = UpOption,
              steps: int = typer.Option(DEFAULT_STEPS, "--steps", min=1, max=40, help="Stiffness levels of the "
-                                       "non-rigid refinement (3000 → 1)."),
+                                       "non-rigid refinement (3000 → 30)."),
              detail: bool = typer.Option(False, "--detail", help="Also keep the scan's fine relief (wrinkles, face) as "
                                          "normal offsets on the fit subdivided at mid-edges (Hasler §3): writes "
                                          "detail.npz (bodyspace morph --detail re-adds it) and the detailed mesh."),
@@ -81,6 +82,7 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
                                            "the threshold (it is refused by default)."),
              force: bool = ForceOption):
     """Fit the template to a raw scan: registered mesh, distances, pose, measurements, a PNG."""
+    check_folder_output(out, "--out", force, REGISTRATION_KIND)      # before the fit, not after it
     if units is not None:
         units = check_choice(units, "--units", MESH_UNITS)
     if up is not None:
