@@ -129,7 +129,7 @@ def cli_fit(scan, tmp_path_factory):
 
 def test_register_fits_the_scan_and_accepts_it(cli_fit, scan, template):
     """The pipeline on a raw scan: the fit is near the truth in the scan's own frame (measured
-    on this 15 k-point scan: 2.5 mm, surface 0.9 mm), the units and up axis were found, its
+    on this 15 k-point scan: 2.5 mm, surface 0.8 mm), the units and up axis were found, its
     quality is accepted."""
     result, _, out = cli_fit
     assert result.exit_code == 0, result.output
