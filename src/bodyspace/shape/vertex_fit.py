@@ -35,6 +35,7 @@ import numpy as np
 
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
+from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.mesh.topology import check_registered_meshes, vertex_components
 
 __all__ = ["VertexFit", "align_parts", "fit_coefficients", "MAX_ITER", "MAX_JACOBIANS", "TOL"]
@@ -154,9 +155,13 @@ def fit_coefficients(space, vertices, n_components: int | None = None, *, start=
             err[m] = err0[m] = _error(bodies[m] - align_parts(y[m], bodies[m], parts))[1]
         return VertexFit(z, err, err0, iters, jacs)
     comps = space.components_[:k]
-    for m in range(n):
-        z[m, :k], err[m], err0[m], iters[m], jacs[m] = _fit_one(enc, space.mean_, comps, y[m], z[m, :k], parts,
-                                                                max_iter, tol, max_jacobians)
+    # The fit's dense products are small ((3V, k) by (k, k) or (3V, 6)): one BLAS thread. Two
+    # threads spinning against a loaded machine made them several times slower (measured in
+    # benchmarks/bench_vertex_fit.py); the decoder's own kernels keep their two lanes.
+    with single_threaded_blas():
+        for m in range(n):
+            z[m, :k], err[m], err0[m], iters[m], jacs[m] = _fit_one(enc, space.mean_, comps, y[m], z[m, :k],
+                                                                    parts, max_iter, tol, max_jacobians)
     return VertexFit(z, err, err0, iters, jacs)
 
 
