@@ -25,6 +25,8 @@ right-hand sides a direction, several directions in one pass over it, and a Pois
 Jacobian is therefore kept between steps and corrected along every accepted step by Broyden's
 update; it is made anew where a kept one fails (a rejected step) and when the fit stalls on a
 kept one, so the last step is taken on an exact Jacobian (at most ``MAX_JACOBIANS``).
+The rigid motions projected out of each Jacobian come in closed form (``_rigid_basis``) and the
+fit's small dense products run on one BLAS thread (both measured in docs/encoding.md).
 """
 
 from __future__ import annotations
