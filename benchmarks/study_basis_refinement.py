@@ -1,26 +1,27 @@
-"""Study (issue 12 §4): one alternating refinement step of the vertex-ordered RRE basis, measured
-on held-out subjects. An experiment, not a library feature yet (docs/encoding.md, "What limits
+"""Study (issue 12 §4): alternating refinement of the vertex-ordered RRE basis, measured on
+held-out subjects. An experiment, not a library feature yet (docs/encoding.md, "What limits
 k = 4 and 8").
 
 Per fold (one held-out subject, leave-one-subject-out as ``studies.generalization``):
 
 1. ``ShapeSpace(basis="vertex")`` on the other subjects' scans (40 components).
-2. Fit every *training* scan with the first ``--k`` components in vertex space
-   (``fit_coefficients``, 6 steps, 2 Jacobians): coefficients z_i, residual r_i.
-3. At each fitted body, the decoder's Jacobian on the first ``--span`` components S (exact
-   tangents, rigid motions projected out), and the Levenberg-Marquardt step d_i inside span(S)
-   that the linearization says would fit the scan: ``w_i = (z_i, 0) + d_i`` (``--span`` numbers)
-   is where scan i wants to be in S's coordinates.
-4. New first ``--span`` components: the principal directions of the w_i (uncentred: the mean
-   code stays), mapped back through S, so they span the same space as before (components past
-   ``--span`` and the nesting are kept).
-5. Held-out scans fitted with the old and the new basis at each k, against vertex PCA.
+2. For each level (k, span), from the largest: fit every *training* scan with the first k
+   components in vertex space (``fit_coefficients``, 6 steps, 2 Jacobians): coefficients z_i,
+   residual r_i. At each fitted body, the decoder's Jacobian on the first ``span`` components S
+   (exact tangents, rigid motions projected out), and the Levenberg-Marquardt step d_i inside
+   span(S) that the linearization says would fit the scan: ``w_i = (z_i, 0) + d_i`` is where
+   scan i wants to be in S's coordinates. The new first ``span`` components are the principal
+   directions of the w_i (uncentred: the mean code stays), mapped back through S: they span
+   the same space as before, so components past ``span`` and the nesting are kept, and a
+   later level with a smaller span leaves the larger k of the levels before it unchanged.
+3. Held-out scans fitted with the vertex-ordered and the refined basis at each k, against
+   vertex PCA.
 
-Cost: step 2 is one vertex fit per training scan (~2 CPU s each at k = 8), step 3 one tangent
-and ``--span`` tangent directions per training scan.
+Cost: one vertex fit per training scan and level (~2 CPU s each at k = 8), and one tangent and
+``span`` tangent directions per training scan and level.
 
-Run: python benchmarks/study_basis_refinement.py DB [--folds 0,1] [--k 8] [--span 24]
-[--components 4,8,16]; DB e.g. ``bodyspace population --subjects 24 --poses 5 --seed 0 --out pop24``.
+Run: python benchmarks/study_basis_refinement.py DB [--folds 0,1] [--levels 8:24,4:8]
+[--components 4,8,16] (levels k:span); DB e.g. ``bodyspace population --subjects 24 --poses 5 --seed 0 --out pop24``.
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ def errors_mm(bodies, scans, parts):
 
 
 def refine(space, scans, k, span, parts):
-    """Components (K, D): the first ``span`` re-chosen by one alternating step (module docstring)."""
+    """Components (K, D): the first ``span`` re-chosen by one alternating step (module docstring);
+    and the training scans' mean error (mm) at k before it."""
     enc = space.encoder
     s = space.components_[:span]
     fit = fit_coefficients(space, scans, k, max_iter=6, max_jacobians=2)
@@ -79,11 +81,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("db")
     ap.add_argument("--folds", default="0,1")
-    ap.add_argument("--k", type=int, default=8)
-    ap.add_argument("--span", type=int, default=24)
+    ap.add_argument("--levels", default="8:24,4:8", help="k:span per level, largest first")
     ap.add_argument("--components", default="4,8,16")
     args = ap.parse_args()
     ks = [int(k) for k in args.components.split(",")]
+    levels = [tuple(int(v) for v in lv.split(":")) for lv in args.levels.split(",")]
     db = ScanDatabase.load(args.db)
     template = load_template()
     scans = np.asarray(db.read(np.arange(db.n_scans)), dtype=float)
@@ -103,10 +105,12 @@ def main() -> None:
         t = time.perf_counter()
         space = ShapeSpace(enc, n_comp, solver="full", basis="vertex").fit(codes[~test], vertices=scans[~test])
         vspace = ShapeSpace(venc, n_comp, solver="full").fit(vcodes[~test])
-        comps, train_mm = refine(space, scans[~test], args.k, args.span, parts)
-        refined = ShapeSpace(enc, n_comp, solver="full", basis="vertex").fit(codes[~test],
-                                                                                   vertices=scans[~test])
-        refined.components_ = comps
+        refined = ShapeSpace(enc, n_comp, solver="full", basis="vertex").fit(codes[~test], vertices=scans[~test])
+        train = []
+        for k_level, span in levels:
+            comps, train_mm = refine(refined, scans[~test], k_level, min(span, n_comp), parts)
+            refined.components_ = comps
+            train.append(f"k = {k_level} in {span}: {train_mm:.1f} mm before")
         cost = time.perf_counter() - t
         for k in ks:
             vz = vspace.transform(vcodes[test])[:, :k]
@@ -116,7 +120,7 @@ def main() -> None:
                 row.append(errors_mm(sp.reconstruct(fz.coefficients[:, :k]), scans[test], parts))
             print(f"| {fold} ({', '.join(poses[test])}) | {k} | {row[0].mean():.1f} | {row[1].mean():.1f} | "
                   f"{row[2].mean():.1f} | {' / '.join(f'{e:.1f}' for e in row[2])} |", flush=True)
-        print(f"fold {fold}: training fit at k = {args.k}: {train_mm:.1f} mm; refinement {cost:.0f} s", flush=True)
+        print(f"fold {fold}: training scans' fit per level ({'; '.join(train)}); refinement {cost:.0f} s", flush=True)
 
 
 if __name__ == "__main__":
