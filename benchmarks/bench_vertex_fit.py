@@ -3,6 +3,10 @@
 Prints, in one run, on held-out posed scans of a synthetic population (13,380-vertex template,
 an RRE pose+shape model fitted on the other subjects' scans, every scan):
 
+0. two per-step pieces against their previous implementations, kept here as the baselines:
+   the rigid-motion basis of the decoded body (closed form from the inertia tensor, against the
+   QR of the (3V, 6) matrix it replaced; made twice a step) and the inverses of the tangent's
+   26,756 3x3 polar-factor matrices (adjugate, against numpy's batched ``inv`` and ``det``);
 1. the Jacobian of ``z -> decode(mean + z C)`` for k components: exact tangents
    (``encoder.tangent(code).jvp``: one factorization, k tangent directions) against forward
    finite differences (k + 1 decodes, each its own factorization), wall and CPU seconds, the
@@ -36,7 +40,7 @@ from scipy.optimize import least_squares
 from bodyspace.data.template import load_template
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace, fit_coefficients
-from bodyspace.shape.vertex_fit import align_parts
+from bodyspace.shape.vertex_fit import _rigid_basis, align_parts
 from bodyspace.synth.population import build_population
 
 
@@ -47,6 +51,51 @@ def clocks():
 def since(start):
     wall, cpu = start
     return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def rigid_basis_qr(body, parts):
+    """The previous ``_rigid_basis`` (the baseline): the 6 P motion fields, then a QR."""
+    cols = []
+    for idx in parts:
+        x = body[idx] - body[idx].mean(axis=0)
+        for a in range(3):
+            t = np.zeros_like(body)
+            t[idx, a] = 1.0
+            cols.append(t.ravel())
+        for a in range(3):
+            r = np.zeros_like(body)
+            r[idx] = np.cross(np.eye(3)[a], x)
+            cols.append(r.ravel())
+    return np.linalg.qr(np.array(cols).T)[0]
+
+
+def inverse_lapack(k):
+    """The previous inverse of the tangent's (F, 3, 3) matrices (the baseline)."""
+    det = np.linalg.det(k)
+    ok = np.abs(det) > 1e-12 * np.maximum(np.abs(np.trace(k, axis1=-2, axis2=-1)), 1e-300) ** 3
+    out = np.zeros_like(k)
+    out[ok] = np.linalg.inv(k[ok])
+    return out
+
+
+def inverse_adjugate(k):
+    """As ``RelativeRotationEncoder.tangent`` does it now."""
+    adj = np.stack([np.cross(k[:, 1], k[:, 2]), np.cross(k[:, 2], k[:, 0]), np.cross(k[:, 0], k[:, 1])], axis=2)
+    det = np.einsum("fi,fi->f", k[:, 0], adj[:, :, 0])
+    ok = np.abs(det) > 1e-12 * np.maximum(np.abs(np.trace(k, axis1=-2, axis2=-1)), 1e-300) ** 3
+    out = np.zeros_like(k)
+    out[ok] = adj[ok] / det[ok, None, None]
+    return out
+
+
+def median_cpu(fn, repeats=7):
+    """Median (wall, cpu) seconds of ``fn()``."""
+    runs = []
+    for _ in range(repeats):
+        t = clocks()
+        fn()
+        runs.append(since(t))
+    return tuple(np.median(np.array(runs), axis=0))
 
 
 def mean_error(body, scan):
@@ -78,6 +127,24 @@ def main() -> None:
     enc.tangent(space.mean_).jvp(space.components_[:2])
     print(f"{db.n_scans} scans, {len(held)} held-out posed scans ({', '.join(db.scans['pose'][held])}), "
           f"PCA of {int((~test).sum())} scans, up to {space.n_components_} components")
+
+    print("\n0. Per-step pieces, median of 7: seconds wall (cpu)")
+    print("| piece | this | previous (baseline) | ratio (cpu) | max difference |")
+    print("|---|---|---|---|---|")
+    tan = enc.tangent(space.transform(codes[held[:1]])[0] @ space.components_ + space.mean_)
+    one = [np.arange(enc.n_vertices)]
+    ours, theirs = median_cpu(lambda: _rigid_basis(tan.vertices, one)), median_cpu(lambda: rigid_basis_qr(tan.vertices, one))
+    a, b = _rigid_basis(tan.vertices, one), rigid_basis_qr(tan.vertices, one)
+    diff = np.abs(a @ a.T[:, :200] - b @ b.T[:, :200]).max()  # the same projector (bases differ by a rotation)
+    print(f"| rigid-motion basis (3V = {3 * enc.n_vertices}, 6) | {ours[0]:.4f} ({ours[1]:.4f}) | {theirs[0]:.4f} "
+          f"({theirs[1]:.4f}) | x{theirs[1] / max(ours[1], 1e-9):.1f} | projector {diff:.1e} |")
+    p = tan._rot @ tan._q
+    p = 0.5 * (p + np.swapaxes(p, -1, -2))
+    kmat = np.trace(p, axis1=-2, axis2=-1)[:, None, None] * np.eye(3) - p
+    ours, theirs = median_cpu(lambda: inverse_adjugate(kmat)), median_cpu(lambda: inverse_lapack(kmat))
+    diff = np.abs(inverse_adjugate(kmat) - inverse_lapack(kmat)).max()
+    print(f"| {len(kmat)} 3x3 inverses | {ours[0]:.4f} ({ours[1]:.4f}) | {theirs[0]:.4f} ({theirs[1]:.4f}) | "
+          f"x{theirs[1] / max(ours[1], 1e-9):.1f} | {diff:.1e} |")
 
     print("\n1. Jacobian at the code projection of a held-out scan")
     print("| k | exact tangents s (cpu) | finite differences s (cpu) | ratio | max |J_fd - J| / max |J| |")
