@@ -178,7 +178,8 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
         check_file_output(out, "--out", force, OUT_SUFFIXES + NUMBERED_SUFFIXES, example="walk.glb")
         if out.suffix.lower() in NUMBERED_SUFFIXES:
             raise ParameterError(f"--out {out}: one mesh a frame needs a frame field in the name, e.g. --out "
-                                 f"{out.with_name(out.stem + '_%04d' + out.suffix)}")
+                                 f"{out.with_name(out.stem + '_%04d' + out.suffix)}; or one file: "
+                                 f"{', '.join(OUT_SUFFIXES)}")
     for flag, path, suffix in (("--filmstrip", filmstrip_png, ".png"), ("--gif", gif, ".gif"),
                                ("--report", report, ".json")):
         if path is not None:
