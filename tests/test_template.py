@@ -1,3 +1,4 @@
+import gzip
 import shutil
 
 import numpy as np
@@ -9,6 +10,7 @@ from bodyspace.data.template import (
     N_BODY_VERTICES,
     _compiled_path,
     _load_compiled,
+    load_target,
     read_compiled,
     triangulate_quads,
 )
@@ -105,3 +107,22 @@ def test_truncated_compiled_cache_heals(template, tmp_path, monkeypatch):
     np.testing.assert_array_equal(healed.faces, template.faces)
     np.testing.assert_allclose(healed.vertices, template.vertices)
     np.testing.assert_array_equal(read_compiled(copy).faces, template.faces)  # the file itself is whole again
+
+
+def test_target_rows_parse_exactly_and_a_short_row_is_refused(tmp_path):
+    """MakeHuman target rows (index dx dy dz, decimetres, comments) → metres; a row of three numbers
+    is an error naming the file, never a shifted read."""
+    good = tmp_path / "a.target.gz"
+    good.write_bytes(gzip.compress(b"# comment\n3 .001 0 -.5\n\n0 1e-3 2 3\n"))
+    out = load_target(good, 5)
+    np.testing.assert_allclose(out[3], [0.0001, 0.0, -0.05])
+    np.testing.assert_allclose(out[0], [0.0001, 0.2, 0.3])
+    assert not out[[1, 2, 4]].any()
+    bad = tmp_path / "b.target.gz"
+    bad.write_bytes(gzip.compress(b"3 .001 0\n0 1 2 3\n"))
+    with pytest.raises(ValueError, match="b.target.gz"):
+        load_target(bad, 5)
+    worse = tmp_path / "c.target.gz"
+    worse.write_bytes(gzip.compress(b"3 .001 x 4\n"))
+    with pytest.raises(ValueError, match="c.target.gz"):
+        load_target(worse, 5)
