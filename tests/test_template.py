@@ -14,6 +14,7 @@ from bodyspace.data.template import (
     read_compiled,
     triangulate_quads,
 )
+from bodyspace.errors import AssetError
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
 
 
@@ -120,9 +121,9 @@ def test_target_rows_parse_exactly_and_a_short_row_is_refused(tmp_path):
     assert not out[[1, 2, 4]].any()
     bad = tmp_path / "b.target.gz"
     bad.write_bytes(gzip.compress(b"3 .001 0\n0 1 2 3\n"))
-    with pytest.raises(ValueError, match="b.target.gz"):
+    with pytest.raises(AssetError, match="b.target.gz"):
         load_target(bad, 5)
     worse = tmp_path / "c.target.gz"
     worse.write_bytes(gzip.compress(b"3 .001 x 4\n"))
-    with pytest.raises(ValueError, match="c.target.gz"):
+    with pytest.raises(AssetError, match="c.target.gz"):
         load_target(worse, 5)

@@ -14,6 +14,7 @@ import numpy as np
 import typer
 
 from bodyspace.cli.common import ForceOption, check_choice, check_folder_output, console, out_console, progress
+from bodyspace.cli.register import registration_model
 from bodyspace.data.database import (
     DATABASE_KIND,
     LANDMARKS_FILE,
@@ -32,10 +33,9 @@ from bodyspace.data.database import (
 from bodyspace.data.template import load_template
 from bodyspace.errors import DatabaseError
 from bodyspace.measure.conventions import MESH_UNITS
-from bodyspace.model import BodyModel, check_landmark_file
+from bodyspace.model import check_landmark_file
 from bodyspace.register.batch import register_files
 from bodyspace.register.pipeline import DEFAULT_STEPS
-from bodyspace.register.user_model import basis_from_model, check_model_topology
 
 LENGTH_UNITS = ("m", "cm", "mm")
 # The per-scan report ``import --register`` writes into the database folder.
@@ -147,12 +147,7 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
         raise DatabaseError(f"{labels}: {len(missing)} scan(s) not found in {folder}: {listed}; expected file "
                             "names relative to the scan folder")
     template = load_template()
-    basis, mset = None, None
-    if model is not None:
-        user = BodyModel.load(model, semantics=False)
-        check_model_topology(user, template, where=f"--model {model}")
-        basis = basis_from_model(user, where=f"--model {model}")
-        mset = user.measurement_set if user.has_measurement_set else None
+    basis, mset = registration_model(model, template)
     with progress("import --register", eta=True) as cb:
         outcomes = register_files([folder / n for n in names], template=template, units=units, up=up, basis=basis,
                                   mset=mset, steps=steps, progress=cb)

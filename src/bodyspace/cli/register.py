@@ -88,12 +88,7 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
     if up is not None:
         up = check_choice(up, "--up", UP_AXES)
     template = load_template()
-    basis, mset = None, None
-    if model is not None:
-        user = BodyModel.load(model, semantics=False)
-        check_model_topology(user, template, where=f"--model {model}")
-        basis = basis_from_model(user, where=f"--model {model}")
-        mset = user.measurement_set if user.has_measurement_set else None
+    basis, mset = registration_model(model, template)
     points, faces = read_scan(scan)
     lms = _read_landmarks(landmarks) if landmarks is not None else None
     with progress("register") as report:
@@ -193,3 +188,14 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
                   f"{len(vertices)} vertices; bodyspace measure {mesh} "
                   f"--landmarks {out} --units {units or reg.units}{'' if up is None else f' --up {up}'})",
                   markup=False, highlight=False)
+
+
+def registration_model(model: Path | None, template) -> tuple:
+    """The shape basis and measurement set of ``--model MODEL`` (None, None without one): the
+    model is checked to be of the template's topology, named by its flag in any refusal."""
+    if model is None:
+        return None, None
+    user = BodyModel.load(model, semantics=False)
+    check_model_topology(user, template, where=f"--model {model}")
+    basis = basis_from_model(user, where=f"--model {model}")
+    return basis, (user.measurement_set if user.has_measurement_set else None)

@@ -160,12 +160,17 @@ def parse_obj(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     return np.array(verts, dtype=float), {g: np.array(f, dtype=np.int64) for g, f in groups.items() if f}
 
 
+# How to mend a damaged asset file, in the words of every interface.
+_REFETCH = ("; fetch the verified assets again (`bodyspace assets --fetch`) or point --assets (BODYSPACE_ASSETS) "
+            "at a complete MakeHuman/MPFB2 folder")
+
+
 def load_target(path: Path, n_vertices: int) -> np.ndarray:
     """A MakeHuman ``.target.gz``: rows ``index dx dy dz`` (decimetres) → dense (n_vertices, 3) metres.
 
     The numbers are parsed in one pass of numpy's C text reader (the 576 targets of the template
     are 5.4 million lines: a split per line in Python took 15 s of the template's compilation);
-    a row that is not four numbers is refused, never read as a shifted one.
+    a row that is not four numbers is refused (AssetError), never read as a shifted one.
     """
     with gzip.open(path, "rb") as f:
         text = f.read().decode("utf-8")
@@ -175,10 +180,11 @@ def load_target(path: Path, n_vertices: int) -> np.ndarray:
             warnings.simplefilter("error", DeprecationWarning)   # older numpy warns where 2.x raises
             values = np.fromstring("\n".join(rows), sep=" ") if rows else np.zeros(0)
     except (ValueError, DeprecationWarning) as exc:
-        raise ValueError(f"{path}: a row is not numbers ({exc}); expected rows 'index dx dy dz'") from None
+        raise AssetError(f"{path}: a row is not numbers ({exc}); expected rows 'index dx dy dz' of a MakeHuman "
+                         f"target{_REFETCH}") from None
     if values.size != 4 * len(rows):
-        raise ValueError(f"{path}: {values.size} numbers on {len(rows)} rows; expected 4 a row "
-                         "(index dx dy dz)")
+        raise AssetError(f"{path}: {values.size} numbers on {len(rows)} rows; expected 4 a row (index dx dy dz) "
+                         f"of a MakeHuman target{_REFETCH}")
     data = values.reshape(-1, 4)
     out = np.zeros((n_vertices, 3))
     idx = data[:, 0].astype(np.int64)
