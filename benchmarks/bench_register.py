@@ -30,6 +30,7 @@ from bodyspace.data.template import load_template
 from bodyspace.errors import MeshError
 from bodyspace.measure import evaluate
 from bodyspace.measure.definitions import load_measurement_set
+from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.rig.unpose import unpose
 from bodyspace.synth.foreign import from_frame
 from bodyspace.register.align import similarity_from_landmarks
@@ -40,19 +41,6 @@ from bodyspace.synth.phenotype import PhenotypeModel
 from bodyspace.synth.scans import raw_scan
 
 POSES = ("rest", "elbows_flexed", "step_forward_left", "hands_on_hips", "wide_stance", "t_pose")
-LARGE_GIRTHS = ("chest_girth", "underbust_girth", "waist_girth", "hip_girth")
-HEIGHTS = ("stature", "height", "crotch_height", "inside_leg_length", "leg_length")
-
-
-def iso_tolerance(name, m):
-    """(tolerance, relative) of ISO 20685-1 for a measurement (as tests/test_foreign.py)."""
-    if m.unit != "m":
-        return 0.01, True
-    if name in LARGE_GIRTHS:
-        return 0.009, False
-    if m.method == "slice" or name in HEIGHTS:
-        return 0.004, False
-    return 0.005, False
 
 
 def landmarks_and_measurements(vertices, scan, template, mset, truth_rest):

@@ -13,28 +13,14 @@ from bodyspace.cli import app
 from bodyspace.errors import MeasurementError
 from bodyspace.measure import conventions as cv
 from bodyspace.measure import evaluate, load_measurement_set, measure, with_landmarks
+from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth import foreign as fo
 from bodyspace.synth.poses import load_pose_library
 
-# ISO 20685-1 tolerances, as in test_measure.py and test_foreign.py: stature, heights and small
-# girths 4 mm; lengths and breadths 5 mm; chest/underbust/waist/hip 9 mm; volume, area, mass,
-# BMI 1 %.
-LARGE_GIRTHS = ("chest_girth", "underbust_girth", "waist_girth", "hip_girth")
-HEIGHTS = ("stature", "height", "crotch_height", "inside_leg_length", "leg_length")
 CLI_FLAGS = {"units": "--units {}", "up": "--up {}", "flip_winding": "--flip-winding", "landmarks": "--landmarks FILE"}
 runner = CliRunner()
-
-
-def _iso_tolerance(name, m):
-    if m.unit != "m":
-        return 0.01, True
-    if name in LARGE_GIRTHS:
-        return 0.009, False
-    if m.method == "slice" or name in HEIGHTS:
-        return 0.004, False
-    return 0.005, False
 
 
 def assert_iso_equal(got, ref):
@@ -45,7 +31,7 @@ def assert_iso_equal(got, ref):
         if np.isnan(b):
             assert np.isnan(a), name
             continue
-        tol, relative = _iso_tolerance(name, m)
+        tol, relative = iso_tolerance(name, m)
         assert abs(a - b) <= (tol * abs(b) if relative else tol), (name, a, b)
 
 

@@ -9,24 +9,10 @@ from scipy.spatial import cKDTree
 
 from bodyspace.errors import ParameterError
 from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, with_landmarks
+from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
 from bodyspace.synth import foreign as fo
 from bodyspace.synth.phenotype import PARAMETERS
-
-# ISO 20685-1 tolerances as in test_measure.py: stature, heights and small girths 4 mm, lengths
-# and breadths 5 mm, chest/underbust/waist/hip 9 mm; volume, area, mass, BMI (no ISO figure) 1 %.
-LARGE_GIRTHS = ("chest_girth", "underbust_girth", "waist_girth", "hip_girth")
-HEIGHTS = ("stature", "height", "crotch_height", "inside_leg_length", "leg_length")
-
-
-def _iso_tolerance(name, m):
-    if m.unit != "m":
-        return 0.01, True
-    if name in LARGE_GIRTHS:
-        return 0.009, False
-    if m.method == "slice" or name in HEIGHTS:
-        return 0.004, False
-    return 0.005, False
 
 
 @pytest.fixture(scope="module")
@@ -192,7 +178,7 @@ def test_measurements_agree_on_foreign_topology(template, topology, phenotype_mo
     got = evaluate(foreign_set, b.internal_vertices(), b.faces)
     assert set(got) == {m["name"] for m in mset.measurements if m["method"] != "loop"}
     for name, m in got.items():
-        tol, rel = _iso_tolerance(name, m)
+        tol, rel = iso_tolerance(name, m)
         r = ref[name].value
         assert np.isnan(r) == np.isnan(m.value), name
         if not np.isnan(r):

@@ -20,6 +20,7 @@ from bodyspace.measure import (
     to_json,
     with_landmarks,
 )
+from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.mesh.io import save_mesh
 from bodyspace.measure.slicing import (
     contour_girths,
@@ -243,21 +244,6 @@ def test_stature_not_upright_is_reported(mset, mean_body, template):
     assert np.isnan(r["hip_girth"].value) and "from axis crotch→neck_front+neck_back" in r["hip_girth"].note
 
 
-# ISO 20685-1 tolerances: stature and small girths 4 mm, lengths 5 mm, chest/waist/hip 9 mm.
-LARGE_GIRTHS = ("chest_girth", "underbust_girth", "waist_girth", "hip_girth")
-
-
-def _iso_tolerance(name: str, m) -> tuple[float, bool]:
-    """(tolerance, relative?) for a measurement: ISO 20685-1 for lengths, 1 % for the rest."""
-    if m.unit != "m":
-        return 0.01, True                    # volume, area, mass, BMI: no ISO figure; 1 %
-    if name in LARGE_GIRTHS:
-        return 0.009, False
-    if m.method == "slice" or name in ("stature", "height", "crotch_height", "inside_leg_length", "leg_length"):
-        return 0.004, False                  # small girths, heights
-    return 0.005, False                      # lengths and breadths
-
-
 def quad_resplit(faces: np.ndarray) -> np.ndarray:
     """The template's quads split along the other diagonal: (a,b,c),(a,c,d) -> (a,b,d),(b,c,d)."""
     a, b = faces[0::2], faces[1::2]
@@ -337,7 +323,7 @@ def test_other_meshings_agree_within_iso(mset, mean_body, phenotype_model, templ
         for label, r in copies.items():
             assert set(r) == set(free.names)
             for k, m in r.items():
-                tol, rel = _iso_tolerance(k, m)
+                tol, rel = iso_tolerance(k, m)
                 err = abs(m.value - base[k].value) / (abs(base[k].value) if rel else 1.0)
                 assert err < tol, (label, k, m.value - base[k].value, tol)
 

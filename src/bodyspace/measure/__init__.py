@@ -6,7 +6,8 @@ point/axis grammar they share is ``points``, the geometry is ``slicing`` (plane
 cross-sections, tape-measure girths), ``composition`` turns volume into mass, BMI and body fat,
 and ``evaluate`` runs a set on bodies (V, 3) or batches (N, V, 3). docs/measurements.md lists
 the default set. ``parts`` labels every vertex with its body part, so a girth's tape goes
-round one part (docs/measurements.md, "Body parts").
+round one part (docs/measurements.md, "Body parts"); ``tolerances`` holds the ISO 20685-1
+tolerances by which two values of a measurement count as equal.
 """
 
 from bodyspace.errors import MeasurementError
