@@ -349,12 +349,16 @@ def _rigid_rows(builder, vec: ir.VectorType, r: list) -> list:
             mul(two, add(sub(mul(qw, dz), mul(dw, qz)), sub(mul(qx, dy), mul(qy, dx))))]
 
 
-def _apply_rows(builder, vec: ir.VectorType, m: list, p: list) -> list:
-    """``v_r + (m[4r+3] + m[4r] x + m[4r+1] y + m[4r+2] z)`` for r = 0, 1, 2: the 12 rows m of
-    ``(A - I | t)`` applied to the rest vertex p = (x, y, z) (vectors over the frame lanes)."""
+def _apply_rows(builder, vec: ir.VectorType, m: list, x, o, t) -> None:
+    """``o[3t + r] = v_r + (m[4r+3] + m[4r] x + m[4r+1] y + m[4r+2] z)`` for r = 0, 1, 2: the 12
+    rows m of ``(A - I | t)`` applied to rest vertex t of the rows x (3W, L) into the tile rows o
+    (3W, L) (vectors over the frame lanes; x and o are ``_Rows``, t an IR index)."""
     fma = _vector_intrinsic(builder, "llvm.fmuladd", vec, 3)
-    return [builder.fadd(p[r], fma(m[4 * r + 2], p[2], fma(m[4 * r + 1], p[1], fma(m[4 * r], p[0], m[4 * r + 3]))))
-            for r in range(3)]
+    base = builder.mul(t, _const(3 * x.L))
+    p = [x.load(builder.add(base, _const(c * x.L))) for c in range(3)]
+    for r in range(3):
+        v = builder.fadd(p[r], fma(m[4 * r + 2], p[2], fma(m[4 * r + 1], p[1], fma(m[4 * r], p[0], m[4 * r + 3]))))
+        o.store(v, builder.add(base, _const(r * x.L)))
 
 
 def _dqs_blend_intrinsic(accumulate: bool):
@@ -401,13 +405,8 @@ def _dqs_vertex(typingctx, table, pivot, bones, weights, xyz, tile, t):
         tb = _Rows(context, builder, signature.args[0], args[0])
         x = _Rows(context, builder, signature.args[4], args[4])
         o = _Rows(context, builder, signature.args[5], args[5])
-        L = tb.L
-        base = builder.mul(args[6], _const(3 * L))
         q = _dqs_blend_values(builder, tb, args[1], args[2], args[3], n, [None] * 8)
-        m = _rigid_rows(builder, tb.vec, q)
-        p = [x.load(builder.add(base, _const(c * L))) for c in range(3)]
-        for r, v in enumerate(_apply_rows(builder, tb.vec, m, p)):
-            o.store(v, builder.add(base, _const(r * L)))
+        _apply_rows(builder, tb.vec, _rigid_rows(builder, tb.vec, q), x, o, args[6])
         return context.get_dummy_value()
     return types.void(table, pivot, bones, weights, xyz, tile, t), codegen
 
@@ -421,12 +420,7 @@ def _apply(typingctx, acc, xyz, tile, t):
         a = _Rows(context, builder, signature.args[0], args[0])
         x = _Rows(context, builder, signature.args[1], args[1])
         o = _Rows(context, builder, signature.args[2], args[2])
-        L = a.L
-        base = builder.mul(args[3], _const(3 * L))
-        p = [x.load(builder.add(base, _const(c * L))) for c in range(3)]
-        m = [a.load(_const(j * L)) for j in range(12)]
-        for r, v in enumerate(_apply_rows(builder, a.vec, m, p)):
-            o.store(v, builder.add(base, _const(r * L)))
+        _apply_rows(builder, a.vec, [a.load(_const(j * a.L)) for j in range(12)], x, o, args[3])
         return context.get_dummy_value()
     return types.void(acc, xyz, tile, t), codegen
 
