@@ -89,17 +89,6 @@ def write_bandwidth(nbytes: int, nontemporal: bool = False) -> float:
     return nbytes / best_time(fn, 5) / 1e9
 
 
-def best_thread_time(fn, repeat: int = 3) -> float:
-    """Best CPU seconds of the calling thread over ``repeat`` calls (a one-lane call runs
-    entirely on it)."""
-    best = float("inf")
-    for _ in range(repeat):
-        t = time.thread_time()
-        fn()
-        best = min(best, time.thread_time() - t)
-    return best
-
-
 def frames_of(library, rig, n: int, rng) -> np.ndarray:
     """(n, B, 3, 3) rotations: the library's poses in turn, each bone jittered a little so no
     two frames are equal (an animation, not 25 repeated poses)."""
@@ -149,7 +138,7 @@ def main(frames: int = 1000) -> None:
             report(f"{name} {out.dtype}, out= (written in place)", t, baseline_s, vf, "vertex-frames")
             print(f"  {100 * vf / t / bound[out.dtype]:.0f} % of the plain-store bound, "
                   f"{100 * vf / t / nt_bound[out.dtype]:.0f} % of the non-temporal bound for {out.dtype} output")
-            t1 = best_thread_time(lambda: compiled(body, W, G, out=out, lanes=1), 3)
+            t1 = best_time(lambda: compiled(body, W, G, out=out, lanes=1), 3, clock=time.thread_time)
             print(f"  {name} {out.dtype} one lane: {vf / t1 / 1e6:,.0f} M vertex-frames per CPU second")
         t = best_time(lambda: compiled(body, W, G), 3)
         report(f"{name} float64, new output array each call", t, baseline_s, vf, "vertex-frames")
