@@ -6,10 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
-import multiprocessing
 import time
-from collections import deque
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -36,6 +33,7 @@ from bodyspace.measure import conventions
 from bodyspace.measure.definitions import load_landmark_parts, with_vertex_parts
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
+from bodyspace.parallel import in_order
 from bodyspace.report.render import contact_sheet
 from bodyspace.rig.unpose import KNOWN_POSE_TOLERANCE, fits_template, unpose, unpose_known
 
@@ -350,7 +348,10 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
             with open(tmp, "w", newline="", encoding="utf-8") as handle:
                 writer = csv.writer(handle)
                 writer.writerow(columns)
-                for start, (values, degrees, notes) in _chunks_in_order(starts, chunk, n, workers):
+                spans = ((start, min(n, start + chunk)) for start in starts)
+                results = in_order(_measure_chunk, spans, workers if len(starts) > 1 else 1,
+                                   died=f"run bodyspace measure {folder} --csv {out} again")
+                for start, (values, degrees, notes) in zip(starts, results):
                     for i in range(len(values)):
                         row = start + i
                         writer.writerow([row, db.scans["subject"][row], db.scans["pose"][row]]
@@ -389,26 +390,6 @@ def _scan_demographics(db: ScanDatabase) -> tuple[np.ndarray | None, np.ndarray 
 
 def _cell(value: float, digits: int) -> str:
     return "" if not np.isfinite(value) else f"{value:.{digits}f}"
-
-
-def _chunks_in_order(starts: list[int], chunk: int, n: int, workers: int):
-    """``(start, result)`` of ``_measure_chunk`` for each chunk start, in order; ``workers``
-    forked processes with at most two chunks each in flight (bounded memory)."""
-    if workers <= 1 or len(starts) <= 1:
-        for start in starts:
-            yield start, _measure_chunk(start, min(n, start + chunk))
-        return
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        queue = deque((start, pool.submit(_measure_chunk, start, min(n, start + chunk)))
-                      for start in starts[:2 * workers])
-        following = iter(starts[2 * workers:])
-        while queue:
-            start, future = queue.popleft()
-            result = future.result()
-            upcoming = next(following, None)
-            if upcoming is not None:
-                queue.append((upcoming, pool.submit(_measure_chunk, upcoming, min(n, upcoming + chunk))))
-            yield start, result
 
 
 def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
