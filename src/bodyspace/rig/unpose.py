@@ -1010,34 +1010,7 @@ def unpose(vertices: np.ndarray, rig: Rig, *, prior: RestShapePrior | None = Non
     R[:, roots] = Qall[:, roots]
     nonroot = np.flatnonzero(~roots)
     R[:, nonroot] = np.swapaxes(Qall[:, parents[nonroot]], -1, -2) @ Qall[:, nonroot]
-    # What was undone, for people: the largest turn of a body part (a solved bone with skin of its
-    # own) against the root. Rotations relative to the parent are not used for this: how a turn
-    # is split along a chain of weakly skinned bones (clavicle, shoulder, neck) is barely
-    # determined by the skin, and under noise a neck bone may twist one way and the head back.
-    segments = plan.segments
-    turned = np.swapaxes(Q[:, :1], -1, -2) @ Q[:, segments]
-    angles = np.degrees(np.linalg.norm(matrix_to_rotvec(turned), axis=-1))   # (N, S)
-    # Ties (the jaw turns with the head) go to the part with more skin.
-    pick = (np.round(angles, 1) * 1e6 + plan.segment_skin).argmax(1)
-    worst = plan.solved[segments[pick]]
-    largest = angles[np.arange(len(y)), pick]
-    orientation = np.degrees(np.linalg.norm(matrix_to_rotvec(Q[:, 0]), axis=-1))
-
-    # On the ground: lowest vertex at y = 0; x/z: the head of the root's first solved child (the
-    # pelvis) where it is posed (the root's own head turns with the root's gauge, _gauge).
-    anchor_pos = int(plan.root_children[0]) if len(plan.root_children) else 0
-    anchor, root = int(plan.solved[anchor_pos]), int(plan.solved[0])
-    heads = rig.heads(rest)
-    posed_anchor = np.einsum("nij,nj->ni", Q[:, anchor_pos], heads[:, anchor]) + t[:, anchor_pos]
-    shift = np.zeros((len(y), 3))
-    shift[:, [0, 2]] = posed_anchor[:, [0, 2]] - heads[:, anchor][:, [0, 2]]
-    shift[:, 1] = -rest[..., 1].min(1)
-    rest += shift[:, None, :]
-    heads += shift[:, None, :]
-    # pose_bodies(rest, rig, R) keeps the root head h where it is; the fit puts it at Q_0 (h - shift) + t_0.
-    translation = np.einsum("nij,nj->ni", Q[:, 0], heads[:, root] - shift) + t[:, 0] - heads[:, root]
-
-    names = np.array(rig.bone_names, dtype=object)[worst]
+    largest, names, orientation, translation = _report_and_place(plan, rig, rest, Q, t)
     info = UnposeInfo(largest, names, orientation, shape_distance, joint_gap,
                       iterations, converged, folded, translation)
     if single:
@@ -1126,7 +1099,6 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
         P = (Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support))
         T = (P @ K.transpose(1, 0, 2, 3).reshape(len(support), N * 9)).reshape(r, r, N, 3, 3)
         # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
-        # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
         system = (T.transpose(2, 0, 1, 3, 4) @ D[:, None]).transpose(0, 1, 3, 2, 4).reshape(N, 3 * r, 3 * r)
         system += np.eye(3 * r)
         Ky = np.einsum("nvab,nvb->nva", K, y[:, support])                          # (N, S, 3)
@@ -1151,28 +1123,49 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
     dev -= (dev @ plan.basis.T) @ plan.basis
     shape_distance = np.sqrt(np.einsum("ni,ni->n", dev, dev) / dev.shape[1])
 
-    segments = plan.segments
-    bones = plan.solved[segments]
-    root = int(plan.solved[0])
-    turned = np.swapaxes(A[:, root:root + 1], -1, -2) @ A[:, bones]
-    angles = np.degrees(np.linalg.norm(matrix_to_rotvec(turned), axis=-1))        # (N, S)
-    pick = (np.round(angles, 1) * 1e6 + plan.segment_skin).argmax(1)
-    largest = angles[np.arange(N), pick]
-    orientation = np.degrees(np.linalg.norm(matrix_to_rotvec(A[:, root]), axis=-1))
-    anchor = int(plan.solved[plan.root_children[0]]) if len(plan.root_children) else root
-    # Only two heads are needed: the regressor rows on their vertices (``rig.heads`` would copy every body).
-    rest_heads = np.zeros((N, B, 3))
-    for b in {anchor, root}:
-        row = rig.head_regressor[b]
-        rest_heads[:, b] = np.einsum("v,nvi->ni", row.data, rest[:, row.indices])
-    posed_anchor = np.einsum("nij,nj->ni", G[:, anchor, :3, :3], rest_heads[:, anchor]) + G[:, anchor, :3, 3]
-    shift = np.zeros((N, 3))
-    shift[:, [0, 2]] = posed_anchor[:, [0, 2]] - rest_heads[:, anchor][:, [0, 2]]
-    shift[:, 1] = -rest[..., 1].min(1)
-    rest += shift[:, None, :]
-    translation = (np.einsum("nij,nj->ni", G[:, root, :3, :3], rest_heads[:, root]) + G[:, root, :3, 3]
-                   - rest_heads[:, root] - shift)
-    names = np.array(rig.bone_names, dtype=object)[bones[pick]]
+    solved = G[:, plan.solved]                                                    # (N, P, 4, 4)
+    largest, names, orientation, translation = _report_and_place(plan, rig, rest, solved[..., :3, :3],
+                                                                 solved[..., :3, 3])
     info = UnposeInfo(largest, names, orientation, shape_distance, np.zeros(N), np.zeros(N, dtype=np.int64),
                       np.ones(N, dtype=bool), folded, translation)
     return rest, R, info
+
+
+def _report_and_place(plan, rig: Rig, rest: np.ndarray, Q: np.ndarray, t: np.ndarray) -> tuple:
+    """What was undone, for people, and the rest bodies placed: ``unpose``'s and ``unpose_known``'s
+    last step. Q (N, P, 3, 3), t (N, P, 3): the world transforms of the plan's solved bones;
+    rest (N, V, 3) is moved in place. Returns (largest turn (N,) degrees, its bone's name (N,),
+    the root's orientation (N,) degrees, the root translation (N, 3) that ``pose_bodies`` needs).
+
+    The largest turn is of a body part (a solved bone with skin of its own) against the root.
+    Rotations relative to the parent are not used for this: how a turn is split along a chain of
+    weakly skinned bones (clavicle, shoulder, neck) is barely determined by the skin, and under
+    noise a neck bone may twist one way and the head back. Placement: lowest vertex at y = 0;
+    x/z: the head of the root's first solved child (the pelvis) where it is posed (the root's own
+    head turns with the root's gauge, _gauge).
+    """
+    N = len(rest)
+    segments = plan.segments
+    turned = np.swapaxes(Q[:, :1], -1, -2) @ Q[:, segments]
+    angles = np.degrees(np.linalg.norm(matrix_to_rotvec(turned), axis=-1))   # (N, S)
+    # Ties (the jaw turns with the head) go to the part with more skin.
+    pick = (np.round(angles, 1) * 1e6 + plan.segment_skin).argmax(1)
+    worst = plan.solved[segments[pick]]
+    largest = angles[np.arange(N), pick]
+    orientation = np.degrees(np.linalg.norm(matrix_to_rotvec(Q[:, 0]), axis=-1))
+
+    anchor_pos = int(plan.root_children[0]) if len(plan.root_children) else 0
+    anchor, root = int(plan.solved[anchor_pos]), int(plan.solved[0])
+    # Only two heads are needed: the regressor rows on their vertices (``rig.heads`` would form every bone's).
+    heads = {}
+    for b in (anchor, root):
+        row = rig.head_regressor[b]
+        heads[b] = np.einsum("v,nvi->ni", row.data, rest[:, row.indices])
+    posed_anchor = np.einsum("nij,nj->ni", Q[:, anchor_pos], heads[anchor]) + t[:, anchor_pos]
+    shift = np.zeros((N, 3))
+    shift[:, [0, 2]] = posed_anchor[:, [0, 2]] - heads[anchor][:, [0, 2]]
+    shift[:, 1] = -rest[..., 1].min(1)
+    rest += shift[:, None, :]
+    # pose_bodies(rest, rig, R) keeps the root head h where it is; the fit puts it at Q_0 h + t_0.
+    translation = np.einsum("nij,nj->ni", Q[:, 0], heads[root]) + t[:, 0] - heads[root] - shift
+    return largest, np.array(rig.bone_names, dtype=object)[worst], orientation, translation
