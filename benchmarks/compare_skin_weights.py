@@ -1,7 +1,8 @@
 """Skin weights compared over the whole pose library: MakeHuman's CC0 weights as shipped, the
 smoothed ones (``weights="smoothed"``) and bone heat (``weights="bone_heat"``, Baran & Popović
-2007) with its cut to four bones smoothed within each bone's support (the default) and with the
-cut alone (``smoothing=0``), all with linear blend (or ``--skinning dqs`` dual-quaternion)
+2007, with the template's rules ``posing.template_heat_rules``), and the plain bone heat any mesh
+gets (no rules) with its cut to four bones smoothed within each bone's support (the default) and
+with the cut alone (``smoothing=0``), all with linear blend (or ``--skinning dqs`` dual-quaternion)
 skinning of the default rig on the template topology.
 
 Per pose, summed or worst over a few bodies: folded triangles added to the rest mesh
@@ -23,7 +24,7 @@ from bodyspace.measure.definitions import load_measurement_set
 from bodyspace.measure.evaluate import measure
 from bodyspace.mesh.geometry import capped_volume
 from bodyspace.rig.kinematics import forward_kinematics
-from bodyspace.rig.posing import count_folded_triangles, smoothed_weights
+from bodyspace.rig.posing import count_folded_triangles, smoothed_weights, template_heat_rules
 from bodyspace.rig.skinning import dual_quaternion_skinning, linear_blend_skinning
 from bodyspace.rig.weights import DEFAULT_SMOOTHING, bone_heat_weights
 from bodyspace.synth.phenotype import PhenotypeModel
@@ -36,17 +37,22 @@ BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 
 
 
 def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -> dict:
-    """name → (V, B) weights; bone heat on the template's mean body, MakeHuman's deforming bones."""
+    """name → (V, B) weights; bone heat on the template's mean body: plain (MakeHuman's deforming
+    bones, no mask: what any mesh gets), and with the template's rules (``template_heat_rules``:
+    hip helper bones out, jaw on the chin, no upper arm on the chest below the armpit; what
+    ``pose_bodies(weights="bone_heat")`` uses)."""
     v = template.vertices
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
     args = (v, template.faces, rig.heads(v), rig.tails(v), influences)
     cut = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=0.0)
+    plain = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
+    rule_deform, allowed = template_heat_rules(rig, v, template.faces)
     t = time.perf_counter()
-    heat_w = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
-    print(f"bone heat: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
+    heat_w = bone_heat_weights(*args, deform=rule_deform, allowed=allowed, heat=heat, smoothing=smoothing)
+    print(f"bone heat with the template's rules: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
           f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
     return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat, cut only": cut,
-            "bone heat": heat_w}
+            "bone heat, no rules": plain, "bone heat": heat_w}
 
 
 def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs") -> dict:

@@ -228,19 +228,29 @@ def _closest_on_segment(x, h, t, out):
 
 @_kernel
 def _nearest_visible_kernel(vertices, heads, tails, bones, tri, corners, order, nlo, nhi, child, start, stop,
-                            i0, i1, tie, source, source_count, nearest, dist, tests):
+                            allow, i0, i1, tie, source, source_count, nearest, dist, tests):
     """For vertices i0:i1: the nearest visible bones (``source`` (V, 4) ids into ``bones``,
     ``source_count``: how many tie, 0 if none is visible), the nearest bone regardless of
     visibility (``nearest``), the distance to the nearest visible one (``dist``, inf if none)
-    and the number of segment queries (``tests``)."""
+    and the number of segment queries (``tests``). ``allow`` (V, K) bool: the bones each vertex
+    may take as its source (a (1, 1) array: all)."""
     B = len(bones)
     d2 = np.empty(B)
     point = np.empty(3)
     stack = np.empty(256, dtype=np.int64)
+    masked = allow.shape[0] == vertices.shape[0] and allow.shape[1] == B
     for i in range(i0, i1):
         x = vertices[i]
         for k in range(B):
             d2[k] = _closest_on_segment(x, heads[bones[k]], tails[bones[k]], point)
+        if masked:                              # a row that allows no bone allows all
+            some = False
+            for k in range(B):
+                some = some or allow[i, k]
+            if some:
+                for k in range(B):
+                    if not allow[i, k]:
+                        d2[k] = np.inf
         best = np.inf
         count = 0
         first = True
@@ -284,13 +294,15 @@ class _Bvh:
 
 
 def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray, tails: np.ndarray,
-                          bones: np.ndarray | None = None, *, tie: float = TIE_TOLERANCE, lanes: int | None = None):
+                          bones: np.ndarray | None = None, *, tie: float = TIE_TOLERANCE, lanes: int | None = None,
+                          allowed: np.ndarray | None = None):
     """Each vertex's nearest visible bone (Baran & Popović §4): the closest bone segment whose
     closest point the vertex sees, i.e. the segment between them crosses no triangle that does
     not have the vertex as a corner.
 
     vertices (V, 3), faces (F, 3); heads, tails (B, 3); bones: (K,) indices of the bones that
-    may be chosen (default all). Returns ``source`` (V, 4) int (bone indices, -1 padded; up to
+    may be chosen (default all); allowed: (V, B) bool, the bones each vertex may take (a
+    vertex's row with no True allows all; default: all). Returns ``source`` (V, 4) int (bone indices, -1 padded; up to
     four bones tie within ``tie`` relative distance), ``count`` (V,) (0: no bone visible),
     ``nearest`` (V,) the nearest bone regardless of visibility, ``distance`` (V,) to the
     nearest visible bone (inf if none) and ``tests`` (V,) segment queries made.
@@ -307,7 +319,9 @@ def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.nda
     nearest = np.zeros(V, dtype=np.int64)
     dist = np.full(V, np.inf)
     tests = np.zeros(V, dtype=np.int64)
-    args = (v, h, t, bones, *bvh.arrays)
+    allow = np.ones((1, 1), dtype=np.bool_) if allowed is None else \
+        np.ascontiguousarray(np.asarray(allowed, dtype=bool)[:, bones])
+    args = (v, h, t, bones, *bvh.arrays, allow)
     outs = (tie, source, count, nearest, dist, tests)
     if lanes is None:
         lanes = 2 if V * len(bones) >= 50_000 else 1
@@ -366,6 +380,15 @@ def _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat):
     if not (np.isfinite(heat) and heat > 0):
         raise ParameterError(f"heat={heat!r}; expected a positive number (the paper's c, default {DEFAULT_HEAT})")
     return v, f.astype(np.int64), h, t, deform
+
+
+def _check_allowed(allowed, V: int, B: int) -> np.ndarray:
+    """``allowed`` as a dense (V, B) bool array, or a clear error."""
+    a = allowed.toarray() if sp.issparse(allowed) else np.asarray(allowed)
+    if a.shape != (V, B) or a.dtype != bool:
+        raise ParameterError(f"allowed: shape {a.shape} dtype {a.dtype}, expected ({V}, {B}) bool (the bones each "
+                             f"of the {V} vertices may be weighted by; None: all)")
+    return np.ascontiguousarray(a)
 
 
 @_kernel
@@ -493,7 +516,7 @@ def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np
 def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray, tails: np.ndarray,
                       max_influences: int = 4, *, deform: np.ndarray | None = None, heat: float = DEFAULT_HEAT,
                       min_weight: float = MIN_WEIGHT, smoothing: float = DEFAULT_SMOOTHING,
-                      lanes: int | None = None) -> sp.csr_matrix:
+                      allowed: np.ndarray | None = None, lanes: int | None = None) -> sp.csr_matrix:
     """Bone-heat skin weights (Baran & Popović 2007 §4): (V, B) sparse, rows summing to one.
 
     vertices: (V, 3) any triangle mesh (any units and axes, holes and loose parts allowed).
@@ -509,6 +532,11 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     smoothing: diffusion length of the smoothing after the cut, as a fraction of the square
         root of the surface area (``smooth_within_support``); 0 keeps the cut weights. Skipped
         when nothing is cut (``max_influences`` at least the number of bones with heat).
+    allowed: (V, B) bool (dense or sparse), the bones each vertex may be weighted by (default
+        all): a vertex takes only allowed bones as its heat source, and a bone's heat is cut
+        where it is not allowed (before the cut to ``max_influences``). A part-aware mask, e.g.
+        the jaw only on the chin, the upper arm not on the chest (``posing.bone_heat_rig_weights``).
+        A row with no True allows all.
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
@@ -518,7 +546,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     2. The cotangent stiffness L and lumped areas M of the non-degenerate faces;
        ``A = L + M H``, factored once.
     3. One solve of ``A w_b = M H p_b`` for each bone that is some vertex's source (the others'
-       weights are zero), all columns against the one factor.
+       weights are zero), all columns against the one factor; with ``allowed``, each bone's
+       weight set to zero where it is not allowed and the rows renormalized.
     4. Per vertex: negatives dropped, the largest ``max_influences`` kept minus the next
        one's weight (continuous cut, ``_top_weights``), renormalized.
     5. Each bone's cut column smoothed within its own support (``smooth_within_support``), so
@@ -542,7 +571,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     bones = np.flatnonzero(deform)
     if not len(f):
         raise MeshError(f"faces: all {len(faces)} faces have zero area; expected a surface mesh")
-    source, count, nearest, dist, _ = nearest_visible_bones(v, f, h, t, bones, lanes=lanes)
+    allow = None if allowed is None else _check_allowed(allowed, V, B)
+    source, count, nearest, dist, _ = nearest_visible_bones(v, f, h, t, bones, lanes=lanes, allowed=allow)
     # a component where no vertex sees a bone is heated by every vertex's nearest bone
     _, comp = vertex_components(f, V)
     seen = np.bincount(comp, weights=(count > 0) & used, minlength=comp.max() + 1) > 0
@@ -574,6 +604,12 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     # 3. one factorization, every bone's column against it
     solver = FactorizedSolver(A)
     W = _solve_columns(solver, rhs, lanes)
+    if allow is not None:
+        # a bone keeps no heat where it is not allowed (the heat diffuses past the vertices it
+        # sources); rows renormalized, a row left with nothing keeps its heat
+        kept = np.where(allow[active][:, columns], W, 0.0)
+        total = kept.sum(axis=1, keepdims=True)
+        W = np.where(total > 0.0, kept / np.where(total > 0.0, total, 1.0), W)
     # 4. truncate and normalize; unused vertices take their nearest bone
     top = _top_weights(W, max_influences, min_weight)              # (len(active), K)
     if smoothing > 0 and max_influences < len(columns):
