@@ -39,16 +39,17 @@ BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 
 def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -> dict:
     """name → (V, B) weights; bone heat on the template's mean body: plain (MakeHuman's deforming
     bones, no mask: what any mesh gets), and with the template's rules (``template_heat_rules``:
-    hip helper bones out, jaw on the chin, no upper arm on the chest below the armpit; what
+    hip helper bones out, jaw on the chin, no upper arm on the chest below the armpit, arm twist
+    bones heated with the bone they twist; what
     ``pose_bodies(weights="bone_heat")`` uses)."""
     v = template.vertices
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
     args = (v, template.faces, rig.heads(v), rig.tails(v), influences)
     cut = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=0.0)
     plain = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
-    rule_deform, allowed = template_heat_rules(rig, v, template.faces)
+    rules = template_heat_rules(rig, v, template.faces)
     t = time.perf_counter()
-    heat_w = bone_heat_weights(*args, deform=rule_deform, allowed=allowed, heat=heat, smoothing=smoothing)
+    heat_w = bone_heat_weights(*args, **rules, heat=heat, smoothing=smoothing)
     print(f"bone heat with the template's rules: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
           f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
     return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat, cut only": cut,

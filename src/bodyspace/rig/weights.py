@@ -53,7 +53,7 @@ from bodyspace.mesh.topology import vertex_components
 from bodyspace.parallel import halves, run_both
 
 __all__ = ["DEFAULT_HEAT", "DEFAULT_SMOOTHING", "MIN_WEIGHT", "bone_heat_weights", "nearest_visible_bones",
-           "segments_blocked", "smooth_within_support"]
+           "segments_blocked", "smooth_within_support", "twist_share"]
 
 _kernel = numba.njit(cache=True, nogil=True)
 
@@ -516,7 +516,8 @@ def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np
 def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray, tails: np.ndarray,
                       max_influences: int = 4, *, deform: np.ndarray | None = None, heat: float = DEFAULT_HEAT,
                       min_weight: float = MIN_WEIGHT, smoothing: float = DEFAULT_SMOOTHING,
-                      allowed: np.ndarray | None = None, lanes: int | None = None) -> sp.csr_matrix:
+                      allowed: np.ndarray | None = None, twist_of: np.ndarray | None = None,
+                      lanes: int | None = None) -> sp.csr_matrix:
     """Bone-heat skin weights (Baran & Popović 2007 §4): (V, B) sparse, rows summing to one.
 
     vertices: (V, 3) any triangle mesh (any units and axes, holes and loose parts allowed).
@@ -537,6 +538,13 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
         where it is not allowed (before the cut to ``max_influences``). A part-aware mask, e.g.
         the jaw only on the chin, the upper arm not on the chest (``posing.bone_heat_rig_weights``).
         A row with no True allows all.
+    twist_of: (B,) int, for a twist bone the bone it twists (its parent, whose tail is its
+        head; e.g. MakeHuman's upperarm02 of upperarm01), -1 for the others (default none).
+        The pair is heated as one bone (the segment from the parent's head to the twist bone's
+        tail), then the pair's weight is split along that segment: the twist bone's share
+        rises linearly from 0 at their joint to 1 at its tail (``twist_share``). So a twist
+        bone takes no place among a vertex's four where the pair meets the body (at the
+        shoulder: one arm bone and three of the torso instead of two arm bones and two).
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
@@ -552,6 +560,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
        one's weight (continuous cut, ``_top_weights``), renormalized.
     5. Each bone's cut column smoothed within its own support (``smooth_within_support``), so
        the cut's kinks do not fold the skin; rows renormalized.
+    6. With ``twist_of``: each pair's weight split between the bone and its twist bone
+       (``twist_share``); rows that this takes past ``max_influences`` cut again (step 4).
     """
     v, f, h, t, deform = _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat)
     if not (0.0 <= min_weight < 1.0):
@@ -563,6 +573,12 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
                              f"(default {DEFAULT_SMOOTHING}; 0: no smoothing after the cut)")
     V, B = len(v), len(h)
     scale = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
+    twist = _check_twist(twist_of, h, t, deform, scale)
+    bone_tails = t
+    if twist is not None:              # each pair heated as one bone: parent's head to child's tail
+        t = t.copy()
+        t[twist[twist >= 0]] = bone_tails[twist >= 0]
+        deform = deform & (twist < 0)
     # 1. faces with area; vertices that some such face uses
     dbl = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     f = f[dbl > _DEGENERATE_AREA * scale * scale]
@@ -616,6 +632,25 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
         # 5. the cut smoothed within each bone's support
         length = smoothing * np.sqrt(mass.sum())          # mass sums to the surface area
         top = smooth_within_support(top, L[active][:, active], mass[active], length)
+    if twist is not None:
+        # 6. each pair's weight split between the bone and its twist bone along their segment;
+        # where that makes a fifth bone (the pair meets three others, at the elbow and wrist),
+        # the continuous cut again
+        dense = top.toarray()
+        extra = []
+        for c in np.flatnonzero(twist >= 0):
+            k = np.flatnonzero(columns == twist[c])
+            if len(k):
+                share = twist_share(v[active], h[twist[c]], bone_tails[twist[c]], bone_tails[c])
+                extra.append((c, dense[:, k[0]] * share))
+                dense[:, k[0]] *= 1.0 - share
+        if extra:
+            columns = np.concatenate([columns, [c for c, _ in extra]])
+            dense = np.hstack([dense, np.stack([w for _, w in extra], axis=1)])
+            over = (dense > 0.0).sum(axis=1) > max_influences
+            if over.any():
+                dense[over] = _top_weights(dense[over], max_influences, min_weight).toarray()
+            top = sp.csr_matrix(dense)
     top = sp.csr_matrix((top.data, columns[top.indices], top.indptr), shape=(len(active), B))
     if used.all():
         out = top
@@ -626,6 +661,43 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
                                             shape=(V, B))).tocsr()
     out.sort_indices()
     return out
+
+
+def _check_twist(twist_of, heads, tails, deform, scale) -> np.ndarray | None:
+    """``twist_of`` as a (B,) int array (or None), or a clear error."""
+    if twist_of is None:
+        return None
+    B = len(heads)
+    tw = np.asarray(twist_of)
+    if tw.shape != (B,) or not np.issubdtype(tw.dtype, np.integer) or tw.min(initial=-1) < -1 or \
+            tw.max(initial=-1) >= B:
+        raise ParameterError(f"twist_of: shape {tw.shape} dtype {tw.dtype}, expected ({B},) ints in -1..{B - 1} "
+                             f"(for a twist bone the bone it twists, else -1)")
+    for c in np.flatnonzero(tw >= 0):
+        p = int(tw[c])
+        if p == c or tw[p] >= 0 or not (deform[p] and deform[c]):
+            raise ParameterError(f"twist_of[{c}] = {p}: expected another, deforming bone that is not itself a twist "
+                                 f"bone (bone {c} must deform too)")
+        if np.linalg.norm(np.asarray(tails[p]) - np.asarray(heads[c])) > 1e-3 * scale:
+            raise ParameterError(f"twist_of[{c}] = {p}: bone {p}'s tail is {np.asarray(tails[p]).tolist()}, bone {c}'s "
+                                 f"head {np.asarray(heads[c]).tolist()}; a twist bone must start where the bone it "
+                                 f"twists ends")
+    return tw.astype(np.int64)
+
+
+def twist_share(points: np.ndarray, head: np.ndarray, joint: np.ndarray, tail: np.ndarray) -> np.ndarray:
+    """(P,) the twist bone's share of a (bone, twist bone) pair's weight at points (P, 3).
+
+    head: the bone's head, joint: its tail = the twist bone's head, tail: the twist bone's
+    tail (3,). With u a point's position along head → tail (0 at head, 1 at tail) and u_j the
+    joint's, the share is ``clip((u - u_j) / (1 - u_j), 0, 1)``: nothing along the bone, all
+    at the twist bone's tail, so the twist grows along the limb.
+    """
+    seg = np.asarray(tail, dtype=float) - head
+    dd = float(seg @ seg) or 1.0
+    u = (np.asarray(points, dtype=float) - head) @ seg / dd
+    u_joint = float((np.asarray(joint, dtype=float) - head) @ seg / dd)
+    return np.clip((u - u_joint) / max(1.0 - u_joint, 1e-12), 0.0, 1.0)
 
 
 def _solve_columns(solver: FactorizedSolver, rhs: np.ndarray, lanes: int | None) -> np.ndarray:
