@@ -10,6 +10,7 @@ Per pose, summed or worst over a few bodies: folded triangles added to the rest 
 chest girth change in ``arms_overhead`` (the hm08 measurement set). Prints markdown tables.
 
 Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0] [--smoothing 0.03] [--skinning lbs]
+[--other-bodies]
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ from bodyspace.synth.poses import load_pose_library
 # heavy male with no muscle.
 BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 0.5, 0.0],
           "height": [0.6, 0.4, 0.5]}
+# Four other bodies (heavy short woman, muscular tall lean man, lean tall woman, a middle body),
+# not used to choose the template's bone-heat rules: a held-out check of them (``--other-bodies``).
+OTHER_BODIES = {"gender": [0.0, 1.0, 0.0, 0.5], "weight": [1.0, 0.2, 0.2, 0.7], "muscle": [0.2, 1.0, 0.5, 0.5],
+                "height": [0.3, 0.9, 0.8, 0.5]}
 
 
 def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -> dict:
@@ -101,11 +106,12 @@ def print_tables(names, results) -> None:
               + ", ".join(f"{100 * c:+.1f} cm" for c in chest) + " |")
 
 
-def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOOTHING, skinning: str = "lbs") -> None:
+def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOOTHING, skinning: str = "lbs",
+         other_bodies: bool = False) -> None:
     template = load_template()
     rig = template.rigs["default"]
     library = load_pose_library()
-    bodies = PhenotypeModel(template).vertices(BODIES)
+    bodies = PhenotypeModel(template).vertices(OTHER_BODIES if other_bodies else BODIES)
     print(f"{len(bodies)} bodies x {len(library.names)} poses, {skinning.upper()}, default rig; bone heat with at "
           f"most {influences} influences, c = {heat}, smoothing {smoothing}")
     results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat, smoothing),
@@ -120,5 +126,7 @@ if __name__ == "__main__":
     parser.add_argument("--heat", type=float, default=1.0)
     parser.add_argument("--smoothing", type=float, default=DEFAULT_SMOOTHING)
     parser.add_argument("--skinning", choices=("lbs", "dqs"), default="lbs")
+    parser.add_argument("--other-bodies", action="store_true",
+                        help="the four held-out bodies (OTHER_BODIES) instead of the three of docs/poses.md")
     a = parser.parse_args()
-    main(a.influences, a.heat, a.smoothing, a.skinning)
+    main(a.influences, a.heat, a.smoothing, a.skinning, a.other_bodies)
