@@ -4,7 +4,8 @@ solved with one ``scipy.sparse.linalg.spsolve`` per bone (a factorization each).
 
 The cut alone (``smoothing=0``) is timed beside it, to show what the smoothing after the cut
 costs, and the template's rules (``posing.template_heat_rules``: MakeHuman's deforming bones, the
-part-aware mask and the arm twist pairs), what ``pose_bodies(weights="bone_heat")`` computes. Also a foreign body (remeshed to 6,000 vertices, millimetres, Z up) to show the time
+part-aware mask and the arm twist pairs), what ``pose_bodies(weights="bone_heat")`` computes.
+Also a foreign body (remeshed to 6,000 vertices, millimetres, Z up) to show the time
 follows the vertex count. Run: python benchmarks/bench_boneheat.py
 """
 

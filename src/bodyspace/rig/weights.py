@@ -33,6 +33,11 @@ Finally each bone's cut column is smoothed by one implicit heat step confined to
 (``smooth_within_support``): the cut leaves kinks where the (k+1)-th bone changes, and those
 fold skin too; the smoothed cut folds about as little as the uncut heat.
 
+Two options serve a skeleton whose bone names say more (``rig.posing.template_heat_rules`` for
+the template): ``allowed``, a (V, B) mask of the bones each vertex may be weighted by (a bone
+neither heats nor keeps weight where it is not allowed), and ``twist_of``, which heats a twist
+bone together with the bone it twists and splits the pair's weight along it afterwards.
+
 Any topology: degenerate (zero-area) faces are left out of the operator and the ray test;
 vertices no face uses take their nearest bone with weight 1; a connected component on which no
 vertex sees a bone (a loose part outside the skeleton) is heated by each vertex's nearest bone
@@ -302,8 +307,8 @@ def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.nda
 
     vertices (V, 3), faces (F, 3); heads, tails (B, 3); bones: (K,) indices of the bones that
     may be chosen (default all); allowed: (V, B) bool, the bones each vertex may take (a
-    vertex's row with no True allows all; default: all). Returns ``source`` (V, 4) int (bone indices, -1 padded; up to
-    four bones tie within ``tie`` relative distance), ``count`` (V,) (0: no bone visible),
+    vertex's row with no True allows all; default: all). Returns ``source`` (V, 4) int (bone
+    indices, -1 padded; up to four bones tie within ``tie`` relative distance), ``count`` (V,) (0: no bone visible),
     ``nearest`` (V,) the nearest bone regardless of visibility, ``distance`` (V,) to the
     nearest visible bone (inf if none) and ``tests`` (V,) segment queries made.
     """
@@ -320,7 +325,7 @@ def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.nda
     dist = np.full(V, np.inf)
     tests = np.zeros(V, dtype=np.int64)
     allow = np.ones((1, 1), dtype=np.bool_) if allowed is None else \
-        np.ascontiguousarray(np.asarray(allowed, dtype=bool)[:, bones])
+        np.ascontiguousarray(_check_allowed(allowed, V, len(h))[:, bones])
     args = (v, h, t, bones, *bvh.arrays, allow)
     outs = (tie, source, count, nearest, dist, tests)
     if lanes is None:
