@@ -199,7 +199,9 @@ def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray,
         lanes = 2 if N >= 4 else 1
     if lanes not in (1, 2):
         raise ParameterError(f"lanes={lanes!r}; expected 1, 2 or None (automatic)")
-    args = (x, rest, G, joint_rest, joint_posed, inner, vrig.bump_indptr, vrig.bump_joint, vrig.bump_value,
+    # one compiled kernel (float64 frames): float32 frames are corrected in a float64 copy
+    work = x if x.dtype == np.float64 else x.astype(np.float64)
+    args = (work, rest, G, joint_rest, joint_posed, inner, vrig.bump_indptr, vrig.bump_joint, vrig.bump_value,
             vrig.bump_share, vrig.weight_indptr, vrig.weight_bone, vrig.weight_value, vrig.adjacency_indptr,
             vrig.adjacency_index, vrig.faces, vrig.loop_vertices, vrig.loop_starts, int(steps), scale)
     if lanes == 1 or N < 2:
@@ -207,6 +209,8 @@ def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray,
     else:
         (a0, a1), (b0, b1) = halves(N)
         run_both(lambda: _volume_kernel(a0, a1, *args), lambda: _volume_kernel(b0, b1, *args))
+    if work is not x:
+        x[...] = work
     return scale
 
 
