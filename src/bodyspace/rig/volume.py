@@ -55,6 +55,10 @@ SMOOTHING_STEPS = 40
 MIN_BUMP = 0.05
 # Bump values below this are dropped (sparsity).
 _BUMP_FLOOR = 1e-3
+# Fold guard: rounds of "fade the displacement out around the faces it folded, re-solve s", and
+# the edge rings of the fade (zero on the folded faces' corners, then a smooth ramp).
+GUARD_ROUNDS = 4
+GUARD_RINGS = 3
 # Accepted range of the global scale s of the region field; outside it the one-signed field is used.
 _SCALE_RANGE = (0.0, 10.0)
 
@@ -70,6 +74,7 @@ class VolumeRig:
     weight_indptr, weight_bone, weight_value: the skin weights (V, B) as CSR arrays.
     adjacency_indptr, adjacency_index: the mesh's vertex adjacency (CSR, no diagonal).
     faces: (F, 3) int64; loop_vertices, loop_starts: the boundary loops (capped as capped_volume).
+    face_adjacency_indptr, face_adjacency_index: faces sharing an edge (CSR, F rows), for the fold test.
     """
     joints: np.ndarray
     parents: np.ndarray
@@ -85,6 +90,8 @@ class VolumeRig:
     faces: np.ndarray
     loop_vertices: np.ndarray
     loop_starts: np.ndarray
+    face_adjacency_indptr: np.ndarray
+    face_adjacency_index: np.ndarray
 
     @property
     def n_vertices(self) -> int:
@@ -140,9 +147,26 @@ def volume_rig(weights, parents, faces) -> VolumeRig:
     loop_vertices = np.concatenate([np.asarray(lp, dtype=np.int64) for lp in loops] or [np.zeros(0, np.int64)])
     loop_starts = np.concatenate([[0], np.cumsum([len(lp) for lp in loops])]).astype(np.int64)
     W.sort_indices()
+    fa = _face_adjacency(f)
     return VolumeRig(joints, par[joints], Hk.indptr.astype(np.int64), Hk.indices.astype(np.int64),
                      Hk.data.copy(), share, W.indptr.astype(np.int64), W.indices.astype(np.int64), W.data.copy(),
-                     adj.indptr.astype(np.int64), adj.indices.astype(np.int64), f, loop_vertices, loop_starts)
+                     adj.indptr.astype(np.int64), adj.indices.astype(np.int64), f, loop_vertices, loop_starts,
+                     fa.indptr.astype(np.int64), fa.indices.astype(np.int64))
+
+
+def _face_adjacency(faces: np.ndarray) -> sp.csr_matrix:
+    """(F, F) faces sharing an edge: the neighbours of ``posing.count_folded_triangles``' test."""
+    F = len(faces)
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(F), 3)
+    key = e[:, 0] * (int(faces.max(initial=0)) + 1) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    k, o = key[order], owner[order]
+    same = np.flatnonzero(k[1:] == k[:-1])
+    i, j = o[same], o[same + 1]
+    A = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(F, F)).tocsr()
+    A.sort_indices()
+    return A
 
 
 def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray, heads: np.ndarray,
@@ -203,7 +227,8 @@ def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray,
     work = x if x.dtype == np.float64 else x.astype(np.float64)
     args = (work, rest, G, joint_rest, joint_posed, inner, vrig.bump_indptr, vrig.bump_joint, vrig.bump_value,
             vrig.bump_share, vrig.weight_indptr, vrig.weight_bone, vrig.weight_value, vrig.adjacency_indptr,
-            vrig.adjacency_index, vrig.faces, vrig.loop_vertices, vrig.loop_starts, int(steps), scale)
+            vrig.adjacency_index, vrig.faces, vrig.loop_vertices, vrig.loop_starts, vrig.face_adjacency_indptr,
+            vrig.face_adjacency_index, int(steps), scale)
     if lanes == 1 or N < 2:
         _volume_kernel(0, N, *args)
     else:
@@ -336,7 +361,7 @@ def _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp):
 @_kernel
 def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_indptr, bump_joint, bump_value,
                    bump_share, w_indptr, w_bone, w_value, adj_indptr, adj_index, faces, loop_vertices, loop_starts,
-                   steps, scale):
+                   fadj_indptr, fadj_index, steps, scale):
     """Frames n0..n1-1 of ``preserve_volume`` (see there; every buffer is this lane's own)."""
     V = posed.shape[1]
     K = joint_posed.shape[1]
@@ -354,6 +379,12 @@ def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_
     alpha = np.empty(K)
     coef = np.empty(4)
     rest_a = np.empty((V, 3))
+    y = np.empty((V, 3))
+    fade = np.empty(V)
+    fade_tmp = np.empty(V)
+    cross = np.empty((faces.shape[0], 3))
+    folded_before = np.empty(faces.shape[0], np.bool_)
+    folded_after = np.empty(faces.shape[0], np.bool_)
     last_rest = -1
     rest_volume6 = 0.0
     for fr in range(n0, n1):
@@ -424,10 +455,71 @@ def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_
             s = _cubic_root(coef, rest_volume6)
             if not np.isfinite(s):
                 s = 0.0
+        if s != 0.0 and GUARD_ROUNDS > 0:
+            # fold guard: where the displaced skin folds a face that LBS did not fold, fade the
+            # displacement out (a smooth ramp over GUARD_RINGS rings) and solve s again
+            _folded(x, faces, fadj_indptr, fadj_index, cross, folded_before)
+            fade[:] = 1.0
+            for _ in range(GUARD_ROUNDS):
+                for v in range(V):
+                    for c in range(3):
+                        y[v, c] = x[v, c] + s * d[v, c]
+                _folded(y, faces, fadj_indptr, fadj_index, cross, folded_after)
+                new_folds = False
+                for f in range(faces.shape[0]):
+                    if folded_after[f] and not folded_before[f]:
+                        new_folds = True
+                        fade[faces[f, 0]] = fade[faces[f, 1]] = fade[faces[f, 2]] = 0.0
+                if not new_folds:
+                    break
+                _ramp(fade, adj_indptr, adj_index, GUARD_RINGS, fade_tmp)
+                for v in range(V):
+                    for c in range(3):
+                        d[v, c] *= fade[v]
+                _cubic(x, d, faces, loop_vertices, loop_starts, coef)
+                s_new = _cubic_root(coef, rest_volume6)
+                if not (np.isfinite(s_new) and s_new > 0.0):
+                    break
+                s = s_new
         scale[fr] = s
         for v in range(V):
             for c in range(3):
                 posed[fr, v, c] = x[v, c] + s * d[v, c]
+
+
+@_kernel
+def _folded(x, faces, fadj_indptr, fadj_index, cross, out):
+    """out[f]: face f's normal opposes the summed normals of its edge neighbours (as in
+    ``posing.count_folded_triangles``)."""
+    for f in range(faces.shape[0]):
+        i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+        ux, uy, uz = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+        wx, wy, wz = x[k, 0] - x[i, 0], x[k, 1] - x[i, 1], x[k, 2] - x[i, 2]
+        cross[f, 0], cross[f, 1], cross[f, 2] = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+    for f in range(faces.shape[0]):
+        s0 = s1 = s2 = 0.0
+        for q in range(fadj_indptr[f], fadj_indptr[f + 1]):
+            g = fadj_index[q]
+            s0 += cross[g, 0]
+            s1 += cross[g, 1]
+            s2 += cross[g, 2]
+        out[f] = cross[f, 0] * s0 + cross[f, 1] * s1 + cross[f, 2] * s2 < 0.0
+
+
+@_kernel
+def _ramp(fade, adj_indptr, adj_index, rings, tmp):
+    """Zeros of ``fade`` (V,) grown by ``rings`` edge rings into a linear ramp: a vertex k rings
+    from a zero gets at most k / (rings + 1) (min over its neighbours plus a step), values in [0, 1]."""
+    step = 1.0 / (rings + 1)
+    for _ in range(rings):
+        for v in range(fade.shape[0]):
+            lo = fade[v]
+            for q in range(adj_indptr[v], adj_indptr[v + 1]):
+                t = fade[adj_index[q]] + step
+                if t < lo:
+                    lo = t
+            tmp[v] = lo
+        fade[:] = tmp
 
 
 @numba.njit(inline="always", nogil=True, fastmath={"contract"}, error_model="numpy")
