@@ -59,6 +59,8 @@ _BUMP_FLOOR = 1e-3
 # the edge rings of the fade (zero on the folded faces' corners, then a smooth ramp).
 GUARD_ROUNDS = 4
 GUARD_RINGS = 3
+# Frames of float32 input corrected a float64 copy at a time.
+_FLOAT32_CHUNK = 64
 # Accepted range of the global scale s of the region field; outside it the one-signed field is used.
 _SCALE_RANGE = (0.0, 10.0)
 
@@ -223,19 +225,25 @@ def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray,
         lanes = 2 if N >= 4 else 1
     if lanes not in (1, 2):
         raise ParameterError(f"lanes={lanes!r}; expected 1, 2 or None (automatic)")
-    # one compiled kernel (float64 frames): float32 frames are corrected in a float64 copy
-    work = x if x.dtype == np.float64 else x.astype(np.float64)
-    args = (work, rest, G, joint_rest, joint_posed, inner, vrig.bump_indptr, vrig.bump_joint, vrig.bump_value,
-            vrig.bump_share, vrig.weight_indptr, vrig.weight_bone, vrig.weight_value, vrig.adjacency_indptr,
-            vrig.adjacency_index, vrig.faces, vrig.loop_vertices, vrig.loop_starts, vrig.face_adjacency_indptr,
-            vrig.face_adjacency_index, int(steps), scale)
-    if lanes == 1 or N < 2:
-        _volume_kernel(0, N, *args)
-    else:
-        (a0, a1), (b0, b1) = halves(N)
-        run_both(lambda: _volume_kernel(a0, a1, *args), lambda: _volume_kernel(b0, b1, *args))
-    if work is not x:
-        x[...] = work
+    mesh = (vrig.bump_indptr, vrig.bump_joint, vrig.bump_value, vrig.bump_share, vrig.weight_indptr,
+            vrig.weight_bone, vrig.weight_value, vrig.adjacency_indptr, vrig.adjacency_index, vrig.faces,
+            vrig.loop_vertices, vrig.loop_starts, vrig.face_adjacency_indptr, vrig.face_adjacency_index, int(steps))
+    # One compiled kernel (float64 frames): float32 frames are corrected in float64 copies of
+    # _FLOAT32_CHUNK frames at a time (a long clip is not doubled in memory).
+    chunk = N if x.dtype == np.float64 else _FLOAT32_CHUNK
+    for i in range(0, N, chunk):
+        j = min(N, i + chunk)
+        work = x[i:j] if x.dtype == np.float64 else x[i:j].astype(np.float64)
+        per = (lambda arr: arr if arr.shape[0] == 1 else arr[i:j])
+        args = (work, per(rest), G[i:j], per(joint_rest), joint_posed[i:j], inner[i:j]) + mesh
+        out = scale[i:j]
+        if lanes == 1 or j - i < 2:
+            _volume_kernel(0, j - i, *args, out)
+        else:
+            (a0, a1), (b0, b1) = halves(j - i)
+            run_both(lambda: _volume_kernel(a0, a1, *args, out), lambda: _volume_kernel(b0, b1, *args, out))
+        if work.dtype != x.dtype:
+            x[i:j] = work
     return scale
 
 
