@@ -61,6 +61,10 @@ GUARD_ROUNDS = 4
 GUARD_RINGS = 3
 # Frames of float32 input corrected a float64 copy at a time.
 _FLOAT32_CHUNK = 64
+ONE_SIGNED = True
+# A joint whose region changed by less than this fraction of the body's volume is left alone
+# (its change is rounding: a bone that did not move).
+_NEGLIGIBLE = 1e-7
 # Accepted range of the global scale s of the region field; outside it the one-signed field is used.
 _SCALE_RANGE = (0.0, 10.0)
 
@@ -342,14 +346,44 @@ def _cubic_root(coef, target):
 
 
 @_kernel
-def _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp):
-    """d = (m n) after ``steps`` Jacobi steps d <- (d + mean of the neighbours' d) / 2."""
-    V = m.shape[0]
-    for v in range(V):
+def _support(m, adj_indptr, adj_index, steps, dist, order):
+    """The vertices within ``steps`` edge rings of a nonzero ``m`` (V,): their count n, the
+    vertices in ``order[:n]`` (breadth first); ``dist`` (V,) their ring (-1 outside)."""
+    dist[:] = -1
+    n = 0
+    for v in range(m.shape[0]):
+        if m[v] != 0.0:
+            dist[v] = 0
+            order[n] = v
+            n += 1
+    head = 0
+    while head < n:
+        v = order[head]
+        head += 1
+        if dist[v] >= steps:
+            continue
+        for q in range(adj_indptr[v], adj_indptr[v + 1]):
+            u = adj_index[q]
+            if dist[u] < 0:
+                dist[u] = dist[v] + 1
+                order[n] = u
+                n += 1
+    return n
+
+
+@_kernel
+def _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp, dist, order):
+    """d = (m n) after ``steps`` Jacobi steps d <- (d + mean of the neighbours' d) / 2; only the
+    vertices within ``steps`` rings of a nonzero m are visited (d is 0 beyond them anyway)."""
+    count = _support(m, adj_indptr, adj_index, steps, dist, order)
+    d[:, :] = 0.0
+    for i in range(count):
+        v = order[i]
         for c in range(3):
             d[v, c] = m[v] * n[v, c]
     for _ in range(steps):
-        for v in range(V):
+        for i in range(count):
+            v = order[i]
             s0 = s1 = s2 = 0.0
             k = adj_indptr[v + 1] - adj_indptr[v]
             for q in range(adj_indptr[v], adj_indptr[v + 1]):
@@ -363,7 +397,9 @@ def _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp):
                 tmp[v, 2] = 0.5 * d[v, 2] + 0.5 * s2 / k
             else:
                 tmp[v, 0], tmp[v, 1], tmp[v, 2] = d[v, 0], d[v, 1], d[v, 2]
-        d[:, :] = tmp
+        for i in range(count):
+            v = order[i]
+            d[v, 0], d[v, 1], d[v, 2] = tmp[v, 0], tmp[v, 1], tmp[v, 2]
 
 
 @_kernel
@@ -385,9 +421,12 @@ def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_
     dV = np.empty(K)
     g = np.empty(K)
     alpha = np.empty(K)
+    alpha_abs = np.empty(K)
     coef = np.empty(4)
     rest_a = np.empty((V, 3))
     y = np.empty((V, 3))
+    dist = np.empty(V, np.int64)
+    order = np.empty(V, np.int64)
     fade = np.empty(V)
     fade_tmp = np.empty(V)
     cross = np.empty((faces.shape[0], 3))
@@ -442,23 +481,44 @@ def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_
             for q in range(bump_indptr[v], bump_indptr[v + 1]):
                 c = bump_joint[q]
                 g[c] += bump_value[q] * _contact(n, v, inner[fr, c]) * an
+        # only the joints whose change has the body's sign are corrected (ONE_SIGNED): a joint
+        # that gained while the body lost (the chest as the arms rise) is not pushed inward
+        d[:, :] = 0.0
+        _cubic(x, d, faces, loop_vertices, loop_starts, coef)       # coef[0]: 6 x the capped volume
+        lost = coef[0] - rest_volume6
+        small = _NEGLIGIBLE * abs(rest_volume6) / 6.0     # below: rounding, not a bend
+        n_signed = n_any = 0
         for c in range(K):
-            alpha[c] = -dV[c] / g[c] if abs(g[c]) > 1e-12 else 0.0
+            alpha[c] = -dV[c] / g[c] if abs(g[c]) > 1e-12 and abs(dV[c]) >= small else 0.0
+            alpha_abs[c] = abs(alpha[c])
+            if alpha[c] != 0.0:
+                n_any += 1
+                if ONE_SIGNED and dV[c] * lost <= 0.0:
+                    alpha[c] = 0.0
+                else:
+                    n_signed += 1
+        if n_any == 0:
+            scale[fr] = 0.0
+            continue
         for v in range(V):
             s0 = s1 = 0.0
             for q in range(bump_indptr[v], bump_indptr[v + 1]):
                 c = bump_joint[q]
-                hc = bump_value[q] * _contact(n, v, inner[fr, c])
-                s0 += alpha[c] * hc
-                s1 += abs(alpha[c]) * hc
+                if alpha_abs[c] != 0.0:
+                    hc = bump_value[q] * _contact(n, v, inner[fr, c])
+                    s0 += alpha[c] * hc
+                    s1 += alpha_abs[c] * hc
             m[v] = s0
             m_abs[v] = s1
-        _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp)
-        _cubic(x, d, faces, loop_vertices, loop_starts, coef)
-        s = _cubic_root(coef, rest_volume6)
+        s = np.nan
+        if n_signed > 0:
+            _smooth_field(m, n, adj_indptr, adj_index, steps, d, tmp, dist, order)
+            _cubic(x, d, faces, loop_vertices, loop_starts, coef)
+            s = _cubic_root(coef, rest_volume6)
         if not (_SCALE_RANGE[0] <= s <= _SCALE_RANGE[1]):
-            # the regions' estimate disagrees with the whole body: one-signed field, any scale
-            _smooth_field(m_abs, n, adj_indptr, adj_index, steps, d, tmp)
+            # the regions' estimate disagrees with the whole body: every changed joint's bump
+            # pushing one way, at whatever scale (of either sign) gives the rest volume
+            _smooth_field(m_abs, n, adj_indptr, adj_index, steps, d, tmp, dist, order)
             _cubic(x, d, faces, loop_vertices, loop_starts, coef)
             s = _cubic_root(coef, rest_volume6)
             if not np.isfinite(s):
@@ -486,7 +546,7 @@ def _volume_kernel(n0, n1, posed, rest, G, joint_rest, joint_posed, inner, bump_
                         d[v, c] *= fade[v]
                 _cubic(x, d, faces, loop_vertices, loop_starts, coef)
                 s_new = _cubic_root(coef, rest_volume6)
-                if not (np.isfinite(s_new) and s_new > 0.0):
+                if not (np.isfinite(s_new) and s_new * s > 0.0):
                     break
                 s = s_new
         scale[fr] = s
