@@ -21,7 +21,9 @@ from _common import best_time  # noqa: E402
 
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.mesh.geometry import capped_volume  # noqa: E402
+from bodyspace.rig.kinematics import forward_kinematics, linear_blend_skinning  # noqa: E402
 from bodyspace.rig.posing import pose_bodies  # noqa: E402
+from bodyspace.rig.volume import preserve_volume, volume_rig  # noqa: E402
 from bodyspace.synth.poses import load_pose_library  # noqa: E402
 
 
@@ -42,6 +44,22 @@ def main(frames: int = 390) -> None:
     print(f"pose_bodies LBS: {work / lbs / 1e6:.1f} M vertex-frames/s; with preserve_volume: "
           f"{work / vol / 1e6:.2f} M vertex-frames/s ({frames / vol:.0f} frames/s); "
           f"x{vol / lbs:.1f} the time of LBS alone (both two lanes, wall clock)")
+    # One lane, CPU seconds of the calling thread: the figures that carry over to a quiet machine
+    # (the wall-clock ones above move x2-3 between runs at load 10).
+    heads, tails = rig.heads(v)[None], rig.tails(v)[None]
+    G = forward_kinematics(R, heads, rig.parents)
+    vrig = volume_rig(rig.weights, rig.parents, template.faces)
+    lbs_cpu = best_time(lambda: linear_blend_skinning(v, rig.weights, G, lanes=1), clock=time.thread_time)
+    posed = linear_blend_skinning(v, rig.weights, G)
+    work = np.empty_like(posed)
+
+    def correct():                                   # (the copy is ~1 % of the time)
+        np.copyto(work, posed)
+        preserve_volume(work, v[None], G, heads, tails, vrig, lanes=1)
+
+    vol_cpu = best_time(correct, clock=time.thread_time)
+    print(f"one lane, CPU: LBS kernel {1000 * lbs_cpu / frames:.2f} ms a frame, the correction "
+          f"{1000 * vol_cpu / frames:.2f} ms a frame: x{(lbs_cpu + vol_cpu) / lbs_cpu:.0f} the time of LBS alone")
     print(f"worst volume error of the corrected frames: {100 * error:.2e} %")
 
 
