@@ -3,7 +3,11 @@ against plain LBS in the same run: one body over the 39 library poses repeated t
 frames, MakeHuman's weights, the default rig. Prints vertex-frames per second of both, their
 ratio (the throughput cost of the correction), and the volume error of the corrected frames.
 
-Run: python benchmarks/bench_volume.py [--frames 390]
+``--png FILE``: also a picture of the mean body with bone-heat weights in the squat, ``sitting``
+and ``arms_overhead``, plain LBS beside the corrected mesh, front and side
+(docs/volume_preserving_skinning.png).
+
+Run: python benchmarks/bench_volume.py [--frames 390] [--png docs/volume_preserving_skinning.png]
 """
 
 from __future__ import annotations
@@ -24,7 +28,30 @@ from bodyspace.mesh.geometry import capped_volume  # noqa: E402
 from bodyspace.rig.kinematics import forward_kinematics, linear_blend_skinning  # noqa: E402
 from bodyspace.rig.posing import pose_bodies  # noqa: E402
 from bodyspace.rig.volume import preserve_volume, volume_rig  # noqa: E402
+from bodyspace.report.animation import filmstrip  # noqa: E402
 from bodyspace.synth.poses import load_pose_library  # noqa: E402
+
+
+def picture(path: str) -> None:
+    """LBS and LBS + volume side by side in three poses, bone-heat weights, the mean body."""
+    template = load_template()
+    rig = template.rigs["default"]
+    library = load_pose_library()
+    poses = ["squat", "sitting", "arms_overhead"]
+    R = library.stack(poses, rig)
+    v = template.vertices
+    plain = pose_bodies(v, rig, R, weights="bone_heat")
+    kept = pose_bodies(v, rig, R, weights="bone_heat", preserve_volume=True)
+    rest = capped_volume(v, template.faces)
+    frames, titles = [], []
+    for k, pose in enumerate(poses):
+        for mesh, how in ((plain[k], "LBS"), (kept[k], "+ vol.")):
+            change = 100 * (capped_volume(mesh, template.faces) / rest - 1)
+            frames.append(mesh)
+            titles.append(f"{pose} {how}: {0.0 if abs(change) < 0.05 else change:+.1f} %")
+    filmstrip(path, np.stack(frames), template.faces, titles, ncols=len(frames),
+              title="bone heat, mean body: LBS and LBS + volume correction (volume change)")
+    print(f"wrote {path}")
 
 
 def main(frames: int = 390) -> None:
@@ -66,4 +93,8 @@ def main(frames: int = 390) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=390)
-    main(parser.parse_args().frames)
+    parser.add_argument("--png", help="also write the before/after picture here")
+    args = parser.parse_args()
+    main(args.frames)
+    if args.png:
+        picture(args.png)
