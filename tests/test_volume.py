@@ -129,3 +129,12 @@ def test_template_squat_keeps_its_volume(template):
     assert capped_volume(lbs, template.faces) / rest - 1 < -0.05
     assert abs(capped_volume(posed, template.faces) / rest - 1) < 1e-6
     assert count_folded_triangles(posed, template.faces) <= count_folded_triangles(lbs, template.faces)
+
+
+def test_each_body_keeps_its_own_rest_volume(tube):
+    v, f, W, vrig = tube
+    rest = np.stack([v, v * np.array([1.3, 1.0, 1.3])])          # a thicker second tube
+    G = bend([90.0, 60.0])
+    posed = linear_blend_skinning(rest, W, G)
+    preserve_volume(posed, rest, G, np.repeat(HEADS, 2, 0), np.repeat(TAILS, 2, 0), vrig)
+    np.testing.assert_allclose(capped_volume(posed, f), capped_volume(rest, f), rtol=1e-9)
