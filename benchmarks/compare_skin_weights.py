@@ -8,9 +8,12 @@ skinning of the default rig on the template topology.
 Per pose, summed or worst over a few bodies: folded triangles added to the rest mesh
 (``count_folded_triangles``), the change of the enclosed volume (``capped_volume``), and the
 chest girth change in ``arms_overhead`` (the hm08 measurement set). Prints markdown tables.
+``--volume`` adds, for every weight set, the same skinning followed by the volume-preserving
+correction (``rig.volume.preserve_volume``, ``pose_bodies(..., preserve_volume=True)``), and the
+time of the correction against the skinning alone in the same run.
 
 Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0] [--smoothing 0.03] [--skinning lbs]
-[--other-bodies]
+[--other-bodies] [--volume]
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from bodyspace.mesh.geometry import capped_volume
 from bodyspace.rig.kinematics import forward_kinematics
 from bodyspace.rig.posing import count_folded_triangles, smoothed_weights, template_heat_rules
 from bodyspace.rig.skinning import dual_quaternion_skinning, linear_blend_skinning
+from bodyspace.rig.volume import preserve_volume, volume_rig
 from bodyspace.rig.weights import DEFAULT_SMOOTHING, bone_heat_weights
 from bodyspace.synth.phenotype import PhenotypeModel
 from bodyspace.synth.poses import load_pose_library
@@ -61,25 +65,46 @@ def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -
             "bone heat, no rules": plain, "bone heat": heat_w}
 
 
-def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs") -> dict:
-    """Per weight set: folds added (P, N), volume change (P, N) and chest change in arms_overhead (N,)."""
+def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs", volume: bool = False) -> dict:
+    """Per weight set: folds added (P, N), volume change (P, N) and chest change in arms_overhead (N,);
+    with ``volume`` also each set with the volume correction ("name + volume"), and the seconds
+    spent skinning and correcting."""
     faces = template.faces
     R = library.stack(library.names, rig)
     mset = load_measurement_set()
     k = library.names.index("arms_overhead")
     skin = dual_quaternion_skinning if skinning == "dqs" else linear_blend_skinning
     out = {}
+    timing = {"skinning": 0.0, "volume": 0.0}
     for name, W in weights.items():
-        folds, volume, chest = [], [], []
-        for body in bodies:
-            G = forward_kinematics(R, rig.heads(body), rig.parents)
-            posed = skin(body, W, G)
-            folds.append(count_folded_triangles(posed, faces) - count_folded_triangles(body, faces))
-            volume.append(capped_volume(posed, faces) / capped_volume(body, faces) - 1.0)
-            girth = measure(mset, np.stack([body, posed[k]]), faces)["chest_girth"]
-            chest.append(girth[1] - girth[0])
-        out[name] = (np.array(folds).T, np.array(volume).T, np.array(chest))
+        for corrected in ((False, True) if volume else (False,)):
+            out[name + (" + volume" if corrected else "")] = _evaluate_set(
+                template, rig, library, bodies, W, R, mset, k, skin, corrected, timing)
+    if volume:
+        print(f"skinning {timing['skinning']:.2f} s, volume correction {timing['volume']:.2f} s "
+              f"(x{timing['volume'] / max(timing['skinning'], 1e-9):.1f} the skinning's time)")
     return out
+
+
+def _evaluate_set(template, rig, library, bodies, W, R, mset, k, skin, corrected, timing):
+    """(folds (P, N), volume change (P, N), chest change (N,)) of one weight set W over the bodies."""
+    faces = template.faces
+    folds, volume, chest = [], [], []
+    vrig = volume_rig(W, rig.parents, faces) if corrected else None
+    for body in bodies:
+        G = forward_kinematics(R, rig.heads(body), rig.parents)
+        t = time.perf_counter()
+        posed = skin(body, W, G)
+        timing["skinning"] += time.perf_counter() - t
+        if corrected:
+            t = time.perf_counter()
+            preserve_volume(posed, body[None], G, rig.heads(body)[None], rig.tails(body)[None], vrig)
+            timing["volume"] += time.perf_counter() - t
+        folds.append(count_folded_triangles(posed, faces) - count_folded_triangles(body, faces))
+        volume.append(capped_volume(posed, faces) / capped_volume(body, faces) - 1.0)
+        girth = measure(mset, np.stack([body, posed[k]]), faces)["chest_girth"]
+        chest.append(girth[1] - girth[0])
+    return np.array(folds).T, np.array(volume).T, np.array(chest)
 
 
 def print_tables(names, results) -> None:
@@ -107,7 +132,7 @@ def print_tables(names, results) -> None:
 
 
 def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOOTHING, skinning: str = "lbs",
-         other_bodies: bool = False) -> None:
+         other_bodies: bool = False, volume: bool = False) -> None:
     template = load_template()
     rig = template.rigs["default"]
     library = load_pose_library()
@@ -115,7 +140,7 @@ def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOO
     print(f"{len(bodies)} bodies x {len(library.names)} poses, {skinning.upper()}, default rig; bone heat with at "
           f"most {influences} influences, c = {heat}, smoothing {smoothing}")
     results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat, smoothing),
-                       skinning)
+                       skinning, volume)
     print_tables(library.names, results)
     print(f"\nmeasured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
 
@@ -128,5 +153,6 @@ if __name__ == "__main__":
     parser.add_argument("--skinning", choices=("lbs", "dqs"), default="lbs")
     parser.add_argument("--other-bodies", action="store_true",
                         help="the four held-out bodies (OTHER_BODIES) instead of the three of docs/poses.md")
+    parser.add_argument("--volume", action="store_true", help="also each weight set with the volume correction")
     a = parser.parse_args()
-    main(a.influences, a.heat, a.smoothing, a.skinning, a.other_bodies)
+    main(a.influences, a.heat, a.smoothing, a.skinning, a.other_bodies, a.volume)
