@@ -7,7 +7,9 @@ template's vertex ``p_i`` (Hasler Equation 1). The energy (Hasler Equation 2)
 
 - E_d (Hasler Equation 3): ``Σ_i |p̃_i − T_i p_i|²`` over the vertices that have a target
   (``correspondences.tangent_plane_targets``: the projection onto a plane fitted to the scan
-  points matched to the vertex, else the closest scan point, gated at 30° and 50 mm);
+  points matched to the vertex, raised by the vertex's sagitta so the fit does not shrink, else
+  the closest scan point when it lies along the vertex's normal (not over a hole), gated at 30°
+  and 50 mm);
 - E_s (Hasler Equation 4): ``Σ_i |Σ_j w_ij (T_i − T_j)|_F²`` with the cotangent weights of the
   template's rest configuration: the transforms change as smoothly as possible (second
   differences), not as little as possible (Amberg's first differences);
@@ -15,13 +17,18 @@ template's vertex ``p_i`` (Hasler Equation 1). The energy (Hasler Equation 2)
 
 Each step is linear least squares: the normal matrix ``α Dᵀ W D + β (LᵀL ⊗ I_4) + γ D_lᵀ D_l``
 (D holds ``[p_iᵀ, h]`` in block i), solved for the three columns by conjugate gradients
-warm-started from the previous step (``_System`` says why not a factorization). The stiffness is annealed as ``β = k0 · e^(λt)`` from
-``STIFFNESS_START`` = 3000 (Hasler's) down to ``STIFFNESS_END`` = 1 (Hasler: 0.01; see there) with γ = 2β, in
-``steps`` levels (Hasler iterates 1500 times; here ``steps`` levels of ``inner`` iterations, the
-correspondences recomputed at every iteration).
+warm-started from the previous step (``_System`` says why not a factorization; the loop is
+compiled, ``_pcg``). The stiffness is annealed as ``β = k0 · e^(λt)`` from ``STIFFNESS_START`` =
+3000 (Hasler's) down to ``stiffness_end`` (``STIFFNESS_END`` = 1 by default, Hasler: 0.01, see
+there; the registration pipeline ends at 10) with γ = 2β, in ``steps`` levels (Hasler iterates
+1500 times; here ``steps`` levels of ``inner`` iterations, the correspondences recomputed at
+every iteration).
 
-After the last level ``unfold`` moves the corners of the few folded triangles to their 1-ring
-mean (the last levels fit the scan's noise where its normals are poor: fingers, toes, face).
+No folds. A step that folds a face it did not fold before is taken again with the data term of
+the face's corners and their rings dropped for the rest of the fit (local stiffening: the
+smoothness carries the neighbours' transforms there); after the last level ``unfold`` untangles
+what is left (folds the input had: an LBS-posed armpit or groin), widening its patch until no
+face is folded.
 
 Units. Positions enter in metres, centred on the body, with the homogeneous coordinate 1: a body
 of about unit size, so that smoothness weighs a change of translation like the same change of
