@@ -332,8 +332,8 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
         for beta in betas:
             for _ in range(int(inner)):
                 xm = x / MM + centre
-                targets, has = tangent_plane_targets(xm, vertex_normals(xm, faces), points, point_normals, tree, faces=faces,
-                                                     spacing=spacing)
+                targets, has = tangent_plane_targets(xm, vertex_normals(xm, faces), points, point_normals, tree,
+                                                     faces=faces, spacing=spacing)
                 u = (targets - centre) * MM
                 before = folded_faces(x, faces, neighbors)
                 for attempt in range(2):
