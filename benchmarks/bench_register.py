@@ -14,12 +14,17 @@ the fit, unposed as ``bodyspace register`` does, against the true rest body's: h
 within ISO 20685-1 (stature, heights and slice girths 4 mm, lengths and breadths 5 mm, chest,
 underbust, waist, hip 9 mm, volume, area, mass, BMI 1 %).
 
-    python benchmarks/bench_register.py [--scans 4] [--points 80000] [--no-baseline]
+Folds: the fit's folded triangles, and those it *adds*: folded in the fit but not in the true
+body (the true LBS-posed bodies fold 4-35 triangles themselves, in armpits and groins).
+
+    python benchmarks/bench_register.py [--scans 4] [--points 80000 | 50000,100000,150000,200000]
+                                        [--only 0,2] [--no-baseline]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -34,7 +39,9 @@ from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.rig.unpose import unpose
 from bodyspace.synth.foreign import from_frame
 from bodyspace.register.align import similarity_from_landmarks
+from bodyspace.mesh.topology import face_adjacency
 from bodyspace.register.model_fit import phenotype_basis
+from bodyspace.register.nicp import folded_faces
 from bodyspace.register.pipeline import register_scan
 from bodyspace.studies.registration import SURFACE_LANDMARKS, registration_errors
 from bodyspace.synth.phenotype import PhenotypeModel
@@ -81,7 +88,8 @@ def amberg(scan, template, mset):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scans", type=int, default=4)
-    ap.add_argument("--points", type=int, default=80_000)
+    ap.add_argument("--points", default="80000", help="points per scan, or a comma list cycled over the scans")
+    ap.add_argument("--only", default=None, help="comma list of scan numbers to run (default all)")
     ap.add_argument("--no-baseline", action="store_true", help="skip trimesh's nricp_amberg")
     args = ap.parse_args()
     template = load_template()
@@ -89,8 +97,14 @@ def main():
     mset = load_measurement_set()
     phenotype_basis(template)          # built once per process (cached), not timed
     rows = {"bodyspace, no landmarks": [], "bodyspace, 13 landmarks": [], "trimesh nricp_amberg, 13 landmarks": []}
+    points = [int(p) for p in str(args.points).split(",")]
+    only = None if args.only is None else {int(k) for k in args.only.split(",")}
+    neighbors = face_adjacency(template.faces).neighbors
     for i in range(args.scans):
-        scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=args.points)
+        if only is not None and i not in only:
+            continue
+        scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=points[i % len(points)])
+        truth_folded = folded_faces(scan.body, template.faces, neighbors)
         truth_rest = pm.vertices(scan.phenotype[None])[0]
         lms = {n: scan.landmarks[n] for n in SURFACE_LANDMARKS}
         for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False).vertices),
@@ -104,11 +118,14 @@ def main():
             sec, cpu = time.perf_counter() - t, time.process_time() - c
             e = registration_errors(v, template.faces, scan)
             e["seconds"], e["cpu_seconds"] = sec, cpu
+            fit_folded = folded_faces(from_frame(v, **scan.frame), template.faces, neighbors)
+            e["folds_added"] = int((fit_folded & ~truth_folded).sum())
             e["landmarks_mm"], iso = landmarks_and_measurements(v, scan, template, mset, truth_rest)
             rows[name].append(e)
             print(f"scan {i} ({scan.pose}, {len(scan.points)} points) {name}: correspondence {e['correspondence_mm']:.1f} mm "
                   f"(p95 {e['correspondence_p95_mm']:.1f}), surface {e['surface_mm']:.2f} mm, folded {e['folded']} "
-                  f"(truth {e['folded_truth']}), {sec:.1f} s (CPU {cpu:.1f} s), landmarks {e['landmarks_mm']:.1f} mm, "
+                  f"(truth {e['folded_truth']}, added {e['folds_added']}), {sec:.1f} s (CPU {cpu:.1f} s, load "
+                  f"{os.getloadavg()[0]:.1f}), landmarks {e['landmarks_mm']:.1f} mm, "
                   f"ISO 20685-1 {iso[0]}/{iso[1]} (worst {iso[2]})", flush=True)
     print("\nmean over scans:")
     for name, r in rows.items():

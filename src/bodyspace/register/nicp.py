@@ -7,7 +7,9 @@ template's vertex ``p_i`` (Hasler Equation 1). The energy (Hasler Equation 2)
 
 - E_d (Hasler Equation 3): ``Σ_i |p̃_i − T_i p_i|²`` over the vertices that have a target
   (``correspondences.tangent_plane_targets``: the projection onto a plane fitted to the scan
-  points matched to the vertex, else the closest scan point, gated at 30° and 50 mm);
+  points matched to the vertex, raised by the vertex's sagitta so the fit does not shrink, else
+  the closest scan point when it lies along the vertex's normal (not over a hole), gated at 30°
+  and 50 mm);
 - E_s (Hasler Equation 4): ``Σ_i |Σ_j w_ij (T_i − T_j)|_F²`` with the cotangent weights of the
   template's rest configuration: the transforms change as smoothly as possible (second
   differences), not as little as possible (Amberg's first differences);
@@ -15,13 +17,18 @@ template's vertex ``p_i`` (Hasler Equation 1). The energy (Hasler Equation 2)
 
 Each step is linear least squares: the normal matrix ``α Dᵀ W D + β (LᵀL ⊗ I_4) + γ D_lᵀ D_l``
 (D holds ``[p_iᵀ, h]`` in block i), solved for the three columns by conjugate gradients
-warm-started from the previous step (``_System`` says why not a factorization). The stiffness is annealed as ``β = k0 · e^(λt)`` from
-``STIFFNESS_START`` = 3000 (Hasler's) down to ``STIFFNESS_END`` = 1 (Hasler: 0.01; see there) with γ = 2β, in
-``steps`` levels (Hasler iterates 1500 times; here ``steps`` levels of ``inner`` iterations, the
-correspondences recomputed at every iteration).
+warm-started from the previous step (``_System`` says why not a factorization; the loop is
+compiled, ``_pcg``). The stiffness is annealed as ``β = k0 · e^(λt)`` from ``STIFFNESS_START`` =
+3000 (Hasler's) down to ``stiffness_end`` (``STIFFNESS_END`` = 1 by default, Hasler: 0.01, see
+there; the registration pipeline ends at 10) with γ = 2β, in ``steps`` levels (Hasler iterates
+1500 times; here ``steps`` levels of ``inner`` iterations, the correspondences recomputed at
+every iteration).
 
-After the last level ``unfold`` moves the corners of the few folded triangles to their 1-ring
-mean (the last levels fit the scan's noise where its normals are poor: fingers, toes, face).
+No folds. A step that folds a face it did not fold before is taken again with the data term of
+the face's corners and their rings dropped for the rest of the fit (local stiffening: the
+smoothness carries the neighbours' transforms there); after the last level ``unfold`` untangles
+what is left (folds the input had: an LBS-posed armpit or groin), widening its patch until no
+face is folded.
 
 Units. Positions enter in metres, centred on the body, with the homogeneous coordinate 1: a body
 of about unit size, so that smoothness weighs a change of translation like the same change of
@@ -34,6 +41,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
@@ -42,7 +50,7 @@ from bodyspace.mesh.geometry import face_normals, vertex_normals
 from bodyspace.mesh.operators import cotangent_laplacian
 from bodyspace.mesh.topology import face_adjacency
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.register.correspondences import tangent_plane_targets
+from bodyspace.register.correspondences import point_spacing, tangent_plane_targets
 
 __all__ = ["NicpResult", "nonrigid_icp", "folded_faces", "unfold", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
 
@@ -53,8 +61,10 @@ STIFFNESS_END = 1.0
 HASLER_END = 0.01
 HOMOGENEOUS = 1.0
 MM = 1.0
-# Rounds of ``unfold`` after the last level.
-UNFOLD_ROUNDS = 20
+# Rounds of ``unfold`` after the last level, and the rounds after which a fold still there is
+# smoothed with one more ring of its neighbourhood.
+UNFOLD_ROUNDS = 60
+GROW_EVERY = 5
 # Conjugate-gradient iterations per solve (each level starts from the last level's transforms).
 CG_ITERATIONS = 25
 
@@ -63,12 +73,16 @@ CG_ITERATIONS = 25
 class NicpResult:
     """vertices: (V, 3) metres (after ``unfold``); has_target: (V,) bool at the last iteration; transforms:
     (V, 4, 3) the affine transforms (millimetre frame, see the module docstring); stiffness:
-    the β of each level."""
+    the β of each level; released: (V,) bool, the vertices whose data term was dropped where a
+    step folded a face (local stiffening); folded: faces still folded after ``unfold`` (0 on
+    every test scan measured)."""
 
     vertices: np.ndarray
     has_target: np.ndarray
     transforms: np.ndarray
     stiffness: np.ndarray
+    released: np.ndarray | None = None
+    folded: int = 0
 
 
 def stiffness_schedule(steps: int, start: float = STIFFNESS_START, end: float = STIFFNESS_END) -> np.ndarray:
@@ -124,34 +138,109 @@ class _System:
             del dl
         self.pre = np.linalg.inv(blocks)
 
+    def _extra(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The landmark term f·DLᵀDL as triplets (row, column, value) over the 4V unknowns."""
+        if self.landmark is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        DL, f = self.landmark
+        m = (DL.T @ DL).tocoo()
+        return m.row.astype(np.int64), m.col.astype(np.int64), f * m.data
+
     def apply(self, X: np.ndarray) -> np.ndarray:
-        V = len(X)
-        out = self.beta * (self.LL @ X.reshape(V, 12)).reshape(V, 4, 3)
-        ax = (self.a[:, :, None] * X).sum(axis=1)                                   # (V, 3): a_v^T X_v
-        out += (self.w[:, None] * self.a)[:, :, None] * ax[:, None, :]
-        if self.landmark is not None:
-            DL, f = self.landmark
-            out += f * (DL.T @ (DL @ X.reshape(4 * V, 3))).reshape(V, 4, 3)
+        """A X for X (V, 4, 3)."""
+        out = np.empty_like(X)
+        er, ec, ev = self._extra()
+        _apply(self.LL.indptr, self.LL.indices, self.LL.data, self.beta, self.a, self.w, er, ec, ev,
+               np.ascontiguousarray(X), out)
         return out
 
     def solve(self, b: np.ndarray, X: np.ndarray, iterations: int) -> np.ndarray:
-        """Preconditioned conjugate gradients from X (V, 4, 3) for the three columns at once."""
-        x = X.copy()
-        r = b - self.apply(x)
-        z = self.pre @ r
-        p = z.copy()
-        rz = (r * z).sum(axis=(0, 1))
-        for _ in range(int(iterations)):
-            Ap = self.apply(p)
-            pAp = (p * Ap).sum(axis=(0, 1))
-            alpha = np.where(pAp > 0, rz / np.where(pAp > 0, pAp, 1.0), 0.0)
-            x += alpha * p
-            r -= alpha * Ap
-            z = self.pre @ r
-            rz_new = (r * z).sum(axis=(0, 1))
-            p = z + np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0) * p
-            rz = rz_new
+        """Preconditioned conjugate gradients from X (V, 4, 3) for the three columns at once (one
+        compiled loop: the numpy version spent 60 % of its time in temporaries and reductions)."""
+        x = np.ascontiguousarray(X, dtype=float).copy()
+        er, ec, ev = self._extra()
+        _pcg(self.LL.indptr, self.LL.indices, self.LL.data, self.beta, self.a, self.w, er, ec, ev,
+             np.ascontiguousarray(self.pre), np.ascontiguousarray(b, dtype=float), x, int(iterations))
         return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _apply(indptr, indices, data, beta, a, w, er, ec, ev, X, out):  # pragma: no cover - compiled
+    """out (V, 4, 3) = β (LᵀL X) + w_v a_v (a_vᵀ X_v) + Σ triplets (landmarks)."""
+    V = X.shape[0]
+    for v in range(V):
+        for k in range(4):
+            for c in range(3):
+                out[v, k, c] = 0.0
+        for e in range(indptr[v], indptr[v + 1]):
+            u = indices[e]
+            d = beta * data[e]
+            for k in range(4):
+                for c in range(3):
+                    out[v, k, c] += d * X[u, k, c]
+        if w[v] != 0.0:
+            for c in range(3):
+                ax = a[v, 0] * X[v, 0, c] + a[v, 1] * X[v, 1, c] + a[v, 2] * X[v, 2, c] + a[v, 3] * X[v, 3, c]
+                for k in range(4):
+                    out[v, k, c] += w[v] * a[v, k] * ax
+    for t in range(len(ev)):
+        i, j = er[t], ec[t]
+        for c in range(3):
+            out[i // 4, i % 4, c] += ev[t] * X[j // 4, j % 4, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _precondition(pre, r, z):  # pragma: no cover - compiled
+    for v in range(r.shape[0]):
+        for k in range(4):
+            for c in range(3):
+                z[v, k, c] = pre[v, k, 0] * r[v, 0, c] + pre[v, k, 1] * r[v, 1, c] + pre[v, k, 2] * r[v, 2, c] \
+                    + pre[v, k, 3] * r[v, 3, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _pcg(indptr, indices, data, beta, a, w, er, ec, ev, pre, b, x, iterations):  # pragma: no cover - compiled
+    """Block-Jacobi preconditioned CG on the three columns of x (V, 4, 3) at once, in place."""
+    V = x.shape[0]
+    r = np.empty_like(x)
+    z = np.empty_like(x)
+    Ap = np.empty_like(x)
+    _apply(indptr, indices, data, beta, a, w, er, ec, ev, x, Ap)
+    r[:] = b - Ap
+    _precondition(pre, r, z)
+    p = z.copy()
+    rz = np.zeros(3)
+    for v in range(V):
+        for k in range(4):
+            for c in range(3):
+                rz[c] += r[v, k, c] * z[v, k, c]
+    for _ in range(iterations):
+        _apply(indptr, indices, data, beta, a, w, er, ec, ev, p, Ap)
+        pAp = np.zeros(3)
+        for v in range(V):
+            for k in range(4):
+                for c in range(3):
+                    pAp[c] += p[v, k, c] * Ap[v, k, c]
+        alpha = np.zeros(3)
+        for c in range(3):
+            alpha[c] = rz[c] / pAp[c] if pAp[c] > 0 else 0.0
+        for v in range(V):
+            for k in range(4):
+                for c in range(3):
+                    x[v, k, c] += alpha[c] * p[v, k, c]
+                    r[v, k, c] -= alpha[c] * Ap[v, k, c]
+        _precondition(pre, r, z)
+        rz_new = np.zeros(3)
+        for v in range(V):
+            for k in range(4):
+                for c in range(3):
+                    rz_new[c] += r[v, k, c] * z[v, k, c]
+        for c in range(3):
+            g = rz_new[c] / rz[c] if rz[c] > 0 else 0.0
+            for v in range(V):
+                for k in range(4):
+                    p[v, k, c] = z[v, k, c] + g * p[v, k, c]
+            rz[c] = rz_new[c]
 
 
 def folded_faces(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
@@ -164,26 +253,39 @@ def folded_faces(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray)
     return (n * acc).sum(axis=1) < 0
 
 
-def unfold(vertices: np.ndarray, faces: np.ndarray, rounds: int = UNFOLD_ROUNDS) -> tuple[np.ndarray, int]:
-    """Move the corners of folded faces to the mean of their 1-ring, up to ``rounds`` times.
+def _ring(faces: np.ndarray, V: int) -> sp.csr_matrix:
+    """(V, V) 0/1 adjacency of the mesh's edges."""
+    ring = sp.csr_matrix((np.ones(6 * len(faces)), (faces[:, [0, 1, 2, 1, 2, 0]].ravel(),
+                                                    faces[:, [1, 2, 0, 0, 1, 2]].ravel())), shape=(V, V))
+    ring.data[:] = 1.0
+    return ring
 
-    The last NICP levels fit the scan's noise where its normals are poor (fingers, toes, the
-    face) and fold a few dozen triangles; a local uniform-Laplacian step on exactly those
-    vertices undoes most folds and moves nothing else. Returns vertices (V, 3) and the number
-    of faces still folded.
+
+def unfold(vertices: np.ndarray, faces: np.ndarray, rounds: int = UNFOLD_ROUNDS) -> tuple[np.ndarray, int]:
+    """Move the corners of folded faces to the mean of their 1-ring until no face is folded.
+
+    The last NICP levels follow the scan where it is folded itself (an LBS-posed armpit or
+    groin) or where its normals are poor (fingers, toes, the face), and fold a few triangles; a
+    uniform-Laplacian step on exactly those corners undoes most folds and moves nothing else.
+    A fold that survives ``GROW_EVERY`` rounds is smoothed with one more ring of its
+    neighbourhood each time (a wider patch relaxes towards the harmonic surface spanned by its
+    rim, which does not fold unless the rim does). Returns vertices (V, 3) and the number of
+    faces still folded after ``rounds`` rounds.
     """
     v = np.asarray(vertices, dtype=float).copy()
     neighbors = face_adjacency(faces).neighbors
     V = len(v)
-    ring = sp.csr_matrix((np.ones(6 * len(faces)), (faces[:, [0, 1, 2, 1, 2, 0]].ravel(),
-                                                    faces[:, [1, 2, 0, 0, 1, 2]].ravel())), shape=(V, V))
-    ring.data[:] = 1.0
+    ring = _ring(faces, V)
     degree = np.asarray(ring.sum(axis=1)).ravel()
     bad = folded_faces(v, faces, neighbors)
-    for _ in range(int(rounds)):
+    for r in range(int(rounds)):
         if not bad.any():
             break
-        move = np.unique(faces[bad])
+        region = np.zeros(V, dtype=bool)
+        region[faces[bad].ravel()] = True
+        for _ in range(r // GROW_EVERY):
+            region |= (ring @ region.astype(float)) > 0
+        move = np.flatnonzero(region)
         v[move] = (ring[move] @ v) / degree[move, None]
         bad = folded_faces(v, faces, neighbors)
     return v, int(bad.sum())
@@ -222,21 +324,38 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
     has = np.zeros(V, dtype=bool)
     total = len(betas) * inner
     done = 0
+    neighbors = face_adjacency(faces).neighbors
+    ring = _ring(faces, V)
+    released = np.zeros(V, dtype=bool)
+    spacing = point_spacing(tree)
     with single_threaded_blas():
         for beta in betas:
             for _ in range(int(inner)):
                 xm = x / MM + centre
-                targets, has = tangent_plane_targets(xm, vertex_normals(xm, faces), points, point_normals, tree)
+                targets, has = tangent_plane_targets(xm, vertex_normals(xm, faces), points, point_normals, tree,
+                                                     faces=faces, spacing=spacing)
                 u = (targets - centre) * MM
-                w = has.astype(float)
-                system = _System(LL, a, w, beta, None if DL is None else (DL, 2 * beta))
-                b = w[:, None, None] * a[:, :, None] * u[:, None, :]
-                if DL is not None:
-                    b = b + 2 * beta * (DL.T @ lq).reshape(V, 4, 3)
-                X = system.solve(b, X, cg_iterations)
-                x = (a[:, :, None] * X).sum(axis=1)
+                before = folded_faces(x, faces, neighbors)
+                for attempt in range(2):
+                    w = np.where(released, 0.0, has.astype(float))
+                    system = _System(LL, a, w, beta, None if DL is None else (DL, 2 * beta))
+                    b = w[:, None, None] * a[:, :, None] * u[:, None, :]
+                    if DL is not None:
+                        b = b + 2 * beta * (DL.T @ lq).reshape(V, 4, 3)
+                    X_new = system.solve(b, X, cg_iterations)
+                    x_new = (a[:, :, None] * X_new).sum(axis=1)
+                    bad = folded_faces(x_new, faces, neighbors) & ~before
+                    if attempt or not bad.any():
+                        break
+                    # Local stiffening: the corners of the faces this step folded, and their
+                    # rings, lose their data term for the rest of the fit; the smoothness then
+                    # carries their neighbours' transforms across instead of the scan's noise.
+                    hit = np.zeros(V, dtype=bool)
+                    hit[faces[bad].ravel()] = True
+                    released |= (ring @ hit.astype(float)) > 0
+                X, x = X_new, x_new
                 done += 1
                 if progress is not None:
                     progress(done / total)
-    unfolded, _ = unfold(x / MM + centre, faces)
-    return NicpResult(unfolded, has, X, betas)
+    unfolded, left = unfold(x / MM + centre, faces)
+    return NicpResult(unfolded, has, X, betas, released, left)
