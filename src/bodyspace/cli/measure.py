@@ -30,7 +30,7 @@ from bodyspace.measure import (
     with_landmarks,
 )
 from bodyspace.measure import conventions
-from bodyspace.measure.definitions import load_landmark_parts, with_vertex_parts
+from bodyspace.measure.definitions import load_landmark_parts, with_standing_body, with_vertex_parts
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.parallel import in_order
@@ -325,6 +325,11 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
         mset = with_landmarks(mset, lms, nv, str(landmarks))
     _check_vertex_count(folder / "vertices.npy", db.n_vertices, mset, landmarks, model)
     check_compatible(mset, db.read([0])[0], db.faces, str(folder))
+    rest = db.rest_rows()
+    if landmarks is not None and len(rest):
+        # Body parts and the neck's joints placed on the first rest scan: every scan is then cut
+        # by the parts of a standing body, and its neck girth's plane leans with its neck.
+        mset = with_standing_body(mset, db.read(rest[:1])[0], db.faces)
     template = load_template()
     unposable = not as_posed and fits_template(db.read([0])[0], db.faces, template)
     columns, names = _database_columns(mset, unposable)

@@ -95,6 +95,16 @@ BELOW_TORSO = 1.5
 CHAIN_ENDS = (("calf_l", "foot_l", "knee_joint_l", "ankle_joint_l"),
               ("calf_r", "foot_r", "knee_joint_r", "ankle_joint_r"))
 
+# A joint axis on another topology (``axis_joints``): its joints are rings of skin at these
+# fractions of the line from the neck landmarks to the head top, on these parts. They are where
+# the hm08 joint regressor puts the neck joint (0.10) and the head joint (0.49) on the mean
+# body; on a 5,000-vertex foreign topology, heads tilted sideways 20-30 degrees (over the neck,
+# or at the head joint alone) then keep the neck girth within 0.5 cm of upright (the neck
+# landmarks → head top line: up to 3.2 cm; tests/test_foreign_neck.py).
+JOINT_LEVELS = (0.10, 0.49)
+JOINT_PARTS = ("neck", "head")
+RING_HALF_WIDTH = 0.03
+
 
 def part_of_bone(name: str) -> int:
     """The ``PARTS`` index of a rig bone (by name, ``BONE_PARTS``), or -1 if none matches."""
@@ -219,6 +229,50 @@ def parts_from_landmarks(vertices: np.ndarray, landmarks: dict, faces: np.ndarra
             t = (v - k) @ (a - k) / max(float((a - k) @ (a - k)), 1e-18)
             out[(out == PART_INDEX[calf]) & (t > 1.0)] = PART_INDEX[foot]
     return out
+
+
+def axis_joints(vertices: np.ndarray, landmarks: dict, fallback, labels: np.ndarray | None = None,
+                levels: tuple[float, float] = JOINT_LEVELS, parts: tuple[str, ...] = JOINT_PARTS,
+                min_vertices: int = 6) -> tuple[dict, dict] | None:
+    """The two joints of a joint axis on any topology, placed on one standing body (V, 3): rings of
+    skin around the ``fallback`` line (a pair of points, e.g. neck landmarks → head top) at the
+    fractions ``levels`` of it, as inline points ``{"vertices": [...], "weights": [...]}`` of
+    this topology (``points.axis``), or None if a ring has fewer than ``min_vertices`` vertices.
+
+    A ring is the vertices of ``parts`` (by ``labels`` (V,); all vertices without labels) within
+    3 % of the line's length of the level, and within 1.5x the median distance of them from the
+    line (the slab at the neck's base also reaches the shoulders), equally weighted. Like the
+    template's joint regressor rows they are skin vertices, so they follow the neck into any pose:
+    its axis leans with the neck and not with a head tilted on it. The slab is widened (up to
+    4x) on a coarse mesh until it holds ``min_vertices``.
+    """
+    v = np.asarray(vertices, dtype=float)
+    a, b = _point(fallback[0], landmarks), _point(fallback[1], landmarks)
+    if a is None or b is None:
+        return None
+    d = b - a
+    length = float(np.linalg.norm(d))
+    if not np.isfinite(length) or length < 1e-6:
+        return None
+    d = d / length
+    rel = v - a
+    t = rel @ d / length                                                             # (V,)
+    radial = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)                      # (V,)
+    allowed = np.ones(len(v), dtype=bool)
+    if labels is not None:
+        allowed = np.isin(np.asarray(labels), [PART_INDEX[p] for p in parts])
+    rings = []
+    for level in levels:
+        for widen in (1.0, 2.0, 4.0):
+            ids = np.flatnonzero(allowed & (np.abs(t - level) < RING_HALF_WIDTH * widen))
+            if len(ids):
+                ids = ids[radial[ids] <= 1.5 * np.median(radial[ids])]
+            if len(ids) >= min_vertices:
+                break
+        if len(ids) < min_vertices:
+            return None
+        rings.append({"vertices": [int(i) for i in ids], "weights": [1.0 / len(ids)] * len(ids)})
+    return rings[0], rings[1]
 
 
 def encode_parts(labels: np.ndarray) -> str:
