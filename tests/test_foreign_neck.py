@@ -82,3 +82,45 @@ def test_joints_are_vertices_of_the_topology_and_kept_in_the_file(case):
     half = dict(neck, normal={k: val for k, val in neck["normal"].items() if k != "to"})
     with pytest.raises(MeasurementError, match="only one of 'from' and 'to'"):
         measurement_set_from_dict(dict(d, measurements=[half]))
+
+
+def test_mass_of_a_body_that_does_not_stand(template, phenotype_model):
+    """Issue 12 §3: mass is defined for every closed body. A squatting body has no stature; its
+    mass uses the stature estimated from its leg, trunk and head lengths (``stature_estimate``)."""
+    from bodyspace.measure.methods import Chunk, stature_for_mass
+    from bodyspace.synth.poses import load_pose_library
+    mset = load_measurement_set()
+    v = phenotype_model.vertices({})[0]
+    lib = load_pose_library()
+    rig = template.rigs["default"]
+    names = ["rest", "squat", "bend_forward"]
+    bodies = pose_bodies(np.repeat(v[None], 3, 0), rig, lib.stack(names, rig), on_ground=True)
+    r = evaluate(mset, bodies, template.faces, check_scale=False)
+    assert np.isnan(r["stature"].value[1:]).all()
+    assert np.isfinite(r["mass"].value).all() and np.isnan(r["bmi"].value[1:]).all()
+    # The estimate itself, on every body (as if none stood): within 2 % of the standing stature.
+    mass = next(m for m in mset.measurements if m["name"] == "mass")
+    L = mset.landmark_matrix(bodies.shape[1])
+    P = np.stack([L @ b for b in bodies])
+    chunk = Chunk(bodies, {n: P[:, i] for i, n in enumerate(mset.landmarks)}, None)
+    chunk.values = {k: r[k].value for k in ("leg_length_l", "leg_length_r")}
+    chunk.values["stature"] = np.full(3, np.nan)
+    est = stature_for_mass(mass, chunk)
+    assert np.abs(est / r["stature"].value[0] - 1).max() < 0.02, est
+    # A definition with a bad estimate is refused where the set is read.
+    d = mset.to_dict()
+    bad = [dict(x, stature_estimate=dict(mass["stature_estimate"], scale=9)) if x["name"] == "mass" else x
+           for x in d["measurements"]]
+    with pytest.raises(MeasurementError, match="stature_estimate.*scale"):
+        measurement_set_from_dict(dict(d, measurements=bad))
+
+
+def test_cli_json_and_csv_take_no_file_name(tmp_path):
+    from typer.testing import CliRunner
+    from bodyspace.cli import app
+    mesh = tmp_path / "a.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    for flag, name in (("--json", "out.json"), ("--csv", "out.csv")):
+        res = CliRunner().invoke(app, ["measure", str(mesh), flag, str(tmp_path / name)])
+        assert res.exit_code == 2 and "Traceback" not in res.output
+        assert f"{flag} takes no file name" in res.output and "redirect" in res.output

@@ -173,6 +173,13 @@ def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool,
     if json_out and csv_out:
         raise MeasurementError("--json and --csv were both given, but both print to standard output; "
                                "give one of them (run twice for both)")
+    for flag, given, suffix in (("--json", json_out, ".json"), ("--csv", csv_out, ".csv")):
+        named = [p for p in meshes if given and p.suffix.lower() == suffix]
+        if named:
+            # `--json out.json` reads out.json as a mesh; say what the flag does instead.
+            raise MeasurementError(f"{named[0]}: {flag} takes no file name, it prints {suffix[1:].upper()} to the "
+                                   f"terminal; to keep it in a file, redirect: bodyspace measure MESHES {flag} > "
+                                   f"{named[0]}")
     if png is None:
         return
     check_file_output(png, "--png", force, (".png",), example="measurements.png")
