@@ -74,7 +74,7 @@ import scipy.sparse as sp
 
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
-from bodyspace.measure.parts import axis_joints, decode_parts, encode_parts, parts_from_landmarks
+from bodyspace.measure.parts import axis_joints, decode_parts, encode_parts, part_landmarks, parts_from_landmarks
 from bodyspace.measure.points import axis_points, check_axis, fail, point_names
 
 FORMAT = "bodyspace-measurements"
@@ -517,7 +517,12 @@ def _point_fields(m: dict) -> set:
     if m.get("band"):
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])
-    return set().union(*(point_names(p) for p in pts)) if pts else set()
+    names = set().union(*(point_names(p) for p in pts)) if pts else set()
+    if m.get("method") == "top":
+        # The highest point of a part: on a topology labelled from its landmarks, the landmarks
+        # of that part's skeleton segments say which vertices it is (the head: neck → head top).
+        names |= part_landmarks(m["part"])
+    return names
 
 
 # Public name of ``_point_fields`` (the landmarks a measurement uses, for messages elsewhere).

@@ -145,6 +145,21 @@ def parts_from_weights(weights, bone_names) -> np.ndarray:
     return out
 
 
+def part_landmarks(part) -> set:
+    """The landmark names the ``SKELETON`` segments of ``part`` (a name or a list of them) use:
+    what decides which vertices are that part on a topology labelled from its landmarks."""
+    names = {part} if isinstance(part, str) else set(part)
+
+    def used(spec) -> set:
+        if isinstance(spec, str):
+            return {spec}
+        if spec and isinstance(spec[0], str) and spec[0].startswith("@"):
+            return used(spec[1]) | used(spec[2])
+        return set().union(*(used(x) for x in spec))
+
+    return set().union(*(used(a) | used(b) for p, a, b in SKELETON if p in names))
+
+
 def _point(spec, lm: dict) -> np.ndarray | None:
     """(..., 3) point of a skeleton end: a name, a tuple of names (mean), or ("@t", a, b)."""
     if isinstance(spec, str):
