@@ -10,13 +10,18 @@ import json
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from bodyspace.cli import app
 from bodyspace.errors import MeasurementError
 from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, with_standing_body
 from bodyspace.measure.definitions import measurement_set_from_dict, with_landmarks
+from bodyspace.measure.methods import Chunk, stature_for_mass
+from bodyspace.measure.parts import PART_INDEX, merge_islands, parts_from_landmarks
 from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.foreign import foreign_topology, transfer
+from bodyspace.synth.poses import load_pose_library
 
 NECK_AND_HEAD = ["neck01", "neck02", "neck03", "head"]
 # (bones the sideways tilt is shared by, degrees): over the neck and the head as the library's
@@ -89,8 +94,6 @@ def test_joints_are_vertices_of_the_topology_and_kept_in_the_file(case):
 def test_mass_of_a_body_that_does_not_stand(template, phenotype_model):
     """Issue 12 §3: mass is defined for every closed body. A squatting body has no stature; its
     mass uses the stature estimated from its leg, trunk and head lengths (``stature_estimate``)."""
-    from bodyspace.measure.methods import Chunk, stature_for_mass
-    from bodyspace.synth.poses import load_pose_library
     mset = load_measurement_set()
     v = phenotype_model.vertices({})[0]
     lib = load_pose_library()
@@ -118,8 +121,6 @@ def test_mass_of_a_body_that_does_not_stand(template, phenotype_model):
 
 
 def test_cli_json_and_csv_take_no_file_name(tmp_path):
-    from typer.testing import CliRunner
-    from bodyspace.cli import app
     mesh = tmp_path / "a.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     for flag, name in (("--json", "out.json"), ("--csv", "out.csv")):
@@ -133,8 +134,6 @@ def test_parts_of_a_posed_body_keep_each_part_in_one_piece(template, phenotype_m
     the right hand lies on the left forearm and the chest under the hands. Without
     ``merge_islands`` the wrist tapes took in the other hand (+9 and +16 cm on a 6,000-vertex
     body) and the chest lost 4.6 cm; now every girth is within 1 cm of the standing body's."""
-    from bodyspace.measure.parts import PART_INDEX, merge_islands, parts_from_landmarks
-    from bodyspace.synth.poses import load_pose_library
     topo, fset, placed, _ = case
     v = phenotype_model.vertices({})[0]
     rig = template.rigs["default"]

@@ -7,6 +7,7 @@ mapping fit/shape/evaluate, and the refusals where something is missing.
 One scan folder for the module: 10 subjects in the A-pose and the T-pose, 3,000 vertices.
 """
 
+import csv
 import json
 import re
 import warnings
@@ -301,7 +302,6 @@ def test_a_model_and_a_database_of_this_topology_place_the_neck_joints(scans, db
     """The model's set and ``measure DB --csv`` with the database's landmark file carry the body
     parts and the neck's joints placed on a standing body (``with_standing_body``), so the neck
     girth's plane leans with the neck; A- and T-pose neck girths of each subject agree."""
-    import csv
     mset = BodyModel.load(vertex_model).measurement_set
     neck = next(m for m in mset.measurements if m["name"] == "neck_girth")["normal"]
     assert {"from", "to"} <= set(neck) and max(neck["to"]["vertices"]) < VERTICES

@@ -48,7 +48,9 @@ built-in ones:
   (none: straight; else the extent along the axis).
 - ``path``: ``through`` (points); summed straight segments.
 - ``volume``, ``surface_area``; ``mass`` (``stature``: the name of a length measurement,
-  ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
+  ``age_years``, ``male`` 0/1 or null for unknown; ``stature_estimate`` {"through", "plus_mean_of",
+  "scale"}: the stature a body that does not stand is given, so mass is defined for every closed
+  body) and ``bmi`` (``mass``, ``stature``).
 
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
 is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":

@@ -28,6 +28,8 @@ from __future__ import annotations
 import re
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from bodyspace.errors import MeasurementError
 from bodyspace.mesh.geometry import vertex_normals
@@ -261,9 +263,6 @@ def merge_islands(labels: np.ndarray, faces: np.ndarray, rounds: int = 50) -> np
     (the most frequent among their edge neighbours off the island; repeated until every island
     vertex has a part). ``faces`` (F, 3).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     out = np.asarray(labels).astype(np.int8).copy()
     n = len(out)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -271,14 +270,14 @@ def merge_islands(labels: np.ndarray, faces: np.ndarray, rounds: int = 50) -> np
     graph = coo_matrix((np.ones(int(same.sum())), (e[same, 0], e[same, 1])), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
     # The largest piece of each part stays; every other piece is an island.
-    size = np.bincount(comp, minlength=comp.max() + 1)
-    best = {}
-    for c in np.argsort(-size):
-        lab = int(out[np.flatnonzero(comp == c)[0]]) if size[c] else None
-        if lab is not None and lab not in best:
-            best[lab] = c
+    size = np.bincount(comp)
+    _, first = np.unique(comp, return_index=True)              # a vertex of each piece
+    piece_label = out[first].astype(np.int64)
+    # Per label, its largest piece (sorted by label, then size descending: the first of each label).
+    order = np.lexsort((-size, piece_label))
+    keep = order[np.r_[True, piece_label[order][1:] != piece_label[order][:-1]]]
     main = np.zeros(len(size), dtype=bool)
-    main[list(best.values())] = True
+    main[keep] = True
     island = ~main[comp]
     used = np.zeros(n, dtype=bool)
     used[faces.ravel()] = True
