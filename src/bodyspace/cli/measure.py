@@ -105,7 +105,10 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
                                        words=words)
             v, postures[label] = _standing(v, f, path, as_posed)
-            results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
+            # A landmark file without a standing body of its topology: the mesh places its own body
+            # parts and neck joints (its neck plane then leans with its neck, not with its head).
+            own = with_standing_body(mset, v, f)
+            results[label] = evaluate(own, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
