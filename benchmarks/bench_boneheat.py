@@ -3,7 +3,9 @@ and the 163-bone default rig, against a plain baseline in the same run: the same
 solved with one ``scipy.sparse.linalg.spsolve`` per bone (a factorization each).
 
 The cut alone (``smoothing=0``) is timed beside it, to show what the smoothing after the cut
-costs. Also a foreign body (remeshed to 6,000 vertices, millimetres, Z up) to show the time
+costs, and the template's rules (``posing.template_heat_rules``: MakeHuman's deforming bones, the
+part-aware mask and the arm twist pairs), what ``pose_bodies(weights="bone_heat")`` computes.
+Also a foreign body (remeshed to 6,000 vertices, millimetres, Z up) to show the time
 follows the vertex count. Run: python benchmarks/bench_boneheat.py
 """
 
@@ -22,6 +24,7 @@ from _common import best_time, report  # noqa: E402
 
 from bodyspace.data.template import load_template  # noqa: E402
 from bodyspace.mesh.operators import cotangent_laplacian  # noqa: E402
+from bodyspace.rig.posing import template_heat_rules  # noqa: E402
 from bodyspace.rig.weights import DEFAULT_HEAT, bone_heat_weights, nearest_visible_bones  # noqa: E402
 from bodyspace.synth.foreign import remesh, to_frame  # noqa: E402
 
@@ -63,6 +66,10 @@ def main() -> None:
     W = per_bone_spsolve(v, f, heads, tails)
     t_base = time.perf_counter() - t0
     report("bone heat, template and default rig", t, t_base, rig.n_bones, "bones")
+    # what pose_bodies(weights="bone_heat") computes: the template's rules (deforming bones,
+    # part-aware mask, arm twist pairs), the rules' construction included
+    t_rules = best_time(lambda: bone_heat_weights(v, f, heads, tails, **template_heat_rules(rig, v, f)), 3)
+    report("bone heat with the template's rules (bone_heat_rig_weights)", t_rules, t_base, rig.n_bones, "bones")
     ours = bone_heat_weights(v, f, heads, tails, max_influences=rig.n_bones, min_weight=0.0, smoothing=0.0)
     print(f"  same weights as the baseline before the cut: max |difference| "
           f"{np.abs(ours.toarray() - np.maximum(W, 0) / np.maximum(W, 0).sum(1, keepdims=True)).max():.1e}")

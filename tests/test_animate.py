@@ -20,6 +20,7 @@ from bodyspace.cli import app
 from bodyspace.errors import ParameterError
 from bodyspace.export.gltf import SkeletonAnimation, gltf_bytes, influences_matrix, top_influences
 from bodyspace.export.sequence import read_mesh_sequence
+from bodyspace.mesh.geometry import capped_volume
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel
 from bodyspace.motion.bvh import Motion, read_bvh
@@ -187,6 +188,14 @@ def test_numbered_mesh_files_and_a_folder_of_them(template, template_mesh, tmp_p
     code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out", tmp_path / "seq",
                      "--no-ik")
     assert code == 2 and "already exists" in text, text
+    # --preserve-volume: every frame has the rest body's volume (LBS loses some), skin moved little
+    code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out",
+                     tmp_path / "vol_%03d.ply", "--no-ik", "--preserve-volume")
+    assert code == 0, text
+    rest = capped_volume(template.vertices, template.faces)
+    kept = np.array([capped_volume(load_mesh(tmp_path / f"vol_{k:03d}.ply")[0], template.faces) for k in range(3)])
+    np.testing.assert_allclose(kept / rest, 1.0, atol=1e-5)                          # float32 on disk
+    assert np.abs(capped_volume(V, template.faces) / rest - 1).max() > 1e-3
     for bad, message in ((tmp_path / "walk.ply", "needs a frame field"), (tmp_path / "w_%d_%d.ply", "one frame field"),
                          (tmp_path / "w_%04d.stl", ".ply or .obj")):
         code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--frames", frames, "--out", bad)
@@ -220,6 +229,7 @@ def test_a_body_asked_of_the_model_walks(semantic_model_file, tmp_path):
     (["--frames", "9000:9100"], "the clip has 994 frames"),
     (["--rig", "nope"], "--rig 'nope': not a rig"),
     (["--every", "3"], "--every spaces the --filmstrip panels"),
+    (["--preserve-volume"], "--preserve-volume changes the posed meshes"),
 ])
 def test_refusals_are_one_line(template_mesh, tmp_path, args, message):
     code, text = run("animate", template_mesh, "--motion", CLIPS[0], "--out", tmp_path / "x.glb", *args)

@@ -59,6 +59,8 @@ from bodyspace.motion.matching import graph_from_motion, graph_from_skeleton, lo
 from bodyspace.motion.retarget import retarget, to_bvh
 from bodyspace.report.animation import animated_gif, filmstrip
 from bodyspace.rig.kinematics import linear_blend_skinning
+from bodyspace.rig.volume import preserve_volume as correct_volume
+from bodyspace.rig.volume import volume_rig
 
 OUT_SUFFIXES = (".glb", ".bvh", ".npz")
 # A folder --out (a name without suffix) holds one PLY a frame under this pattern.
@@ -154,6 +156,11 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             frames: Optional[str] = typer.Option(None, "--frames", help="Frames of the clip to use, START:STOP[:STEP] "
                                                                         "from 0, e.g. 0:240:4 (default: all)."),
             no_ik: bool = typer.Option(False, "--no-ik", help="Leave the feet as retargeted (no foot locking)."),
+            keep_volume: bool = typer.Option(False, "--preserve-volume",
+                                             help="Keep every frame's enclosed volume equal to the rest body's "
+                                                  "(a smooth bulge around bent joints on top of LBS; docs/skinning.md). "
+                                                  "For mesh outputs (.npz, numbered meshes, a folder) and the "
+                                                  "previews; a .glb or .bvh cannot carry it."),
             filmstrip_png: Optional[Path] = typer.Option(None, "--filmstrip", help="A PNG of every n-th frame "
                                                                                   "(--every), front and side."),
             every: Optional[int] = typer.Option(None, "--every", min=1, help="Frames between filmstrip panels "
@@ -186,6 +193,10 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
             check_file_output(path, flag, force, (suffix,), example=f"walk{suffix}")
     if rig_name not in RIG_NAMES:
         raise ParameterError(f"--rig {rig_name!r}: not a rig of the template; expected one of {', '.join(RIG_NAMES)}")
+    if keep_volume and not (numbered or folder) and out.suffix.lower() in (".glb", ".bvh"):
+        raise ParameterError(f"--preserve-volume changes the posed meshes, which {out.suffix.lower()} does not store "
+                             "(a viewer skins the .glb with plain LBS; a .bvh holds the skeleton only): write the "
+                             "frames as walk.npz, walk_%04d.ply or a folder, or leave --preserve-volume out")
     if every is not None and filmstrip_png is None:
         raise ParameterError("--every spaces the --filmstrip panels; pass --filmstrip FILE.png too")
     clip = read_bvh(motion, unit=bvh_unit)
@@ -223,6 +234,13 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
         posed_before = linear_blend_skinning(vertices, weights, retargeted.transforms(), dtype=np.float32)
         posed = posed_before if no_ik else linear_blend_skinning(vertices, weights, final.transforms(),
                                                                  dtype=np.float32)
+        if keep_volume:
+            bar("keeping the volume", 0.55)
+            vrig = volume_rig(weights, skeleton.parents, faces)
+            corrected = [(posed_before, retargeted)] + ([] if no_ik else [(posed, final)])
+            for frames_posed, clip_posed in corrected:
+                correct_volume(frames_posed, vertices[None], clip_posed.transforms(), skeleton.heads[None],
+                               skeleton.tails[None], vrig)
         bar("arms and torso", 0.6)
         arm, torso = arm_torso_regions(skeleton, weights, match.target_landmarks, vertices)
         crossing = arm_torso_intersections(posed, faces, arm, torso,

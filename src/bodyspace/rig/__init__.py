@@ -1,7 +1,8 @@
 """Skeletons: forward kinematics, linear blend skinning, Blender bone frames, posing bodies.
 
 ``kinematics`` holds the pure batched maths (rotations, FK, LBS, Blender rest frames);
-``weights`` computes bone-heat skin weights for any mesh and skeleton; ``posing`` poses bodies of the template topology with a ``Rig`` (``pose_bodies``). Which
+``weights`` computes bone-heat skin weights for any mesh and skeleton; ``volume`` corrects skinned
+frames so each keeps its rest volume (``pose_bodies(..., preserve_volume=True)``); ``posing`` poses bodies of the template topology with a ``Rig`` (``pose_bodies``). Which
 rotations make a named pose is data of the synthesis layer (``bodyspace.synth.poses``). The
 convention is in docs/poses.md.
 """

@@ -15,11 +15,14 @@ from bodyspace.atomic import atomic_path
 from bodyspace.data.assets import cache_dir
 from bodyspace.data.template import Rig, load_template
 from bodyspace.errors import MeshError, ParameterError
+from bodyspace.measure.parts import PART_INDEX, part_of_bone, parts_from_weights
 from bodyspace.rig.kinematics import (
     dual_quaternion_skinning,
     forward_kinematics,
     linear_blend_skinning,
 )
+from bodyspace.rig.volume import VolumeRig, volume_rig
+from bodyspace.rig.volume import preserve_volume as correct_volume
 from bodyspace.rig.weights import bone_heat_weights
 
 # ------------------------------------------------------------------------------------ posing
@@ -151,15 +154,79 @@ def _smoothed_from_disk_or_compute(rig: Rig, faces: np.ndarray, mirror: np.ndarr
 
 _BONE_HEAT: dict[tuple[int, bytes], tuple[object, sp.csr_matrix]] = {}
 
+# The template's bone-heat rules (``template_heat_rules``), measured on 3 bodies x 39 library
+# poses (docs/skinning.md): MakeHuman's hip helper bones (root to hip joint, rotated by no pose)
+# as heat sources split the groin between a still bone and the thigh (42 folds added);
+HIP_HELPER_BONES = ("pelvis.L", "pelvis.R")
+# the jaw is the nearest visible bone of the throat, which then turns with the head (26 folds in
+# head_turn_*): it may weigh only where MakeHuman's jaw weight is above this (the chin and lower
+# lip, so the mouth still opens);
+JAW_BONE, JAW_REGION = "jaw", 0.8
+# the upper arm (and shoulder) bones pull the chest ring up with a raised arm (chest girth -3.8 cm
+# in arms_overhead): no torso vertex more than this far below the armpit (the lowest upper-arm
+# vertex bordering the torso) is weighted by them. 6 cm puts the line 0.5 cm above the bust
+# points on the template; 5.5-6.5 cm keep the chest within 2.5 cm, and folds are lowest at 6 cm
+# (187 / 176 / 191 at 5.5 / 6 / 6.5 cm).
+ARMPIT_DROP = 0.06
+# MakeHuman's arm twist bones, heated as one bone with the bone they twist and then split along
+# it (``bone_heat_weights(twist_of=...)``): at the shoulder a twist bone otherwise takes one of
+# the four places (upper arm, its twist bone, shoulder, breast), leaving the torso one bone.
+# Measured: 176 -> 152 folds. The leg twist bones are not merged: that measured worse (182 and
+# 180 folds for upperleg02 and lowerleg02 left out of the heat).
+TWIST_BONES = {"upperarm02.L": "upperarm01.L", "upperarm02.R": "upperarm01.R",
+               "lowerarm02.L": "lowerarm01.L", "lowerarm02.R": "lowerarm01.R"}
+
+
+def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray) -> dict:
+    """The deforming bones, the part-aware mask and the twist pairs for bone heat on a template body.
+
+    rig: a template ``Rig``; vertices (V, 3) a body of the template topology in metres, +Y up;
+    faces (F, 3). Returns the keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool
+    (the bones MakeHuman's weights use, less the hip helper bones), ``allowed`` (V, B) bool (the
+    jaw only on its chin region, the upper-arm bones off the torso below the armpit) and
+    ``twist_of`` (B,) int (the arm twist bones). Rules whose bones a rig does not have are
+    skipped (they are named for MakeHuman's default rigs).
+    """
+    V, B = vertices.shape[0], rig.n_bones
+    mh = rig.weights.tocsc()
+    deform = np.asarray(abs(mh).sum(axis=0)).ravel() > 0
+    names = list(rig.bone_names)
+    for name in HIP_HELPER_BONES:
+        if name in names:
+            deform[names.index(name)] = False
+    allowed = np.ones((V, B), dtype=bool)
+    if JAW_BONE in names:
+        j = names.index(JAW_BONE)
+        allowed[:, j] = np.asarray(mh[:, j].toarray()).ravel() > JAW_REGION
+    parts = parts_from_weights(rig.weights, rig.bone_names)              # (V,) part per vertex
+    bone_part = np.array([part_of_bone(b) for b in rig.bone_names])      # (B,)
+    y = vertices[:, 1]
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    torso = PART_INDEX["torso"]
+    for side in ("l", "r"):
+        arm = PART_INDEX["upper_arm_" + side]
+        border = edges[(parts[edges[:, 0]] == arm) & (parts[edges[:, 1]] == torso), 0]
+        if not len(border) or not (bone_part == arm).any():
+            continue
+        below = (parts == torso) & (y < y[border].min() - ARMPIT_DROP)
+        allowed[np.ix_(below, bone_part == arm)] = False
+    twist_of = np.full(B, -1, dtype=np.int64)
+    for child, parent in TWIST_BONES.items():
+        if child in names and parent in names and deform[names.index(child)] and deform[names.index(parent)]:
+            twist_of[names.index(child)] = names.index(parent)
+    return {"deform": deform, "allowed": allowed, "twist_of": twist_of}
+
 
 def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: np.ndarray | None = None,
                           max_influences: int = 4) -> sp.csr_matrix:
     """Bone-heat weights (``rig.weights.bone_heat_weights``) of a template rig, cached per rig.
 
     vertices: (V, 3) the rest body the heat is computed on, faces (F, 3); by default the shipped
-    template's mean body. The bones are the rig's bones at that body (its regressors); only
-    the bones MakeHuman's weights use deform (39 of the default rig's 163, the face-control,
-    tongue and root bones, get none), so both weight sets move the same bones.
+    template's mean body. The bones are the rig's bones at that body (its regressors); the
+    bones MakeHuman's weights use deform (39 of the default rig's 163, the face-control, tongue
+    and root bones, get none), less the hip helper bones, with the part-aware mask and the arm
+    twist pairs of ``template_heat_rules`` (jaw on the chin only, no upper arm on the chest below
+    the armpit, each arm twist bone heated with the bone it twists).
     """
     if vertices is None or faces is None:
         t = load_template()
@@ -172,16 +239,35 @@ def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: n
     key = (id(rig), v.tobytes() + f.tobytes() + bytes([max_influences]))
     hit = _BONE_HEAT.get(key)
     if hit is None or hit[0] is not rig:
-        deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
-        hit = (rig, bone_heat_weights(v, f, rig.heads(v), rig.tails(v), max_influences, deform=deform))
+        hit = (rig, bone_heat_weights(v, f, rig.heads(v), rig.tails(v), max_influences,
+                                      **template_heat_rules(rig, v, f)))
         _BONE_HEAT.clear()                      # one entry: a (V, B) matrix per body is large
         _BONE_HEAT[key] = hit
     return hit[1]
 
 
+_VOLUME_RIGS: dict[tuple[int, int, bytes], tuple[object, object, VolumeRig]] = {}
+
+
+def rig_volume_data(rig: Rig, weights: sp.spmatrix, faces: np.ndarray | None = None) -> VolumeRig:
+    """``volume.volume_rig`` of a template rig with ``weights`` (V, B) and faces (F, 3) (default:
+    the shipped template's), cached per rig and weight matrix (a few of them: one per weight set)."""
+    if faces is None:
+        faces = load_template().faces
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    key = (id(rig), id(weights), f.tobytes())
+    hit = _VOLUME_RIGS.get(key)
+    if hit is None or hit[0] is not rig or hit[1] is not weights:
+        if len(_VOLUME_RIGS) >= 4:
+            _VOLUME_RIGS.pop(next(iter(_VOLUME_RIGS)))
+        hit = (rig, weights, volume_rig(weights, rig.parents, f))
+        _VOLUME_RIGS[key] = hit
+    return hit[2]
+
+
 def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_ground: bool = False,
                 return_joints: bool = False, skinning: str = "lbs", weights: str = "original",
-                faces: np.ndarray | None = None, dtype=np.float64):
+                faces: np.ndarray | None = None, dtype=np.float64, preserve_volume: bool = False):
     """Pose bodies of the template topology: joints from the rig regressors, FK, then LBS.
 
     vertices: (N, V, 3) rest-pose bodies, or (V, 3) for one body (posed once, or once per
@@ -201,7 +287,12 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         validated for it. Not yet the default for that reason. ``"bone_heat"``: bone-heat
         weights computed on the template's mean body (``bone_heat_rig_weights``, Baran &
         Popović 2007; docs/skinning.md compares the three).
-    faces: (F, 3) template faces for the smoothing; by default the shipped template's.
+    faces: (F, 3) template faces for the smoothing and the volume correction; by default the
+        shipped template's.
+    preserve_volume: after skinning, displace each posed body along its normals around the bent
+        joints so its enclosed volume equals its rest volume (to rounding; ``rig.volume``,
+        docs/skinning.md "Volume-preserving skinning"). LBS alone loses up to 17 % (squat).
+        A glTF file cannot carry this correction (viewers skin with plain LBS).
     dtype: float64 (default) or float32 posed vertices; float32 skins in float32 arithmetic
         (``skinning.linear_blend_skinning``: within 0.001 mm, about 1.5x as fast).
     FK and skinning are the compiled kernels of ``kinematics`` / ``skinning`` (two lanes for
@@ -249,6 +340,8 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
         posed = dual_quaternion_skinning(v, W, G, dtype=dtype)
     else:
         raise ParameterError(f"skinning={skinning!r}; expected 'lbs' or 'dqs'")
+    if preserve_volume:
+        correct_volume(posed, v, G, heads, rig.tails(v), rig_volume_data(rig, W, faces))
     joints = np.einsum("nbij,nbj->nbi", G[..., :3, :3], np.broadcast_to(heads, (n,) + heads.shape[1:])) + G[..., :3, 3]
     if on_ground:
         r = root_bone(rig)

@@ -33,6 +33,11 @@ Finally each bone's cut column is smoothed by one implicit heat step confined to
 (``smooth_within_support``): the cut leaves kinks where the (k+1)-th bone changes, and those
 fold skin too; the smoothed cut folds about as little as the uncut heat.
 
+Two options serve a skeleton whose bone names say more (``rig.posing.template_heat_rules`` for
+the template): ``allowed``, a (V, B) mask of the bones each vertex may be weighted by (a bone
+neither heats nor keeps weight where it is not allowed), and ``twist_of``, which heats a twist
+bone together with the bone it twists and splits the pair's weight along it afterwards.
+
 Any topology: degenerate (zero-area) faces are left out of the operator and the ray test;
 vertices no face uses take their nearest bone with weight 1; a connected component on which no
 vertex sees a bone (a loose part outside the skeleton) is heated by each vertex's nearest bone
@@ -53,7 +58,7 @@ from bodyspace.mesh.topology import vertex_components
 from bodyspace.parallel import halves, run_both
 
 __all__ = ["DEFAULT_HEAT", "DEFAULT_SMOOTHING", "MIN_WEIGHT", "bone_heat_weights", "nearest_visible_bones",
-           "segments_blocked", "smooth_within_support"]
+           "segments_blocked", "smooth_within_support", "twist_share"]
 
 _kernel = numba.njit(cache=True, nogil=True)
 
@@ -228,19 +233,29 @@ def _closest_on_segment(x, h, t, out):
 
 @_kernel
 def _nearest_visible_kernel(vertices, heads, tails, bones, tri, corners, order, nlo, nhi, child, start, stop,
-                            i0, i1, tie, source, source_count, nearest, dist, tests):
+                            allow, i0, i1, tie, source, source_count, nearest, dist, tests):
     """For vertices i0:i1: the nearest visible bones (``source`` (V, 4) ids into ``bones``,
     ``source_count``: how many tie, 0 if none is visible), the nearest bone regardless of
     visibility (``nearest``), the distance to the nearest visible one (``dist``, inf if none)
-    and the number of segment queries (``tests``)."""
+    and the number of segment queries (``tests``). ``allow`` (V, K) bool: the bones each vertex
+    may take as its source (a (1, 1) array: all)."""
     B = len(bones)
     d2 = np.empty(B)
     point = np.empty(3)
     stack = np.empty(256, dtype=np.int64)
+    masked = allow.shape[0] == vertices.shape[0] and allow.shape[1] == B
     for i in range(i0, i1):
         x = vertices[i]
         for k in range(B):
             d2[k] = _closest_on_segment(x, heads[bones[k]], tails[bones[k]], point)
+        if masked:                              # a row that allows no bone allows all
+            some = False
+            for k in range(B):
+                some = some or allow[i, k]
+            if some:
+                for k in range(B):
+                    if not allow[i, k]:
+                        d2[k] = np.inf
         best = np.inf
         count = 0
         first = True
@@ -284,14 +299,16 @@ class _Bvh:
 
 
 def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray, tails: np.ndarray,
-                          bones: np.ndarray | None = None, *, tie: float = TIE_TOLERANCE, lanes: int | None = None):
+                          bones: np.ndarray | None = None, *, tie: float = TIE_TOLERANCE, lanes: int | None = None,
+                          allowed: np.ndarray | None = None):
     """Each vertex's nearest visible bone (Baran & Popović §4): the closest bone segment whose
     closest point the vertex sees, i.e. the segment between them crosses no triangle that does
     not have the vertex as a corner.
 
     vertices (V, 3), faces (F, 3); heads, tails (B, 3); bones: (K,) indices of the bones that
-    may be chosen (default all). Returns ``source`` (V, 4) int (bone indices, -1 padded; up to
-    four bones tie within ``tie`` relative distance), ``count`` (V,) (0: no bone visible),
+    may be chosen (default all); allowed: (V, B) bool, the bones each vertex may take (a
+    vertex's row with no True allows all; default: all). Returns ``source`` (V, 4) int (bone
+    indices, -1 padded; up to four bones tie within ``tie`` relative distance), ``count`` (V,) (0: no bone visible),
     ``nearest`` (V,) the nearest bone regardless of visibility, ``distance`` (V,) to the
     nearest visible bone (inf if none) and ``tests`` (V,) segment queries made.
     """
@@ -307,7 +324,9 @@ def nearest_visible_bones(vertices: np.ndarray, faces: np.ndarray, heads: np.nda
     nearest = np.zeros(V, dtype=np.int64)
     dist = np.full(V, np.inf)
     tests = np.zeros(V, dtype=np.int64)
-    args = (v, h, t, bones, *bvh.arrays)
+    allow = np.ones((1, 1), dtype=np.bool_) if allowed is None else \
+        np.ascontiguousarray(_check_allowed(allowed, V, len(h))[:, bones])
+    args = (v, h, t, bones, *bvh.arrays, allow)
     outs = (tie, source, count, nearest, dist, tests)
     if lanes is None:
         lanes = 2 if V * len(bones) >= 50_000 else 1
@@ -366,6 +385,15 @@ def _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat):
     if not (np.isfinite(heat) and heat > 0):
         raise ParameterError(f"heat={heat!r}; expected a positive number (the paper's c, default {DEFAULT_HEAT})")
     return v, f.astype(np.int64), h, t, deform
+
+
+def _check_allowed(allowed, V: int, B: int) -> np.ndarray:
+    """``allowed`` as a dense (V, B) bool array, or a clear error."""
+    a = allowed.toarray() if sp.issparse(allowed) else np.asarray(allowed)
+    if a.shape != (V, B) or a.dtype != bool:
+        raise ParameterError(f"allowed: shape {a.shape} dtype {a.dtype}, expected ({V}, {B}) bool (the bones each "
+                             f"of the {V} vertices may be weighted by; None: all)")
+    return np.ascontiguousarray(a)
 
 
 @_kernel
@@ -493,6 +521,7 @@ def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np
 def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray, tails: np.ndarray,
                       max_influences: int = 4, *, deform: np.ndarray | None = None, heat: float = DEFAULT_HEAT,
                       min_weight: float = MIN_WEIGHT, smoothing: float = DEFAULT_SMOOTHING,
+                      allowed: np.ndarray | None = None, twist_of: np.ndarray | None = None,
                       lanes: int | None = None) -> sp.csr_matrix:
     """Bone-heat skin weights (Baran & Popović 2007 §4): (V, B) sparse, rows summing to one.
 
@@ -509,6 +538,18 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     smoothing: diffusion length of the smoothing after the cut, as a fraction of the square
         root of the surface area (``smooth_within_support``); 0 keeps the cut weights. Skipped
         when nothing is cut (``max_influences`` at least the number of bones with heat).
+    allowed: (V, B) bool (dense or sparse), the bones each vertex may be weighted by (default
+        all): a vertex takes only allowed bones as its heat source, and a bone's heat is cut
+        where it is not allowed (before the cut to ``max_influences``). A part-aware mask, e.g.
+        the jaw only on the chin, the upper arm not on the chest (``posing.bone_heat_rig_weights``).
+        A row with no True allows all.
+    twist_of: (B,) int, for a twist bone the bone it twists (its parent, whose tail is its
+        head; e.g. MakeHuman's upperarm02 of upperarm01), -1 for the others (default none).
+        The pair is heated as one bone (the segment from the parent's head to the twist bone's
+        tail), then the pair's weight is split along that segment: the twist bone's share
+        rises linearly from 0 at their joint to 1 at its tail (``twist_share``). So a twist
+        bone takes no place among a vertex's four where the pair meets the body (at the
+        shoulder: one arm bone and three of the torso instead of two arm bones and two).
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
@@ -518,11 +559,14 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     2. The cotangent stiffness L and lumped areas M of the non-degenerate faces;
        ``A = L + M H``, factored once.
     3. One solve of ``A w_b = M H p_b`` for each bone that is some vertex's source (the others'
-       weights are zero), all columns against the one factor.
+       weights are zero), all columns against the one factor; with ``allowed``, each bone's
+       weight set to zero where it is not allowed and the rows renormalized.
     4. Per vertex: negatives dropped, the largest ``max_influences`` kept minus the next
        one's weight (continuous cut, ``_top_weights``), renormalized.
     5. Each bone's cut column smoothed within its own support (``smooth_within_support``), so
        the cut's kinks do not fold the skin; rows renormalized.
+    6. With ``twist_of``: each pair's weight split between the bone and its twist bone
+       (``twist_share``); rows that this takes past ``max_influences`` cut again (step 4).
     """
     v, f, h, t, deform = _check_inputs(vertices, faces, heads, tails, max_influences, deform, heat)
     if not (0.0 <= min_weight < 1.0):
@@ -534,6 +578,12 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
                              f"(default {DEFAULT_SMOOTHING}; 0: no smoothing after the cut)")
     V, B = len(v), len(h)
     scale = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
+    twist = _check_twist(twist_of, h, t, deform, scale)
+    bone_tails = t
+    if twist is not None:              # each pair heated as one bone: parent's head to child's tail
+        t = t.copy()
+        t[twist[twist >= 0]] = bone_tails[twist >= 0]
+        deform = deform & (twist < 0)
     # 1. faces with area; vertices that some such face uses
     dbl = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     f = f[dbl > _DEGENERATE_AREA * scale * scale]
@@ -542,7 +592,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     bones = np.flatnonzero(deform)
     if not len(f):
         raise MeshError(f"faces: all {len(faces)} faces have zero area; expected a surface mesh")
-    source, count, nearest, dist, _ = nearest_visible_bones(v, f, h, t, bones, lanes=lanes)
+    allow = None if allowed is None else _check_allowed(allowed, V, B)
+    source, count, nearest, dist, _ = nearest_visible_bones(v, f, h, t, bones, lanes=lanes, allowed=allow)
     # a component where no vertex sees a bone is heated by every vertex's nearest bone
     _, comp = vertex_components(f, V)
     seen = np.bincount(comp, weights=(count > 0) & used, minlength=comp.max() + 1) > 0
@@ -574,12 +625,37 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     # 3. one factorization, every bone's column against it
     solver = FactorizedSolver(A)
     W = _solve_columns(solver, rhs, lanes)
+    if allow is not None:
+        # a bone keeps no heat where it is not allowed (the heat diffuses past the vertices it
+        # sources); rows renormalized, a row left with nothing keeps its heat
+        kept = np.where(allow[active][:, columns], W, 0.0)
+        total = kept.sum(axis=1, keepdims=True)
+        W = np.where(total > 0.0, kept / np.where(total > 0.0, total, 1.0), W)
     # 4. truncate and normalize; unused vertices take their nearest bone
     top = _top_weights(W, max_influences, min_weight)              # (len(active), K)
     if smoothing > 0 and max_influences < len(columns):
         # 5. the cut smoothed within each bone's support
         length = smoothing * np.sqrt(mass.sum())          # mass sums to the surface area
         top = smooth_within_support(top, L[active][:, active], mass[active], length)
+    if twist is not None:
+        # 6. each pair's weight split between the bone and its twist bone along their segment;
+        # where that makes a fifth bone (the pair meets three others, at the elbow and wrist),
+        # the continuous cut again
+        dense = top.toarray()
+        extra = []
+        for c in np.flatnonzero(twist >= 0):
+            k = np.flatnonzero(columns == twist[c])
+            if len(k):
+                share = twist_share(v[active], h[twist[c]], bone_tails[twist[c]], bone_tails[c])
+                extra.append((c, dense[:, k[0]] * share))
+                dense[:, k[0]] *= 1.0 - share
+        if extra:
+            columns = np.concatenate([columns, [c for c, _ in extra]])
+            dense = np.hstack([dense, np.stack([w for _, w in extra], axis=1)])
+            over = (dense > 0.0).sum(axis=1) > max_influences
+            if over.any():
+                dense[over] = _top_weights(dense[over], max_influences, min_weight).toarray()
+            top = sp.csr_matrix(dense)
     top = sp.csr_matrix((top.data, columns[top.indices], top.indptr), shape=(len(active), B))
     if used.all():
         out = top
@@ -590,6 +666,43 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
                                             shape=(V, B))).tocsr()
     out.sort_indices()
     return out
+
+
+def _check_twist(twist_of, heads, tails, deform, scale) -> np.ndarray | None:
+    """``twist_of`` as a (B,) int array (or None), or a clear error."""
+    if twist_of is None:
+        return None
+    B = len(heads)
+    tw = np.asarray(twist_of)
+    if tw.shape != (B,) or not np.issubdtype(tw.dtype, np.integer) or tw.min(initial=-1) < -1 or \
+            tw.max(initial=-1) >= B:
+        raise ParameterError(f"twist_of: shape {tw.shape} dtype {tw.dtype}, expected ({B},) ints in -1..{B - 1} "
+                             f"(for a twist bone the bone it twists, else -1)")
+    for c in np.flatnonzero(tw >= 0):
+        p = int(tw[c])
+        if p == c or tw[p] >= 0 or not (deform[p] and deform[c]):
+            raise ParameterError(f"twist_of[{c}] = {p}: expected another, deforming bone that is not itself a twist "
+                                 f"bone (bone {c} must deform too)")
+        if np.linalg.norm(np.asarray(tails[p]) - np.asarray(heads[c])) > 1e-3 * scale:
+            raise ParameterError(f"twist_of[{c}] = {p}: bone {p}'s tail is {np.asarray(tails[p]).tolist()}, bone {c}'s "
+                                 f"head {np.asarray(heads[c]).tolist()}; a twist bone must start where the bone it "
+                                 f"twists ends")
+    return tw.astype(np.int64)
+
+
+def twist_share(points: np.ndarray, head: np.ndarray, joint: np.ndarray, tail: np.ndarray) -> np.ndarray:
+    """(P,) the twist bone's share of a (bone, twist bone) pair's weight at points (P, 3).
+
+    head: the bone's head, joint: its tail = the twist bone's head, tail: the twist bone's
+    tail (3,). With u a point's position along head → tail (0 at head, 1 at tail) and u_j the
+    joint's, the share is ``clip((u - u_j) / (1 - u_j), 0, 1)``: nothing along the bone, all
+    at the twist bone's tail, so the twist grows along the limb.
+    """
+    seg = np.asarray(tail, dtype=float) - head
+    dd = float(seg @ seg) or 1.0
+    u = (np.asarray(points, dtype=float) - head) @ seg / dd
+    u_joint = float((np.asarray(joint, dtype=float) - head) @ seg / dd)
+    return np.clip((u - u_joint) / max(1.0 - u_joint, 1e-12), 0.0, 1.0)
 
 
 def _solve_columns(solver: FactorizedSolver, rhs: np.ndarray, lanes: int | None) -> np.ndarray:
