@@ -240,7 +240,9 @@ def test_stature_not_upright_is_reported(mset, mean_body, template):
     v = pose_bodies(mean_body[None], rig, lib.rotations("squat", rig)[None], on_ground=True)[0]
     r = evaluate(mset, v, template.faces)
     assert np.isnan(r["stature"].value) and "not upright" in r["stature"].note
-    assert np.isnan(r["mass"].value) and r["mass"].note
+    # Mass is defined for every closed body (issue 12 §3): the stature estimated from the leg,
+    # trunk and head lengths; BMI needs the stature itself.
+    assert np.isfinite(r["mass"].value) and np.isnan(r["bmi"].value) and "needs 'stature'" in r["bmi"].note
     assert np.isnan(r["hip_girth"].value) and "from axis crotch→neck_front+neck_back" in r["hip_girth"].note
 
 
@@ -631,7 +633,8 @@ def test_cli_measure_nan_reasons_in_every_format(body_files):
     assert js.exit_code == 0, js.output
     data = json.loads(js.stdout, parse_constant=_no_nan_constants)
     assert data["stature"]["value"] is None and "not upright" in data["stature"]["note"]
-    assert data["mass"]["value"] is None and "needs 'stature'" in data["mass"]["note"]
+    assert data["mass"]["value"] > 0 and "note" not in data["mass"]        # defined for every closed body
+    assert data["bmi"]["value"] is None and "needs 'stature'" in data["bmi"]["note"]
     two = json.loads(runner.invoke(app, ["measure", squat, str(body_files / "a.obj"), "--json", "--as-posed"]).stdout,
                      parse_constant=_no_nan_constants)
     assert two[squat]["hip_girth"]["value"] is None and "not hips_extended" in two[squat]["hip_girth"]["note"]

@@ -76,8 +76,7 @@ from bodyspace.mapping.bundle import PREFIX as MAPPING_PREFIX
 from bodyspace.mapping.bundle import MeasurementMapping, fit_mapping
 from bodyspace.mapping.refine import refine
 from bodyspace.measure import MeasurementSet, load_measurement_set, measurement_set_from_dict
-from bodyspace.measure.definitions import with_vertex_parts
-from bodyspace.measure.evaluate import vertex_parts
+from bodyspace.measure.definitions import with_standing_body
 from bodyspace.measure.landmark_check import check_set_on_bodies, landmark_measurement_set
 from bodyspace.semantics.model import PREFIX as SEMANTICS_PREFIX
 from bodyspace.semantics.model import (
@@ -405,11 +404,11 @@ class BodyModel:
             "timings_s": {key: round(v, 3) for key, v in timings.items()},
         }
         provenance["measurement_set"] = None if mset is None else mset.source
-        if mset is not None and mset.vertex_parts is None:
-            # Body parts per vertex from the landmarks on the standing template of the scans, kept in
-            # the file: a posed body of this topology is then cut by the parts of a standing one.
-            labels = vertex_parts(mset, template_vertices[None], mset.landmark_matrix(len(template_vertices)), faces)
-            mset = mset if labels is None else with_vertex_parts(mset, labels)
+        if mset is not None:
+            # Body parts per vertex and the neck's joints from the landmarks on the standing template
+            # of the scans, kept in the file: a posed body of this topology is then cut by the parts
+            # of a standing one, and its neck girth's plane leans with its neck.
+            mset = with_standing_body(mset, template_vertices, faces)
         return cls(template_vertices, faces, encoder, space, encoding=encoding,
                    template_id=template_id or db.meta.get("template", "unknown"), selection=sel_name,
                    fitted_scans=rows, encoder_params=params, provenance=provenance, measurement_set=mset)

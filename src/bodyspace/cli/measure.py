@@ -30,7 +30,7 @@ from bodyspace.measure import (
     with_landmarks,
 )
 from bodyspace.measure import conventions
-from bodyspace.measure.definitions import load_landmark_parts, with_vertex_parts
+from bodyspace.measure.definitions import load_landmark_parts, with_standing_body, with_vertex_parts
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.parallel import in_order
@@ -105,7 +105,10 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
                                        words=words)
             v, postures[label] = _standing(v, f, path, as_posed)
-            results[label] = evaluate(mset, v, f, keep_polylines=png is not None, mesh_name=str(path))
+            # A landmark file without a standing body of its topology: the mesh places its own body
+            # parts and neck joints (its neck plane then leans with its neck, not with its head).
+            own = with_standing_body(mset, v, f)
+            results[label] = evaluate(own, v, f, keep_polylines=png is not None, mesh_name=str(path))
             bodies.append((v, f))
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
@@ -173,6 +176,13 @@ def _check_outputs(json_out: bool, csv_out: bool, png: Path | None, force: bool,
     if json_out and csv_out:
         raise MeasurementError("--json and --csv were both given, but both print to standard output; "
                                "give one of them (run twice for both)")
+    for flag, given, suffix in (("--json", json_out, ".json"), ("--csv", csv_out, ".csv")):
+        named = [p for p in meshes if given and p.suffix.lower() == suffix]
+        if named:
+            # `--json out.json` reads out.json as a mesh; say what the flag does instead.
+            raise MeasurementError(f"{named[0]}: {flag} takes no file name, it prints {suffix[1:].upper()} to the "
+                                   f"terminal; to keep it in a file, redirect: bodyspace measure MESHES {flag} > "
+                                   f"{named[0]}")
     if png is None:
         return
     check_file_output(png, "--png", force, (".png",), example="measurements.png")
@@ -325,6 +335,11 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
         mset = with_landmarks(mset, lms, nv, str(landmarks))
     _check_vertex_count(folder / "vertices.npy", db.n_vertices, mset, landmarks, model)
     check_compatible(mset, db.read([0])[0], db.faces, str(folder))
+    rest = db.rest_rows()
+    if landmarks is not None and len(rest):
+        # Body parts and the neck's joints placed on the first rest scan: every scan is then cut
+        # by the parts of a standing body, and its neck girth's plane leans with its neck.
+        mset = with_standing_body(mset, db.read(rest[:1])[0], db.faces)
     template = load_template()
     unposable = not as_posed and fits_template(db.read([0])[0], db.faces, template)
     columns, names = _database_columns(mset, unposable)

@@ -18,6 +18,7 @@ from bodyspace.measure.definitions import (
     load_measurement_set,
     measurement_set_from_dict,
     with_landmarks,
+    with_standing_body,
     with_vertex_parts,
 )
 from bodyspace.measure.evaluate import Measurement, check_compatible, evaluate, measure, to_json
@@ -27,7 +28,7 @@ from bodyspace.measure.parts import PARTS, parts_from_landmarks, parts_from_weig
 __all__ = [
     # definitions: measurement sets and landmark files
     "MeasurementError", "MeasurementSet", "load_landmarks", "load_measurement_set",
-    "measurement_set_from_dict", "with_landmarks", "with_vertex_parts",
+    "measurement_set_from_dict", "with_landmarks", "with_standing_body", "with_vertex_parts",
     # parts: the body part of every vertex (part-aware girths)
     "PARTS", "parts_from_landmarks", "parts_from_weights",
     # methods: the registry

@@ -25,8 +25,9 @@ A *point* in a measurement is a landmark name or a list of names (their mean: th
 front and a back landmark is a point inside the body). An *axis* is ``"up"`` (world +Y) or a
 pair of points ``[from, to]`` (so it follows a limb or the torso in any pose), or a joint axis
 ``{"from", "to", "fallback"}`` between two joint centres given inline as weighted vertices of the
-set's topology (the neck girth's: neck joint to head joint), which a landmark file for another
-topology turns into its fallback pair (``points``).
+set's topology (the neck girth's: neck joint to head joint). A landmark file for another
+topology (``with_landmarks``) drops the joints (the axis is then its fallback pair) until one
+standing body of that topology places them there (``with_standing_body``; ``points``).
 
 Methods are registered in ``methods.METHODS`` (one function per method, each with a check of
 its fields that runs here); a set naming an unregistered method is refused on load. The
@@ -47,7 +48,9 @@ built-in ones:
   (none: straight; else the extent along the axis).
 - ``path``: ``through`` (points); summed straight segments.
 - ``volume``, ``surface_area``; ``mass`` (``stature``: the name of a length measurement,
-  ``age_years``, ``male`` 0/1 or null for unknown) and ``bmi`` (``mass``, ``stature``).
+  ``age_years``, ``male`` 0/1 or null for unknown; ``stature_estimate`` {"through", "plus_mean_of",
+  "scale"}: the stature a body that does not stand is given, so mass is defined for every closed
+  body) and ``bmi`` (``mass``, ``stature``).
 
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
 is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":
@@ -73,7 +76,7 @@ import scipy.sparse as sp
 
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
-from bodyspace.measure.parts import decode_parts, encode_parts
+from bodyspace.measure.parts import axis_joints, decode_parts, encode_parts, part_landmarks, parts_from_landmarks
 from bodyspace.measure.points import axis_points, check_axis, fail, point_names
 
 FORMAT = "bodyspace-measurements"
@@ -422,8 +425,9 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
             continue
         if any(m.get(k) not in have for k in ("stature", "mass") if k in m):
             continue                       # derived from a dropped measurement
-        # A joint axis's inline vertices are the template's: another topology takes its fallback.
-        m = dict(m, **{k: m[k]["fallback"] for k in ("normal", "axis") if isinstance(m.get(k), dict)})
+        # A joint axis's inline joints are the template's vertices: dropped here, the axis is its
+        # fallback until a standing body of this topology places them (``with_standing_body``).
+        m = dict(m, **{k: _without_joints(m[k], landmarks) for k in ("normal", "axis") if isinstance(m.get(k), dict)})
         kept.append(m)
         have.add(m["name"])
     if not any(m["method"] not in ("volume", "surface_area") for m in kept):
@@ -431,6 +435,52 @@ def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None
                                f"of {base.source} but volume and surface area; {_closest(base, landmarks)}")
     return replace(base, landmarks=dict(landmarks), measurements=tuple(kept), conditions=conditions,
                    n_vertices=n_vertices, source=source, vertex_parts=None)
+
+
+def _without_joints(a: dict, landmarks) -> dict:
+    """A joint axis for another topology: no joints (the template's vertex ids), its fallback, and
+    its ``sideways`` pair only if the landmarks have it."""
+    out = {"fallback": a["fallback"]}
+    side = a.get("sideways")
+    if side is not None and all(point_names(p) <= set(landmarks) for p in side):
+        out["sideways"] = side
+    return out
+
+
+def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray | None = None) -> MeasurementSet:
+    """``mset`` ready to measure posed bodies of its topology, from one standing body (V, 3) of it
+    (metres, +Y up; e.g. a model's mean rest body): the body part of every vertex if the set has
+    none and a measurement names a part (``parts.parts_from_landmarks``), and the joints of every
+    joint axis that has none on this topology (``with_landmarks`` drops the template's;
+    ``parts.axis_joints``: rings of the neck's skin where the template has its neck and head
+    joints). Both are vertex data, so they follow the skin into every pose: the tape keeps its
+    part and the neck girth's plane leans with the neck, not with a head tilted on it.
+    Labels and joints the set already has are kept; the set is returned unchanged when it needs
+    neither."""
+    needs_parts = mset.vertex_parts is None and any(m.get("part") for m in mset.measurements)
+    needs_joints = any(isinstance(m.get(k), dict) and m[k].get("from") is None
+                       for m in mset.measurements for k in ("normal", "axis"))
+    if not (needs_parts or needs_joints):
+        return mset
+    v = np.asarray(vertices, dtype=float)
+    if v.ndim != 2 or v.shape[1] != 3 or (mset.n_vertices is not None and len(v) != mset.n_vertices):
+        raise MeasurementError(f"{mset.source}: the standing body has shape {v.shape}, expected "
+                               f"({mset.n_vertices or 'V'}, 3) vertices of the set's topology")
+    points = mset.landmark_matrix(len(v)) @ v
+    lm = {name: points[i] for i, name in enumerate(mset.landmarks)}
+    labels = mset.vertex_parts
+    if needs_parts:
+        labels = parts_from_landmarks(v, lm, faces)
+    measurements = []
+    for m in mset.measurements:
+        for k in ("normal", "axis"):
+            a = m.get(k)
+            if isinstance(a, dict) and a.get("from") is None:
+                joints = axis_joints(v, lm, a["fallback"], labels)
+                if joints is not None:            # else the fallback (a mesh too coarse for a ring)
+                    m = dict(m, **{k: dict(a, **{"from": joints[0], "to": joints[1]})})
+        measurements.append(m)
+    return replace(mset, measurements=tuple(measurements), vertex_parts=labels)
 
 
 def _closest(base: MeasurementSet, landmarks) -> str:
@@ -469,7 +519,12 @@ def _point_fields(m: dict) -> set:
     if m.get("band"):
         pts += [m["band"]["from"], m["band"]["to"]]
     pts += m.get("through", [])
-    return set().union(*(point_names(p) for p in pts)) if pts else set()
+    names = set().union(*(point_names(p) for p in pts)) if pts else set()
+    if m.get("method") == "top":
+        # The highest point of a part: on a topology labelled from its landmarks, the landmarks
+        # of that part's skeleton segments say which vertices it is (the head: neck → head top).
+        names |= part_landmarks(m["part"])
+    return names
 
 
 # Public name of ``_point_fields`` (the landmarks a measurement uses, for messages elsewhere).

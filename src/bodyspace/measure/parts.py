@@ -28,6 +28,8 @@ from __future__ import annotations
 import re
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from bodyspace.errors import MeasurementError
 from bodyspace.mesh.geometry import vertex_normals
@@ -95,6 +97,16 @@ BELOW_TORSO = 1.5
 CHAIN_ENDS = (("calf_l", "foot_l", "knee_joint_l", "ankle_joint_l"),
               ("calf_r", "foot_r", "knee_joint_r", "ankle_joint_r"))
 
+# A joint axis on another topology (``axis_joints``): its joints are rings of skin at these
+# fractions of the line from the neck landmarks to the head top, on these parts. They are where
+# the hm08 joint regressor puts the neck joint (0.10) and the head joint (0.49) on the mean
+# body; on a 5,000-vertex foreign topology, heads tilted sideways 20-30 degrees (over the neck,
+# or at the head joint alone) then keep the neck girth within 0.5 cm of upright (the neck
+# landmarks → head top line: up to 3.2 cm; tests/test_foreign_neck.py).
+JOINT_LEVELS = (0.10, 0.49)
+JOINT_PARTS = ("neck", "head")
+RING_HALF_WIDTH = 0.03
+
 
 def part_of_bone(name: str) -> int:
     """The ``PARTS`` index of a rig bone (by name, ``BONE_PARTS``), or -1 if none matches."""
@@ -133,6 +145,21 @@ def parts_from_weights(weights, bone_names) -> np.ndarray:
         out[(out == PART_INDEX["head"]) & (per_part[:, PART_INDEX[part]] >= share)] = PART_INDEX[part]
     out[per_part.max(axis=1) <= 0] = NO_PART
     return out
+
+
+def part_landmarks(part) -> set:
+    """The landmark names the ``SKELETON`` segments of ``part`` (a name or a list of them) use:
+    what decides which vertices are that part on a topology labelled from its landmarks."""
+    names = {part} if isinstance(part, str) else set(part)
+
+    def used(spec) -> set:
+        if isinstance(spec, str):
+            return {spec}
+        if spec and isinstance(spec[0], str) and spec[0].startswith("@"):
+            return used(spec[1]) | used(spec[2])
+        return set().union(*(used(x) for x in spec))
+
+    return set().union(*(used(a) | used(b) for p, a, b in SKELETON if p in names))
 
 
 def _point(spec, lm: dict) -> np.ndarray | None:
@@ -218,7 +245,102 @@ def parts_from_landmarks(vertices: np.ndarray, landmarks: dict, faces: np.ndarra
             k, a = landmarks[knee], landmarks[ankle]
             t = (v - k) @ (a - k) / max(float((a - k) @ (a - k)), 1e-18)
             out[(out == PART_INDEX[calf]) & (t > 1.0)] = PART_INDEX[foot]
+    if faces is not None:
+        out = merge_islands(out, np.asarray(faces))
     return out
+
+
+def merge_islands(labels: np.ndarray, faces: np.ndarray, rounds: int = 50) -> np.ndarray:
+    """(V,) labels where every part is one connected piece of the mesh: a part's pieces other
+    than its largest (connected through edges between two of its vertices) take the part of
+    the vertices around them.
+
+    On a posed body the nearest skeleton segment is not always the vertex's own: with the arms
+    crossed, 107 vertices of the right hand lay nearer to the left forearm's segment and 92 of
+    the chest under it nearer to the right hand's (a 6,000-vertex foreign body), and the wrist
+    tapes went round the other hand too (+9 and +16 cm). Such vertices are an island of the
+    part that claimed them, apart from that part's own skin; they go to their neighbours' part
+    (the most frequent among their edge neighbours off the island; repeated until every island
+    vertex has a part). ``faces`` (F, 3).
+    """
+    out = np.asarray(labels).astype(np.int8).copy()
+    n = len(out)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    same = out[e[:, 0]] == out[e[:, 1]]
+    graph = coo_matrix((np.ones(int(same.sum())), (e[same, 0], e[same, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    # The largest piece of each part stays; every other piece is an island.
+    size = np.bincount(comp)
+    _, first = np.unique(comp, return_index=True)              # a vertex of each piece
+    piece_label = out[first].astype(np.int64)
+    # Per label, its largest piece (sorted by label, then size descending: the first of each label).
+    order = np.lexsort((-size, piece_label))
+    keep = order[np.r_[True, piece_label[order][1:] != piece_label[order][:-1]]]
+    main = np.zeros(len(size), dtype=bool)
+    main[keep] = True
+    island = ~main[comp]
+    used = np.zeros(n, dtype=bool)
+    used[faces.ravel()] = True
+    island &= used                                   # a vertex on no face keeps its label
+    for _ in range(rounds):
+        if not island.any():
+            break
+        # Votes of settled neighbours, both directions of every edge.
+        a = np.concatenate([e[:, 0], e[:, 1]])
+        b = np.concatenate([e[:, 1], e[:, 0]])
+        ok = island[a] & ~island[b] & (out[b] >= 0)
+        if not ok.any():
+            break
+        votes = np.zeros((n, len(PARTS)), dtype=np.int32)
+        np.add.at(votes, (a[ok], out[b[ok]].astype(np.int64)), 1)
+        got = island & (votes.sum(axis=1) > 0)
+        out[got] = np.argmax(votes[got], axis=1).astype(np.int8)
+        island &= ~got
+    return out
+
+
+def axis_joints(vertices: np.ndarray, landmarks: dict, fallback, labels: np.ndarray | None = None,
+                levels: tuple[float, float] = JOINT_LEVELS, parts: tuple[str, ...] = JOINT_PARTS,
+                min_vertices: int = 6) -> tuple[dict, dict] | None:
+    """The two joints of a joint axis on any topology, placed on one standing body (V, 3): rings of
+    skin around the ``fallback`` line (a pair of points, e.g. neck landmarks → head top) at the
+    fractions ``levels`` of it, as inline points ``{"vertices": [...], "weights": [...]}`` of
+    this topology (``points.axis``), or None if a ring has fewer than ``min_vertices`` vertices.
+
+    A ring is the vertices of ``parts`` (by ``labels`` (V,); all vertices without labels) within
+    3 % of the line's length of the level, and within 1.5x the median distance of them from the
+    line (the slab at the neck's base also reaches the shoulders), equally weighted. Like the
+    template's joint regressor rows they are skin vertices, so they follow the neck into any pose:
+    its axis leans with the neck and not with a head tilted on it. The slab is widened (up to
+    4x) on a coarse mesh until it holds ``min_vertices``.
+    """
+    v = np.asarray(vertices, dtype=float)
+    a, b = _point(fallback[0], landmarks), _point(fallback[1], landmarks)
+    if a is None or b is None:
+        return None
+    d = b - a
+    length = float(np.linalg.norm(d))
+    if not np.isfinite(length) or length < 1e-6:
+        return None
+    d = d / length
+    rel = v - a
+    t = rel @ d / length                                                             # (V,)
+    radial = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)                      # (V,)
+    allowed = np.ones(len(v), dtype=bool)
+    if labels is not None:
+        allowed = np.isin(np.asarray(labels), [PART_INDEX[p] for p in parts])
+    rings = []
+    for level in levels:
+        for widen in (1.0, 2.0, 4.0):
+            ids = np.flatnonzero(allowed & (np.abs(t - level) < RING_HALF_WIDTH * widen))
+            if len(ids):
+                ids = ids[radial[ids] <= 1.5 * np.median(radial[ids])]
+            if len(ids) >= min_vertices:
+                break
+        if len(ids) < min_vertices:
+            return None
+        rings.append({"vertices": [int(i) for i in ids], "weights": [1.0 / len(ids)] * len(ids)})
+    return rings[0], rings[1]
 
 
 def encode_parts(labels: np.ndarray) -> str:

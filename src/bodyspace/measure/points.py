@@ -7,8 +7,10 @@ landmark is a point inside the body). An *axis* is ``"up"`` (world +Y), a pair o
 weighted vertices of the set's own topology (``{"vertices": [...], "weights": [...]}``, e.g. a row of
 the template's joint regressor): the neck's axis from the neck joint to the head joint follows the
 neck itself, so a head tilted on its neck does not tilt the neck girth's plane. Its points are
-computed per chunk (``inline_key``); on another topology (``with_landmarks``) the axis becomes its
-``fallback``, a pair of landmark points. Evaluated on a batch, a point
+computed per chunk (``inline_key``). On another topology (``with_landmarks``) the template's joints
+are dropped and the axis is its ``fallback``, a pair of landmark points, until one standing body
+of that topology places the joints there (``definitions.with_standing_body``: rings of the neck's
+own skin, ``parts.axis_joints``), so the axis follows the neck on any topology. Evaluated on a batch, a point
 is (N, 3) and an axis (N, 3) of unit vectors; ``landmarks`` maps a name to its (N, 3) points.
 """
 
@@ -57,8 +59,12 @@ def check_axis(where: str, a: Any, landmarks, required: bool = True) -> None:
                 raise fail(where + " field 'sideways'", f"got {side!r}, expected a pair of points [right, left]")
             for p in side:
                 check_point(where + " field 'sideways'", p, landmarks)
+        if (a.get("from") is None) != (a.get("to") is None):
+            raise fail(where, "has only one of 'from' and 'to'; expected both joints (or neither: the axis is its "
+                              "fallback until a standing body places them, definitions.with_standing_body)")
         for key in ("from", "to"):
-            check_inline_point(where + f" field {key!r}", a.get(key))
+            if a.get(key) is not None:
+                check_inline_point(where + f" field {key!r}", a[key])
         fallback = a.get("fallback")
         if not (isinstance(fallback, list) and len(fallback) == 2):
             raise fail(where + " field 'fallback'", f"got {fallback!r}, expected a pair of points [from, to] "
@@ -107,8 +113,9 @@ def inline_key(p: dict) -> tuple:
 
 
 def inline_points(specs) -> list:
-    """The inline points (dicts) the joint axes among ``specs`` (axis fields) use."""
-    return [a[k] for a in specs if isinstance(a, dict) for k in ("from", "to")]
+    """The inline points (dicts) the joint axes among ``specs`` (axis fields) use (none for a joint
+    axis whose joints are not placed on this topology yet)."""
+    return [a[k] for a in specs if isinstance(a, dict) for k in ("from", "to") if a.get(k) is not None]
 
 
 def axis(spec, landmarks: dict, n: int) -> np.ndarray:
@@ -118,6 +125,8 @@ def axis(spec, landmarks: dict, n: int) -> np.ndarray:
         return np.broadcast_to(UP, (n, 3)).copy()
     if isinstance(spec, dict):
         fallback = axis(spec["fallback"], landmarks, n)
+        if spec.get("from") is None or spec.get("to") is None:
+            return fallback                       # joints not placed on this topology
         a, b = landmarks.get(inline_key(spec["from"])), landmarks.get(inline_key(spec["to"]))
         if a is None or b is None:
             return fallback
@@ -147,8 +156,8 @@ def point_names(p) -> set:
 
 def axis_points(a) -> list:
     """The landmark points an axis field needs on any topology: none for "up", the pair, or a
-    joint axis's fallback (what ``with_landmarks`` turns it into; its ``sideways`` pair is only
-    used with the inline joints, on the set's own topology)."""
+    joint axis's fallback (what it is on a topology without its joints; its ``sideways`` pair is
+    only used with the joints, and ``with_landmarks`` drops it when the landmarks lack it)."""
     if isinstance(a, dict):
         return list(a.get("fallback") or [])
     return list(a) if isinstance(a, list) else []
