@@ -34,11 +34,17 @@ from bodyspace.measure.composition import mass_from_volume
 from bodyspace.measure.parts import PART_INDEX, PARTS
 from bodyspace.measure.points import axis, check_axis, check_point, fail, inline_points, point
 from bodyspace.measure.slicing import (
+    MODE_MAX,
+    MODE_MIN,
+    MODE_ONE,
+    PartMesh,
     approx_heights,
     band_contours,
     contour_girths,
     edge_neighbours,
     mesh_edges,
+    part_girths,
+    part_mesh,
     part_sections,
     pick_contours,
     support_perimeters,
@@ -81,6 +87,14 @@ class Topology:
             self._part_edges[key] = (self.edges[keep], ~inside)
             if len(self._part_edges) > 64:
                 self._part_edges.pop(next(iter(self._part_edges)))
+        return self._part_edges[key]
+
+    def part_mesh(self, labels: np.ndarray, part) -> PartMesh:
+        """``part_edges`` as ``slicing.part_girths`` takes them (``slicing.PartMesh``), cached."""
+        names = (part,) if isinstance(part, str) else tuple(part)
+        key = ("mesh", hash(labels.tobytes()), names)
+        if key not in self._part_edges:
+            self._part_edges[key] = part_mesh(*self.part_edges(labels, part))
         return self._part_edges[key]
 
 
@@ -155,14 +169,7 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     are cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
     """
     v, lm, geo, n = chunk.vertices, chunk.landmarks, chunk.topology, chunk.n
-    heights = chunk.cache.setdefault("heights", {})
     normal = axis(m["normal"], lm, n)
-    key = repr(m["normal"])
-    if key not in heights:
-        if "planes" not in heights:
-            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
-            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
-        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
     band = m.get("band")
     if band is None:
         origins = [point(m["at"], lm)]
@@ -176,6 +183,18 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     normals = np.tile(normal, (n_planes, 1))
     part = m.get("part")
     notes = None
+    if part is not None and chunk.parts is not None and not chunk.keep_polylines:
+        # The compiled slicer: the same planes, crossings, choice and hull as below, one pass a body.
+        mode = MODE_ONE if band is None else (MODE_MAX if band["mode"] == "max" else MODE_MIN)
+        girth, _, missed = part_girths(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal, mode)
+        return girth, None, _missed_notes(part, missed)
+    heights = chunk.cache.setdefault("heights", {})
+    key = repr(m["normal"])
+    if key not in heights:
+        if "planes" not in heights:
+            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
+        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
     if part is not None and chunk.parts is not None:
         # The tape round one body part: only the part's edges are cut, and all its crossings
         # in a plane are the contour (``slicing.part_sections``).
@@ -186,11 +205,7 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         # joint): its girth is too small, so a "min" band must not choose it while a plane
         # that goes round the whole part exists.
         opened = np.bincount(cuts.body[border[edge]], minlength=n_planes * n) > 0
-        missed = (chosen < 0).reshape(n_planes, n).all(axis=0)
-        if missed.any():
-            what = part if isinstance(part, str) else " or ".join(part)
-            notes = [f"no plane of this girth crosses the {what.replace('_', ' ')} (its landmarks are off that "
-                     "part, or the part labels do not fit this mesh)" if x else None for x in missed]
+        notes = _missed_notes(part, (chosen < 0).reshape(n_planes, n).all(axis=0))
     else:
         cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
                              heights=heights[key], neighbours=geo.neighbours)
@@ -217,6 +232,15 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     ch[group] = chosen[group]
     g, pl = contour_girths(cuts, ch, normals, chunk.keep_polylines)
     return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), notes
+
+
+def _missed_notes(part, missed: np.ndarray) -> list | None:
+    """The note of each body (N,) whose girth planes all miss ``part`` (``missed`` (N,) bool)."""
+    if not missed.any():
+        return None
+    what = part if isinstance(part, str) else " or ".join(part)
+    return [f"no plane of this girth crosses the {what.replace('_', ' ')} (its landmarks are off that "
+            "part, or the part labels do not fit this mesh)" if x else None for x in missed]
 
 
 def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
