@@ -517,6 +517,51 @@ def _unpose_all(Q, t, y, indptr, param, weight, dominant, min_det, out):
 
 
 @_kernel
+def _known_heads_system(M, y, p_indptr, p_index, p_data, h_indptr, h_index, h_data, D, system, rhs):
+    """``unpose_known``'s linear system for the rotated bones' rest heads, per body n:
+    system[n, (j, a), (k, b)] = delta + sum_c T[j, k, a, c] D[n, k, c, b], with
+    T[j, k] = sum_v P[(j, k), v] K_v and K_v = M[n, v]^-1 (adjugate), and
+    rhs[n, (j, a)] = sum_v Hd[j, v] (K_v y[n, v])_a.
+
+    M (N, S, 3, 3) blended rotations and y (N, S, 3) posed points of the regressor's vertices; P
+    (r*r, S) and Hd (r, S) as CSR arrays; D (N, r, 3, 3); system (N, 3r, 3r), rhs (N, 3r) zeroed.
+    """
+    N, S, r = M.shape[0], M.shape[1], D.shape[1]
+    K = np.empty((S, 3, 3))
+    T = np.empty((3, 3))
+    for n in range(N):
+        for v in range(S):
+            a, b, c = M[n, v, 0, 0], M[n, v, 0, 1], M[n, v, 0, 2]
+            d, e, f = M[n, v, 1, 0], M[n, v, 1, 1], M[n, v, 1, 2]
+            g, h, i = M[n, v, 2, 0], M[n, v, 2, 1], M[n, v, 2, 2]
+            A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+            inv = 1.0 / (a * A + b * B + c * C)
+            K[v, 0, 0], K[v, 0, 1], K[v, 0, 2] = A * inv, (c * h - b * i) * inv, (b * f - c * e) * inv
+            K[v, 1, 0], K[v, 1, 1], K[v, 1, 2] = B * inv, (a * i - c * g) * inv, (c * d - a * f) * inv
+            K[v, 2, 0], K[v, 2, 1], K[v, 2, 2] = C * inv, (b * g - a * h) * inv, (a * e - b * d) * inv
+        for j in range(r):
+            for q in range(h_indptr[j], h_indptr[j + 1]):
+                v, w = h_index[q], h_data[q]
+                for a in range(3):
+                    rhs[n, 3 * j + a] += w * (K[v, a, 0] * y[n, v, 0] + K[v, a, 1] * y[n, v, 1]
+                                              + K[v, a, 2] * y[n, v, 2])
+            for k in range(r):
+                T[:] = 0.0
+                row = j * r + k
+                for q in range(p_indptr[row], p_indptr[row + 1]):
+                    v, w = p_index[q], p_data[q]
+                    for a in range(3):
+                        for c in range(3):
+                            T[a, c] += w * K[v, a, c]
+                for a in range(3):
+                    for b in range(3):
+                        system[n, 3 * j + a, 3 * k + b] = (T[a, 0] * D[n, k, 0, b] + T[a, 1] * D[n, k, 1, b]
+                                                           + T[a, 2] * D[n, k, 2, b]
+                                                           + (1.0 if j == k and a == b else 0.0))
+    return 0
+
+
+@_kernel
 def _residuals_kernel(Q, t, y, indptr, param, weight, n_sample, mean_s, ji, jp, jr_indptr, jr_vertex, jr_coef,
                       joint_weight, rs, C, heads, x, Minv):
     """Per body n: the sample residual before projection rs[n] (3 n_s), joint residuals C[n]
@@ -1094,16 +1139,17 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
         Hd = Hr[:, support].toarray()                                             # (r, S)
         Wa = np.asarray(W[support] @ ancestor_of)                                 # (S, r)
         M, _ = _blend(W[support].tocsr(), A, np.zeros((N, B, 3)))                 # (N, S, 3, 3)
-        K = np.linalg.inv(M)
-        # T[n, j, k] = sum_v Hd[j, v] Wa[v, k] K[n, v]: one (r*r, S) @ (S, N*9) product.
-        P = (Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support))
-        T = (P @ K.transpose(1, 0, 2, 3).reshape(len(support), N * 9)).reshape(r, r, N, 3, 3)
-        # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
-        system = (T.transpose(2, 0, 1, 3, 4) @ D[:, None]).transpose(0, 1, 3, 2, 4).reshape(N, 3 * r, 3 * r)
-        system += np.eye(3 * r)
-        Ky = np.einsum("nvab,nvb->nva", K, y[:, support])                          # (N, S, 3)
-        rhs = np.einsum("jv,nva->nja", Hd, Ky).reshape(N, 3 * r, 1)
-        heads[:, rotated] = np.linalg.solve(system, rhs).reshape(N, r, 3)
+        # P[(j, k), v] = Hd[j, v] Wa[v, k]: 1.5 % of its entries are non-zero (a head's few
+        # regressor vertices, the bones above them), so the system is built from them alone, in
+        # one compiled pass a body (``_known_heads_system``), not from dense (r*r, S) products.
+        P = sp.csr_matrix((Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support)))
+        Hs = sp.csr_matrix(Hd)
+        system, rhs = np.empty((N, 3 * r, 3 * r)), np.zeros((N, 3 * r))
+        _known_heads_system(np.ascontiguousarray(M), np.ascontiguousarray(y[:, support]),
+                            P.indptr.astype(np.int64), P.indices.astype(np.int64), P.data,
+                            Hs.indptr.astype(np.int64), Hs.indices.astype(np.int64), Hs.data,
+                            np.ascontiguousarray(D), system, rhs)
+        heads[:, rotated] = np.linalg.solve(system, rhs[..., None]).reshape(N, r, 3)
     G = forward_kinematics(R, heads, parents)
     rest = np.empty_like(y)
     if np.isin(rotated, plan.solved).all():
