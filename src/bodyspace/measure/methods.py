@@ -269,7 +269,7 @@ def part_top(m: dict, chunk: Chunk) -> tuple:
     """Height (N,) of the highest vertex of ``m["part"]`` (world +Y) over the body's lowest vertex:
     stature as the top of the head, whichever vertex is highest (a tilted head has a stature)."""
     v = chunk.vertices
-    floor = v[:, :, 1].min(axis=1)
+    floor = floor_height(chunk)
     if chunk.parts is None:
         on = np.arange(v.shape[1])
     else:
@@ -286,6 +286,14 @@ def part_top(m: dict, chunk: Chunk) -> tuple:
         q[:, 1] = floor
         poly = [np.stack([a, b]) for a, b in zip(p, q)]
     return val, poly, None
+
+
+def floor_height(chunk: Chunk) -> np.ndarray:
+    """The lowest vertex's height (N,) of each body, once a chunk (stature and the lengths to the
+    floor each read it: a strided pass over all the vertices)."""
+    if "floor" not in chunk.cache:
+        chunk.cache["floor"] = chunk.vertices[:, :, 1].min(axis=1)
+    return chunk.cache["floor"]
 
 
 def _part_names(part) -> list:
@@ -315,7 +323,7 @@ def distance(m: dict, chunk: Chunk) -> tuple:
     a = point(m["from"], lm)
     if m["to"] == "floor":
         b = a.copy()
-        b[:, 1] = chunk.vertices[:, :, 1].min(axis=1)
+        b[:, 1] = floor_height(chunk)
     else:
         b = point(m["to"], lm)
     if m.get("axis") is None:
