@@ -352,11 +352,10 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
                 results = in_order(_measure_chunk, spans, workers if len(starts) > 1 else 1,
                                    died=f"run bodyspace measure {folder} --csv {out} again")
                 for start, (values, degrees, notes) in zip(starts, results):
-                    for i in range(len(values)):
-                        row = start + i
-                        writer.writerow([row, db.scans["subject"][row], db.scans["pose"][row]]
-                                        + ([] if degrees is None else [_cell(degrees[i], 1)])
-                                        + [_cell(v, 4) for v in values[i]] + [notes[i]])
+                    stop = start + len(values)
+                    subjects, poses = db.scans["subject"][start:stop].tolist(), db.scans["pose"][start:stop].tolist()
+                    for i, cells in enumerate(_cells(values, degrees)):
+                        writer.writerow([start + i, subjects[i], poses[i]] + cells + [notes[i]])
                     measured += len(values)
                     undefined += int(np.isnan(values).any(axis=1).sum())
                     cb(f"{measured}/{n} scans", measured / n)
@@ -388,8 +387,15 @@ def _scan_demographics(db: ScanDatabase) -> tuple[np.ndarray | None, np.ndarray 
     return ages, males
 
 
-def _cell(value: float, digits: int) -> str:
-    return "" if not np.isfinite(value) else f"{value:.{digits}f}"
+def _cells(values: np.ndarray, degrees: np.ndarray | None) -> list[list[str]]:
+    """The number cells of a chunk's CSV rows: the unposed angle (n,) to 0.1 degree (if any) and
+    the values (n, M) to 4 decimals, empty where not finite. One C-level format a row (a Python
+    f-string a cell cost the parent 0.1 ms a scan, 5 % of the command)."""
+    table = values if degrees is None else np.column_stack([degrees, values])
+    table = np.where(np.isfinite(table), table, np.nan)          # inf too: empty, not "inf"
+    fmt = ",".join((["%.1f"] if degrees is not None else []) + ["%.4f"] * values.shape[1])
+    # "%f" writes a NaN as "nan" (never signed), and no other cell holds those letters.
+    return [(fmt % tuple(row)).replace("nan", "").split(",") for row in table.tolist()]
 
 
 def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
@@ -413,7 +419,9 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
             rest, _, info = unpose_known(v[todo], rig, np.asarray(db.rotations[start:stop])[todo],
                                          mesh_name=f"scans {start}..{stop - 1}")
             ok = info.shape_distance_m <= KNOWN_POSE_TOLERANCE
-            v[todo[ok]], degrees[todo[ok]] = rest[ok], info.largest_rotation_deg[ok]
+            # One copy of the rest bodies where all are explained (the usual case), not two.
+            v[todo[ok]] = rest if ok.all() else rest[ok]
+            degrees[todo[ok]] = info.largest_rotation_deg[ok]
             todo = todo[~ok]
         try:
             if todo.size:
