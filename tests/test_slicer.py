@@ -153,3 +153,23 @@ def test_hull_of_degenerate_points():
         h = xy[hull[:m]]
         per = np.linalg.norm(h - np.roll(h, -1, axis=0), axis=1).sum() if m > 1 else 0.0
         assert per == pytest.approx(hull_perimeter(xy)[0], abs=1e-12), xy
+
+
+def test_unpose_known_in_place_and_per_body_heads(template, bodies):
+    """The chunk's bodies turn different bones (standing ones none): each solves its own turned
+    bones' heads; in place gives the same rest bodies, and a non-float64 array is refused."""
+    from bodyspace.errors import ParameterError
+    from bodyspace.rig.unpose import unpose_known
+
+    rig = template.rigs["default"]
+    R = np.concatenate([load_pose_library().stack(list(POSES), rig)] * 3)
+    rest, _, info = unpose_known(bodies, rig, R)
+    assert (info.shape_distance_m < 1e-5).all()
+    standing = bodies[::len(POSES)]                                        # pose "rest" of each phenotype
+    for k in range(len(POSES)):
+        np.testing.assert_allclose(rest[k::len(POSES)], standing, atol=1e-6)
+    work = bodies.copy()
+    again = unpose_known(work, rig, R, in_place=True)[0]
+    assert again is work and np.abs(again - rest).max() == 0.0
+    with pytest.raises(ParameterError, match="in_place"):
+        unpose_known(bodies.astype(np.float32), rig, R, in_place=True)

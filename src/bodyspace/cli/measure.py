@@ -417,7 +417,7 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
             # inverse skinning with them is exact and ~15x cheaper than estimating the pose. A scan
             # they do not explain (its rest body off the rest-shape space) is fitted below.
             rest, _, info = unpose_known(v[todo], rig, np.asarray(db.rotations[start:stop])[todo],
-                                         mesh_name=f"scans {start}..{stop - 1}")
+                                         mesh_name=f"scans {start}..{stop - 1}", in_place=True)
             ok = info.shape_distance_m <= KNOWN_POSE_TOLERANCE
             # One copy of the rest bodies where all are explained (the usual case), not two.
             v[todo[ok]] = rest if ok.all() else rest[ok]

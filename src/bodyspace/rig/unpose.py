@@ -1130,7 +1130,7 @@ def _below(parents: np.ndarray) -> np.ndarray:
 
 
 def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior: RestShapePrior | None = None,
-                 mesh_name: str = "vertices"):
+                 mesh_name: str = "vertices", in_place: bool = False):
     """Inverse linear blend skinning with a *known* pose: the rest bodies of posed bodies whose
     bone rotations were recorded (a scan database written by ``bodyspace population`` keeps
     them), without ``unpose``'s fit; about a millisecond a body against tens.
@@ -1143,6 +1143,8 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
     ``info.shape_distance_m`` (RMS distance of each rest body from the rest-shape space, as in
     ``unpose``) against ``KNOWN_POSE_TOLERANCE``: above it the recorded pose does not explain
     the mesh (another skinning, edited vertices) and ``unpose`` should estimate the pose instead.
+    ``in_place``: ``vertices`` (a C-contiguous float64 array) is overwritten by the rest bodies and
+    returned as ``rest`` (no second (N, V, 3) array: a chunk of 128 scans is 41 MB of fresh pages).
 
     The rest body x is unknown, and the bones' transforms depend on it through the rest heads
     h = H x (``rig.head_regressor``). With the rotations fixed, FK is affine in the heads: bone b's
@@ -1157,6 +1159,10 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
     rows sum to one), so ``place_on_ground``'s offset needs no undoing.
     """
     y = np.ascontiguousarray(np.asarray(vertices, dtype=float))
+    if in_place and y is not vertices:
+        raise ParameterError(f"{mesh_name}: in_place needs a C-contiguous float64 array, got "
+                             f"{np.asarray(vertices).dtype} {'' if np.asarray(vertices).flags.c_contiguous else 'non-'}"
+                             "contiguous; pass such an array or in_place=False")
     V, B = rig.weights.shape
     if y.ndim != 3 or y.shape[1:] != (V, 3):
         raise MeshError(f"{mesh_name}: shape {np.shape(vertices)}, but rig {rig.name!r} skins meshes of {V} "
@@ -1205,7 +1211,8 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
                      np.ascontiguousarray(D), turned, solved_heads)
         heads[:, rotated] = solved_heads
     G = forward_kinematics(R, heads, parents)
-    rest = np.empty_like(y)
+    # In place is safe: each vertex's posed point is read before its rest point is written.
+    rest = y if in_place else np.empty_like(y)
     if np.isin(rotated, plan.solved).all():
         # Every turned bone is solved (as in the pose library): the others move exactly with their
         # nearest solved ancestor, so the weights collapsed onto the solved bones (31 % fewer
