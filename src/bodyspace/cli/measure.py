@@ -403,26 +403,34 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
     unposed angle (n,) or None, and each scan's note ('' when every value is defined)."""
     db, mset, rig = _DB_JOB["db"], _DB_JOB["mset"], _DB_JOB["rig"]
     rows = np.arange(start, stop)
+    posed = np.ones(len(rows), dtype=bool)
+    if rig is not None and db.rotations is not None:
+        posed = np.abs(np.asarray(db.rotations[start:stop])).max(axis=(1, 2)) > 0
+    known = rig is not None and _DB_JOB["known_pose"]
+    # With the recorded rotations the posed scans are read first (rows ``order``), so they are
+    # unposed in place as one block: no (n, V, 3) gather of them and scatter back (two copies
+    # of ~33 MB a chunk). The results are put back in scan order at the end.
+    order = np.r_[np.flatnonzero(posed), np.flatnonzero(~posed)] if known else np.arange(len(rows))
+    rows = rows[order]
+    posed = posed[order]
     v = db.read(rows)
     notes = [[] for _ in rows]
     degrees = None
     if rig is not None:
         degrees = np.zeros(len(rows))
-        posed = np.ones(len(rows), dtype=bool)
-        if db.rotations is not None:
-            posed = np.abs(np.asarray(db.rotations[start:stop])).max(axis=(1, 2)) > 0
         todo = np.flatnonzero(posed)
-        if todo.size and _DB_JOB["known_pose"]:
+        if todo.size and known:
             # The database recorded the rotations that posed each scan (bodyspace population):
-            # inverse skinning with them is exact and ~15x cheaper than estimating the pose. A scan
+            # inverse skinning with them is exact and ~30x cheaper than estimating the pose. A scan
             # they do not explain (its rest body off the rest-shape space) is fitted below.
-            rest, _, info = unpose_known(v[todo], rig, np.asarray(db.rotations[start:stop])[todo],
-                                         mesh_name=f"scans {start}..{stop - 1}", in_place=True)
+            k = todo.size                                                      # todo == arange(k)
+            _, _, info = unpose_known(v[:k], rig, np.asarray(db.rotations)[rows[:k]],
+                                      mesh_name=f"scans {start}..{stop - 1}", in_place=True)
             ok = info.shape_distance_m <= KNOWN_POSE_TOLERANCE
-            # One copy of the rest bodies where all are explained (the usual case), not two.
-            v[todo[ok]] = rest if ok.all() else rest[ok]
-            degrees[todo[ok]] = info.largest_rotation_deg[ok]
+            degrees[:k][ok] = info.largest_rotation_deg[ok]
             todo = todo[~ok]
+            if todo.size:                                   # unposed in place: read them again
+                v[todo] = db.read(rows[todo])
         try:
             if todo.size:
                 rest, _, info = unpose(v[todo], rig, mesh_name=f"scans {start}..{stop - 1}")
@@ -436,8 +444,8 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
                     degrees[i] = np.nan
                     continue
                 v[i], degrees[i] = rest, float(info.largest_rotation_deg)
-    ages = None if _DB_JOB["ages"] is None else _DB_JOB["ages"][start:stop]
-    males = None if _DB_JOB["males"] is None else _DB_JOB["males"][start:stop]
+    ages = None if _DB_JOB["ages"] is None else _DB_JOB["ages"][rows]
+    males = None if _DB_JOB["males"] is None else _DB_JOB["males"][rows]
     values = np.empty((len(rows), len(mset.names)))
     # One evaluate for the chunk: the mass method takes one sex and one age per body.
     # The chunk in one piece (evaluate's own chunks would halve it: its per-chunk Python is a
@@ -449,4 +457,6 @@ def _measure_chunk(start: int, stop: int) -> tuple[np.ndarray, np.ndarray | None
         for i, why in enumerate(m.note or []):
             if why and not np.isfinite(values[i, j]):
                 notes[i].append(f"{m.name}: {why}")
-    return values, degrees, ["; ".join(dict.fromkeys(n)) for n in notes]
+    back = np.argsort(order)                                                   # scan order again
+    return (values[back], None if degrees is None else degrees[back],
+            ["; ".join(dict.fromkeys(notes[i])) for i in back])

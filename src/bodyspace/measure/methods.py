@@ -165,8 +165,10 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     """Convex-hull girth of the contour of the plane through ``at`` with normal ``normal``; with a
     ``band``, the max or min over planes along a segment (so it follows a limb).
 
-    The chunk's float32 coordinate planes and the approximate vertex heights per normal axis
-    are cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
+    A girth round a body part (``part``, with the chunk's part labels) runs compiled, one pass a
+    body (``slicing.part_girths``); drawn polylines and sets without parts take the numpy path
+    below, whose float32 coordinate planes and approximate vertex heights per normal axis are
+    cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
     """
     v, lm, geo, n = chunk.vertices, chunk.landmarks, chunk.topology, chunk.n
     normal = axis(m["normal"], lm, n)
