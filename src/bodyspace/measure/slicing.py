@@ -24,6 +24,10 @@ crosses from its ends' ranks among the sorted plane offsets, and links the two c
 triangle through the face's third vertex instead of a sort. The points, their order within a
 group, the segments and the contours are the same as ``slice_band``'s, so every value is too.
 
+``part_girths`` is the compiled path of a girth round one body part (``part_sections``, then
+the band's choice by ``support_perimeters`` and the hull of ``contour_girths``): one pass a body,
+the same arithmetic, no Python per plane.
+
 Arrays: vertices (N, V, 3), faces (F, 3), plane origins and normals (N, 3).
 """
 
