@@ -173,3 +173,19 @@ def test_unpose_known_in_place_and_per_body_heads(template, bodies):
     assert again is work and np.abs(again - rest).max() == 0.0
     with pytest.raises(ParameterError, match="in_place"):
         unpose_known(bodies.astype(np.float32), rig, R, in_place=True)
+
+
+def test_read_rows_into_a_kept_array(tmp_path):
+    """``measure DB`` reads each chunk into arrays it keeps: the same rows as a fresh read; an
+    array of another shape or dtype is refused with both named."""
+    from bodyspace.errors import DatabaseError
+    from bodyspace.rowfile import read_rows
+
+    data = np.arange(5 * 4 * 3, dtype=np.float32).reshape(5, 4, 3)
+    path = tmp_path / "rows.npy"
+    np.save(path, data)
+    keep = np.empty((3, 4, 3), np.float32)
+    got = read_rows(path, 1, 4, out=keep)
+    assert got is keep and np.array_equal(got, data[1:4])
+    with pytest.raises(DatabaseError, match=r"\(2, 4, 3\) float32.*\(3, 4, 3\) float64"):
+        read_rows(path, 3, 5, out=np.empty((3, 4, 3)))
