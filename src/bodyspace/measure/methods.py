@@ -279,10 +279,10 @@ def part_top(m: dict, chunk: Chunk) -> tuple:
     if not len(on):
         return np.full(len(v), np.nan), None, [f"no vertex is on the {m['part']} part"] * len(v)
     y = v[:, on, 1]
-    top = on[np.argmax(y, axis=1)]
     val = y.max(axis=1) - floor
     poly = None
-    if chunk.keep_polylines:
+    if chunk.keep_polylines:                 # which vertex is highest: only the drawing needs it
+        top = on[np.argmax(y, axis=1)]
         p = v[np.arange(len(v)), top]
         q = p.copy()
         q[:, 1] = floor
