@@ -71,13 +71,20 @@ def write_rows(path: str | os.PathLike, start: int, rows: np.ndarray, sync: bool
         os.close(fd)
 
 
-def read_rows(path: str | os.PathLike, start: int, stop: int, layout=None) -> np.ndarray:
+def read_rows(path: str | os.PathLike, start: int, stop: int, layout=None, out: np.ndarray | None = None) -> np.ndarray:
     """Rows ``start`` .. ``stop`` of the .npy file ``path`` as a new array (its dtype), read with
-    ``pread`` (nothing stays mapped). ``layout``: ``npy_layout(path)`` if already known."""
+    ``pread`` (nothing stays mapped). ``layout``: ``npy_layout(path)`` if already known. ``out``:
+    a C-contiguous array of those rows' shape and the file's dtype to read into instead (a caller
+    reading chunk after chunk keeps one: fresh pages cost more than the copy)."""
     shape, dtype, offset = layout or npy_layout(path)
     stop = min(stop, shape[0])
     row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
-    out = np.empty((max(0, stop - start),) + tuple(shape[1:]), dtype=dtype)
+    want = (max(0, stop - start),) + tuple(shape[1:])
+    if out is None:
+        out = np.empty(want, dtype=dtype)
+    elif out.shape != want or out.dtype != dtype or not out.flags.c_contiguous:
+        raise DatabaseError(f"{path}: rows {start}..{stop} are {want} {dtype}; the array to read them into is "
+                            f"{out.shape} {out.dtype}{'' if out.flags.c_contiguous else ' (not contiguous)'}")
     buffer = memoryview(out.reshape(-1).view(np.uint8))
     fd = os.open(path, os.O_RDONLY)
     try:

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from bodyspace.errors import MeasurementError
@@ -183,10 +184,37 @@ class Conventions:
 def body_extent(vertices: np.ndarray) -> np.ndarray:
     """The largest side of the bounding box (...,) of bodies (..., V, 3), in their units."""
     v = np.asarray(vertices, dtype=float)
+    if v.ndim == 3 and v.shape[-1] == 3 and v.shape[1] > 0:
+        # A batch: one compiled pass a body (six strided numpy reductions cost 4x more).
+        out = np.empty(len(v))
+        _extent_kernel(np.ascontiguousarray(v), out)
+        return out
     # Per coordinate: numpy reduces an (..., V, 3) array over V 15-20x slower than each
     # coordinate's strided (..., V) view (1 ms against 60 us a body).
     with np.errstate(over="ignore", invalid="ignore"):
         return np.max([v[..., k].max(axis=-1) - v[..., k].min(axis=-1) for k in range(3)], axis=0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _extent_kernel(v, out):
+    """``body_extent`` of bodies (N, V, 3) into out (N,): NaN where a coordinate is NaN (as numpy's
+    max and min propagate it), inf - inf is NaN too."""
+    for n in range(v.shape[0]):
+        lo0, lo1, lo2 = v[n, 0, 0], v[n, 0, 1], v[n, 0, 2]
+        hi0, hi1, hi2 = lo0, lo1, lo2
+        nan = False
+        for i in range(v.shape[1]):
+            x, y, z = v[n, i, 0], v[n, i, 1], v[n, i, 2]
+            if x != x or y != y or z != z:
+                nan = True
+            lo0, hi0 = min(lo0, x), max(hi0, x)
+            lo1, hi1 = min(lo1, y), max(hi1, y)
+            lo2, hi2 = min(lo2, z), max(hi2, z)
+        d0, d1, d2 = hi0 - lo0, hi1 - lo1, hi2 - lo2
+        if nan or d0 != d0 or d1 != d1 or d2 != d2:
+            out[n] = np.nan
+        else:
+            out[n] = max(d0, max(d1, d2))
 
 
 def plausible_units(extent: float, size: float | None = None) -> tuple[str, ...]:

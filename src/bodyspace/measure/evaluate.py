@@ -2,9 +2,11 @@
 
 Everything but the slices is one vectorized expression over the batch (landmarks are a sparse
 (L, V) product, loops/distances/paths are sums of segment lengths, volume and area are the
-mesh/geometry sums). Slices are batched too (``slicing.band_contours`` cuts all bodies and all
-planes of a band at once; ``slicing.hull_perimeters`` takes all the hulls at once, Qhull only
-for degenerate contours or drawn polylines). Bodies are processed in chunks to bound the memory.
+mesh/geometry sums). A girth round a body part (every girth of the default set) is one compiled
+pass a body (``slicing.part_girths``: crossings, hulls and the band's choice); the other slices
+are batched numpy (``slicing.band_contours`` cuts all bodies and all planes of a band at once;
+``slicing.hull_perimeters`` takes all the hulls at once, Qhull only for degenerate contours or
+drawn polylines). Bodies are processed in chunks to bound the memory.
 
 Values are SI inside (metres, kilograms, m³); ``Measurement.display`` converts lengths to cm
 for people (the CLI and JSON).

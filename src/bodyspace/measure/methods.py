@@ -34,11 +34,17 @@ from bodyspace.measure.composition import mass_from_volume
 from bodyspace.measure.parts import PART_INDEX, PARTS
 from bodyspace.measure.points import axis, check_axis, check_point, fail, inline_points, point
 from bodyspace.measure.slicing import (
+    MODE_MAX,
+    MODE_MIN,
+    MODE_ONE,
+    PartMesh,
     approx_heights,
     band_contours,
     contour_girths,
     edge_neighbours,
     mesh_edges,
+    part_girths,
+    part_mesh,
     part_sections,
     pick_contours,
     support_perimeters,
@@ -81,6 +87,14 @@ class Topology:
             self._part_edges[key] = (self.edges[keep], ~inside)
             if len(self._part_edges) > 64:
                 self._part_edges.pop(next(iter(self._part_edges)))
+        return self._part_edges[key]
+
+    def part_mesh(self, labels: np.ndarray, part) -> PartMesh:
+        """``part_edges`` as ``slicing.part_girths`` takes them (``slicing.PartMesh``), cached."""
+        names = (part,) if isinstance(part, str) else tuple(part)
+        key = ("mesh", hash(labels.tobytes()), names)
+        if key not in self._part_edges:
+            self._part_edges[key] = part_mesh(*self.part_edges(labels, part))
         return self._part_edges[key]
 
 
@@ -151,18 +165,13 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     """Convex-hull girth of the contour of the plane through ``at`` with normal ``normal``; with a
     ``band``, the max or min over planes along a segment (so it follows a limb).
 
-    The chunk's float32 coordinate planes and the approximate vertex heights per normal axis
-    are cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
+    A girth round a body part (``part``, with the chunk's part labels) runs compiled, one pass a
+    body (``slicing.part_girths``); drawn polylines and sets without parts take the numpy path
+    below, whose float32 coordinate planes and approximate vertex heights per normal axis are
+    cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
     """
     v, lm, geo, n = chunk.vertices, chunk.landmarks, chunk.topology, chunk.n
-    heights = chunk.cache.setdefault("heights", {})
     normal = axis(m["normal"], lm, n)
-    key = repr(m["normal"])
-    if key not in heights:
-        if "planes" not in heights:
-            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
-            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
-        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
     band = m.get("band")
     if band is None:
         origins = [point(m["at"], lm)]
@@ -176,6 +185,18 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     normals = np.tile(normal, (n_planes, 1))
     part = m.get("part")
     notes = None
+    if part is not None and chunk.parts is not None and not chunk.keep_polylines:
+        # The compiled slicer: the same planes, crossings, choice and hull as below, one pass a body.
+        mode = MODE_ONE if band is None else (MODE_MAX if band["mode"] == "max" else MODE_MIN)
+        girth, _, missed = part_girths(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal, mode)
+        return girth, None, _missed_notes(part, missed)
+    heights = chunk.cache.setdefault("heights", {})
+    key = repr(m["normal"])
+    if key not in heights:
+        if "planes" not in heights:
+            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
+        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
     if part is not None and chunk.parts is not None:
         # The tape round one body part: only the part's edges are cut, and all its crossings
         # in a plane are the contour (``slicing.part_sections``).
@@ -186,11 +207,7 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         # joint): its girth is too small, so a "min" band must not choose it while a plane
         # that goes round the whole part exists.
         opened = np.bincount(cuts.body[border[edge]], minlength=n_planes * n) > 0
-        missed = (chosen < 0).reshape(n_planes, n).all(axis=0)
-        if missed.any():
-            what = part if isinstance(part, str) else " or ".join(part)
-            notes = [f"no plane of this girth crosses the {what.replace('_', ' ')} (its landmarks are off that "
-                     "part, or the part labels do not fit this mesh)" if x else None for x in missed]
+        notes = _missed_notes(part, (chosen < 0).reshape(n_planes, n).all(axis=0))
     else:
         cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
                              heights=heights[key], neighbours=geo.neighbours)
@@ -219,6 +236,15 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), notes
 
 
+def _missed_notes(part, missed: np.ndarray) -> list | None:
+    """The note of each body (N,) whose girth planes all miss ``part`` (``missed`` (N,) bool)."""
+    if not missed.any():
+        return None
+    what = part if isinstance(part, str) else " or ".join(part)
+    return [f"no plane of this girth crosses the {what.replace('_', ' ')} (its landmarks are off that "
+            "part, or the part labels do not fit this mesh)" if x else None for x in missed]
+
+
 def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
     check_axis(where + " field 'normal'", m.get("normal"), landmarks)
     band = m.get("band")
@@ -245,7 +271,7 @@ def part_top(m: dict, chunk: Chunk) -> tuple:
     """Height (N,) of the highest vertex of ``m["part"]`` (world +Y) over the body's lowest vertex:
     stature as the top of the head, whichever vertex is highest (a tilted head has a stature)."""
     v = chunk.vertices
-    floor = v[:, :, 1].min(axis=1)
+    floor = floor_height(chunk)
     if chunk.parts is None:
         on = np.arange(v.shape[1])
     else:
@@ -253,15 +279,23 @@ def part_top(m: dict, chunk: Chunk) -> tuple:
     if not len(on):
         return np.full(len(v), np.nan), None, [f"no vertex is on the {m['part']} part"] * len(v)
     y = v[:, on, 1]
-    top = on[np.argmax(y, axis=1)]
     val = y.max(axis=1) - floor
     poly = None
-    if chunk.keep_polylines:
+    if chunk.keep_polylines:                 # which vertex is highest: only the drawing needs it
+        top = on[np.argmax(y, axis=1)]
         p = v[np.arange(len(v)), top]
         q = p.copy()
         q[:, 1] = floor
         poly = [np.stack([a, b]) for a, b in zip(p, q)]
     return val, poly, None
+
+
+def floor_height(chunk: Chunk) -> np.ndarray:
+    """The lowest vertex's height (N,) of each body, once a chunk (stature and the lengths to the
+    floor each read it: a strided pass over all the vertices)."""
+    if "floor" not in chunk.cache:
+        chunk.cache["floor"] = chunk.vertices[:, :, 1].min(axis=1)
+    return chunk.cache["floor"]
 
 
 def _part_names(part) -> list:
@@ -291,7 +325,7 @@ def distance(m: dict, chunk: Chunk) -> tuple:
     a = point(m["from"], lm)
     if m["to"] == "floor":
         b = a.copy()
-        b[:, 1] = chunk.vertices[:, :, 1].min(axis=1)
+        b[:, 1] = floor_height(chunk)
     else:
         b = point(m["to"], lm)
     if m.get("axis") is None:

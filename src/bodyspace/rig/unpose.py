@@ -516,6 +516,101 @@ def _unpose_all(Q, t, y, indptr, param, weight, dominant, min_det, out):
     return folded
 
 
+@numba.njit(cache=True, nogil=True)
+def _translate(x, shift):
+    """x[n, v] += shift[n] for x (N, V, 3), shift (N, 3): numpy's broadcast add runs an inner
+    loop of three elements per vertex (8x slower)."""
+    for n in range(x.shape[0]):
+        s0, s1, s2 = shift[n, 0], shift[n, 1], shift[n, 2]
+        for v in range(x.shape[1]):
+            x[n, v, 0] += s0
+            x[n, v, 1] += s1
+            x[n, v, 2] += s2
+
+
+@_kernel
+def _known_heads(M, y, p_indptr, p_index, p_data, h_indptr, h_index, h_data, D, turned, heads):
+    """``unpose_known``'s rest heads of the turned bones, per body n: the linear system
+    h_j + sum_k T[j, k] D[n, k] h_k = sum_v Hd[j, v] K_v y[n, v] over the bones j, k that body n
+    turns (``turned[n]``), with T[j, k] = sum_v P[(j, k), v] K_v and K_v = M[n, v]^-1 (adjugate),
+    solved by Gaussian elimination with partial pivoting into heads[n, j] (the rest stay 0).
+
+    M (N, S, 3, 3) blended rotations and y (N, S, 3) posed points of the regressor's vertices; P
+    (r*r, S) and Hd (r, S) as CSR arrays; D (N, r, 3, 3); turned (N, r) bool; heads (N, r, 3).
+    """
+    N, S, r = M.shape[0], M.shape[1], D.shape[1]
+    K = np.empty((S, 3, 3))
+    T = np.empty((3, 3))
+    idx = np.empty(r, dtype=np.int64)
+    system = np.empty((3 * r, 3 * r))
+    rhs = np.empty(3 * r)
+    for n in range(N):
+        m = 0
+        for k in range(r):
+            if turned[n, k]:
+                idx[m] = k
+                m += 1
+        if m == 0:
+            continue
+        for v in range(S):
+            a, b, c = M[n, v, 0, 0], M[n, v, 0, 1], M[n, v, 0, 2]
+            d, e, f = M[n, v, 1, 0], M[n, v, 1, 1], M[n, v, 1, 2]
+            g, h, i = M[n, v, 2, 0], M[n, v, 2, 1], M[n, v, 2, 2]
+            A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+            inv = 1.0 / (a * A + b * B + c * C)
+            K[v, 0, 0], K[v, 0, 1], K[v, 0, 2] = A * inv, (c * h - b * i) * inv, (b * f - c * e) * inv
+            K[v, 1, 0], K[v, 1, 1], K[v, 1, 2] = B * inv, (a * i - c * g) * inv, (c * d - a * f) * inv
+            K[v, 2, 0], K[v, 2, 1], K[v, 2, 2] = C * inv, (b * g - a * h) * inv, (a * e - b * d) * inv
+        for jj in range(m):
+            j = idx[jj]
+            for a in range(3):
+                rhs[3 * jj + a] = 0.0
+            for q in range(h_indptr[j], h_indptr[j + 1]):
+                v, w = h_index[q], h_data[q]
+                for a in range(3):
+                    rhs[3 * jj + a] += w * (K[v, a, 0] * y[n, v, 0] + K[v, a, 1] * y[n, v, 1]
+                                            + K[v, a, 2] * y[n, v, 2])
+            for kk in range(m):
+                k = idx[kk]
+                T[:] = 0.0
+                row = j * r + k
+                for q in range(p_indptr[row], p_indptr[row + 1]):
+                    v, w = p_index[q], p_data[q]
+                    for a in range(3):
+                        for c in range(3):
+                            T[a, c] += w * K[v, a, c]
+                for a in range(3):
+                    for b in range(3):
+                        system[3 * jj + a, 3 * kk + b] = (T[a, 0] * D[n, k, 0, b] + T[a, 1] * D[n, k, 1, b]
+                                                          + T[a, 2] * D[n, k, 2, b]
+                                                          + (1.0 if jj == kk and a == b else 0.0))
+        size = 3 * m
+        for col in range(size):                          # elimination, partial pivoting
+            piv = col
+            for row in range(col + 1, size):
+                if abs(system[row, col]) > abs(system[piv, col]):
+                    piv = row
+            if piv != col:
+                for c in range(col, size):
+                    system[col, c], system[piv, c] = system[piv, c], system[col, c]
+                rhs[col], rhs[piv] = rhs[piv], rhs[col]
+            for row in range(col + 1, size):
+                f = system[row, col] / system[col, col]
+                if f != 0.0:
+                    for c in range(col + 1, size):
+                        system[row, c] -= f * system[col, c]
+                    rhs[row] -= f * rhs[col]
+        for row in range(size - 1, -1, -1):             # back substitution
+            s = rhs[row]
+            for c in range(row + 1, size):
+                s -= system[row, c] * rhs[c]
+            rhs[row] = s / system[row, row]
+        for jj in range(m):
+            for a in range(3):
+                heads[n, idx[jj], a] = rhs[3 * jj + a]
+    return 0
+
+
 @_kernel
 def _residuals_kernel(Q, t, y, indptr, param, weight, n_sample, mean_s, ji, jp, jr_indptr, jr_vertex, jr_coef,
                       joint_weight, rs, C, heads, x, Minv):
@@ -1035,7 +1130,7 @@ def _below(parents: np.ndarray) -> np.ndarray:
 
 
 def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior: RestShapePrior | None = None,
-                 mesh_name: str = "vertices"):
+                 mesh_name: str = "vertices", in_place: bool = False):
     """Inverse linear blend skinning with a *known* pose: the rest bodies of posed bodies whose
     bone rotations were recorded (a scan database written by ``bodyspace population`` keeps
     them), without ``unpose``'s fit; about a millisecond a body against tens.
@@ -1048,6 +1143,8 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
     ``info.shape_distance_m`` (RMS distance of each rest body from the rest-shape space, as in
     ``unpose``) against ``KNOWN_POSE_TOLERANCE``: above it the recorded pose does not explain
     the mesh (another skinning, edited vertices) and ``unpose`` should estimate the pose instead.
+    ``in_place``: ``vertices`` (a C-contiguous float64 array) is overwritten by the rest bodies and
+    returned as ``rest`` (no second (N, V, 3) array: a chunk of 128 scans is 41 MB of fresh pages).
 
     The rest body x is unknown, and the bones' transforms depend on it through the rest heads
     h = H x (``rig.head_regressor``). With the rotations fixed, FK is affine in the heads: bone b's
@@ -1062,6 +1159,10 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
     rows sum to one), so ``place_on_ground``'s offset needs no undoing.
     """
     y = np.ascontiguousarray(np.asarray(vertices, dtype=float))
+    if in_place and y is not vertices:
+        raise ParameterError(f"{mesh_name}: in_place needs a C-contiguous float64 array, got "
+                             f"{np.asarray(vertices).dtype} {'' if np.asarray(vertices).flags.c_contiguous else 'non-'}"
+                             "contiguous; pass such an array or in_place=False")
     V, B = rig.weights.shape
     if y.ndim != 3 or y.shape[1:] != (V, 3):
         raise MeshError(f"{mesh_name}: shape {np.shape(vertices)}, but rig {rig.name!r} skins meshes of {V} "
@@ -1094,18 +1195,24 @@ def unpose_known(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, prior
         Hd = Hr[:, support].toarray()                                             # (r, S)
         Wa = np.asarray(W[support] @ ancestor_of)                                 # (S, r)
         M, _ = _blend(W[support].tocsr(), A, np.zeros((N, B, 3)))                 # (N, S, 3, 3)
-        K = np.linalg.inv(M)
-        # T[n, j, k] = sum_v Hd[j, v] Wa[v, k] K[n, v]: one (r*r, S) @ (S, N*9) product.
-        P = (Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support))
-        T = (P @ K.transpose(1, 0, 2, 3).reshape(len(support), N * 9)).reshape(r, r, N, 3, 3)
-        # system[n, (j, a), (k, b)] = delta + sum_c T[j, k, n, a, c] D[n, k, c, b]: batched 3x3 products.
-        system = (T.transpose(2, 0, 1, 3, 4) @ D[:, None]).transpose(0, 1, 3, 2, 4).reshape(N, 3 * r, 3 * r)
-        system += np.eye(3 * r)
-        Ky = np.einsum("nvab,nvb->nva", K, y[:, support])                          # (N, S, 3)
-        rhs = np.einsum("jv,nva->nja", Hd, Ky).reshape(N, 3 * r, 1)
-        heads[:, rotated] = np.linalg.solve(system, rhs).reshape(N, r, 3)
+        # P[(j, k), v] = Hd[j, v] Wa[v, k]: 1.5 % of its entries are non-zero (a head's few
+        # regressor vertices, the bones above them), so the system is built from them alone, in
+        # one compiled pass a body (``_known_heads_system``), not from dense (r*r, S) products.
+        P = sp.csr_matrix((Hd[:, None, :] * Wa.T[None, :, :]).reshape(r * r, len(support)))
+        Hs = sp.csr_matrix(Hd)
+        # A bone body n does not turn (R = I) has D = 0 and its head moves nothing (T(h) I T(-h)
+        # is the identity), so each body solves for the heads of its own turned bones only (6 of
+        # the chunk's 22 on average for the pose library): a (3 r_n)^2 system, not (3 r)^2.
+        turned = (np.abs(R[:, rotated] - np.eye(3)) > 0).any(axis=(2, 3))        # (N, r)
+        solved_heads = np.zeros((N, r, 3))
+        _known_heads(np.ascontiguousarray(M), np.ascontiguousarray(y[:, support]),
+                     P.indptr.astype(np.int64), P.indices.astype(np.int64), P.data,
+                     Hs.indptr.astype(np.int64), Hs.indices.astype(np.int64), Hs.data,
+                     np.ascontiguousarray(D), turned, solved_heads)
+        heads[:, rotated] = solved_heads
     G = forward_kinematics(R, heads, parents)
-    rest = np.empty_like(y)
+    # In place is safe: each vertex's posed point is read before its rest point is written.
+    rest = y if in_place else np.empty_like(y)
     if np.isin(rotated, plan.solved).all():
         # Every turned bone is solved (as in the pose library): the others move exactly with their
         # nearest solved ancestor, so the weights collapsed onto the solved bones (31 % fewer
@@ -1165,7 +1272,7 @@ def _report_and_place(plan, rig: Rig, rest: np.ndarray, Q: np.ndarray, t: np.nda
     shift = np.zeros((N, 3))
     shift[:, [0, 2]] = posed_anchor[:, [0, 2]] - heads[anchor][:, [0, 2]]
     shift[:, 1] = -rest[..., 1].min(1)
-    rest += shift[:, None, :]
+    _translate(rest, shift)
     # pose_bodies(rest, rig, R) keeps the root head h where it is; the fit puts it at Q_0 h + t_0.
     translation = np.einsum("nij,nj->ni", Q[:, 0], heads[root]) + t[:, 0] - heads[root] - shift
     return largest, np.array(rig.bone_names, dtype=object)[worst], orientation, translation
