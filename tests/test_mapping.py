@@ -203,6 +203,8 @@ def test_evaluation_report_files(model, tmp_path):
     ev, fitted = evaluate_mapping(model, samples=600, held_out=30, rng=0, n_trees=4, n_jobs=1)
     assert tuple(ev.errors) == METHODS and ev.errors["forest"].shape == (30, 6)
     assert ev.within("forest + refinement") >= 0.96
+    assert ev.settings["exact_by_construction"] == []      # Rupprecht's six: none is affine in the coefficients
+    assert min(ev.settings["affine_residual_cm"].values()) > 0.01
     files = write_mapping_report(model, ev, tmp_path / "out")
     for f in files.values():
         assert f.exists() and f.stat().st_size > 0
@@ -320,3 +322,51 @@ def test_mapping_is_stored_in_the_model_file_and_makes_bodies(tmp_path, model):
     r = CliRunner().invoke(app, ["mapping", "shape", str(tmp_path / "bare.npz"), "--out", str(tmp_path / "c.obj"),
                                  "--set", "height=170cm"])
     assert r.exit_code == 2 and "mapping fit" in r.output
+
+
+# ------------------------------------------------------- inputs that no mapping can get wrong
+def _with_set(model, mset):
+    """A shallow copy of ``model`` that measures with ``mset`` (the fixture stays as it was)."""
+    import copy
+    other = copy.copy(model)
+    other.measurement_set = mset
+    return other
+
+
+def test_an_input_affine_in_the_coefficients_is_flagged_not_shown_as_a_perfect_error(model, mset):
+    # Without the shoulder_size loop the inputs take shoulder_width (biacromial, a straight
+    # distance between mirrored landmarks) as on another topology: affine in a vertex model's
+    # coefficients, so the linear mapping and every forest leaf return it exactly. It was shown
+    # as "+0.0000 / 0.0000" for both, read as a perfect forest (the foreign-topology audit).
+    from bodyspace.report.mapping_report import format_error, mapping_tables_markdown
+    from bodyspace.studies.mapping import evaluate_mapping, exact_by_construction_note
+    no_loop = dataclasses.replace(mset, measurements=tuple(m for m in mset.measurements
+                                                            if m["name"] != "shoulder_size"))
+    ev, _ = evaluate_mapping(_with_set(model, no_loop), samples=300, held_out=12, rng=0, n_trees=3, n_jobs=1,
+                             sweep=False)
+    assert ev.names[-1] == "shoulder_width"
+    assert ev.settings["exact_by_construction"] == ["shoulder_width"]
+    res = ev.settings["affine_residual_cm"]
+    assert res["shoulder_width"] < 1e-6 and min(r for n, r in res.items() if n != "shoulder_width") > 0.01
+    for m in ("linear", "forest"):                   # the number itself is right: 0 up to rounding
+        assert np.abs(ev.errors[m][:, -1]).max() < 1e-3
+    text = mapping_tables_markdown(ev)
+    assert "| shoulder_width * |" in text and "exact by construction (*): shoulder_width" in text
+    assert "tests neither method" in exact_by_construction_note(ev)
+    row = next(line for line in text.splitlines() if line.startswith("| shoulder_width"))
+    assert "0.0000" not in row                       # a non-zero error is never printed as 0
+    assert format_error(6.2e-6) == "+6e-06" and format_error(0.0) == "+0.0000" and format_error(-0.0297) == "-0.0297"
+
+
+def test_a_constant_or_repeated_input_is_refused(model, mset):
+    # both shoulder landmarks on one vertex: shoulder_width is 0 on every body, and every
+    # mapping would "meet" it with an error of exactly 0
+    lm = dict(mset.landmarks)
+    lm["shoulder_r"] = lm["shoulder_l"]
+    same = dataclasses.replace(mset, landmarks=lm)
+    with pytest.raises(ParameterError, match=r"'shoulder_width'.*0\.0000 cm on every one of the 40 bodies.*"
+                                             r"shoulder_l, shoulder_r.*--landmarks"):
+        make_training_set(_with_set(model, same), 40, rng=0, names=("height", "waist_size", "shoulder_width"))
+    # leg_length and crotch_height are one definition under two names
+    with pytest.raises(ParameterError, match="'leg_length'.*affine function of the other inputs.*asked twice"):
+        make_training_set(model, 40, rng=0, names=("height", "waist_size", "leg_length", "crotch_height"))

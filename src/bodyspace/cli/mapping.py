@@ -27,8 +27,13 @@ from bodyspace.mapping.gradients import RUPPRECHT_SIX, SUBSTITUTES
 from bodyspace.mapping.training import default_sizes
 from bodyspace.mesh.io import save_mesh
 from bodyspace.model import BodyModel
-from bodyspace.report.mapping_report import write_mapping_report
-from bodyspace.studies.mapping import decode_seconds, estimate_seconds, evaluate_mapping
+from bodyspace.report.mapping_report import format_error, parameter_label, write_mapping_report
+from bodyspace.studies.mapping import (
+    decode_seconds,
+    estimate_seconds,
+    evaluate_mapping,
+    exact_by_construction_note,
+)
 from bodyspace.units import UnitError, kind_of, parse_assignment
 
 MAPPING_REPORT_KIND = "mapping_report"
@@ -188,12 +193,13 @@ def mapping_evaluate(model: Path = typer.Argument(..., help="A BodyModel file (.
         table.add_column(m, justify="right")
     tabs = {m: ev.table(m) for m in ev.errors}
     for n in ev.names:
-        table.add_row(n, *(f"{tabs[m][n]['mean']:+.4f} / {tabs[m][n]['variance']:.4f}" for m in ev.errors))
+        table.add_row(parameter_label(ev, n), *(f"{format_error(tabs[m][n]['mean'])} / "
+                                                 f"{format_error(tabs[m][n]['variance'], False)}" for m in ev.errors))
     table.add_row("all within 1 mm", *(f"{100 * ev.within(m):.1f} %" for m in ev.errors))
     out_console.print(table)
-    note = inputs_note(ev.names)
-    if note:
-        console.print(note, soft_wrap=True, highlight=False)
+    for note in (exact_by_construction_note(ev), inputs_note(ev.names)):
+        if note:
+            console.print(note, soft_wrap=True, highlight=False)
     out_console.print(f"refinement: {ev.timings['refine_ms_per_request']:.2f} ms per request, "
                   f"{ev.settings['refine_iterations_mean']:.1f} iterations on average "
                   f"(max {ev.settings['refine_iterations_max']}), {ev.settings['refine_decodes']} bodies decoded; "

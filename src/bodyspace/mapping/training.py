@@ -36,6 +36,11 @@ from bodyspace.mapping.gradients import (
 from bodyspace.measure import measure
 
 CHUNK = 256
+# An input whose spread over the training bodies is below this (cm) does not vary with the body.
+CONSTANT_CM = 1e-6
+# An input that is an affine function of the coefficients to within this (rms, cm) over the
+# training set is returned exactly by every affine least-squares mapping (see ``affine_residuals``).
+AFFINE_CM = 1e-3
 # RRE bodies are decoded (~30-400 ms each): smaller chunks, so progress is reported every few seconds.
 DECODED_CHUNK = 32
 
@@ -175,5 +180,82 @@ def make_training_set(model, n: int = 10000, k: int = 25, rng=0, names=None, mse
                                  f"undefined {', '.join(bad)} (conditions such as 'upright' fail on them); expected "
                                  "a shape model whose bodies stand (build --selection rest)")
         z, x = z[ok], x[ok]
+    _refuse_degenerate(names, x, mset, kk, units)
     return TrainingSet(z, x, tuple(names), units, kk, float(sigma_range),
                        rng if isinstance(rng, (int, np.integer)) else None, lin, int((~ok).sum()))
+
+
+def _landmarks_of(definition: dict) -> list[str]:
+    """Landmark names a measurement definition reads (from/to/through), for messages."""
+    out = []
+    for key in ("from", "to", "through"):
+        v = definition.get(key)
+        for item in (v if isinstance(v, (list, tuple)) else [v]):
+            for name in (item if isinstance(item, (list, tuple)) else [item]):
+                if isinstance(name, str) and name not in ("floor",) and name not in out:
+                    out.append(name)
+    return out
+
+
+def _refuse_degenerate(names, x: np.ndarray, mset, k: int, units=None) -> None:
+    """Refuse an input that has one value on every training body (x: (N, M) cm), or, when the
+    ``k`` varying coefficients are at least as many as the inputs, one that is an affine function
+    of the others.
+
+    Such an input (two landmarks on one vertex, a slice that always cuts the same ring) cannot be
+    asked for, and every mapping would "meet" it with an error of exactly 0, which reads as a
+    perfect prediction. ``measure`` checks landmark files on a database's rest scans; this also
+    covers sets given in Python and measurements that vary on the scans but not in the model.
+    """
+    if len(x) < 2:
+        return
+    by_name = {m["name"]: m for m in mset.measurements}
+    for j, n in enumerate(names):
+        spread = float(np.ptp(x[:, j]))
+        if spread < CONSTANT_CM:
+            marks = _landmarks_of(by_name.get(n, {}))
+            uses = f" (it uses the landmarks {', '.join(marks)})" if marks else ""
+            unit = f" {units[j]}" if units else ""
+            raise ParameterError(
+                f"mapping input '{n}' of the measurement set {mset.source}: {x[0, j]:.4f}{unit} on every one of the "
+                f"{len(x)} bodies drawn from the model (spread {spread:.1e}){uses}; expected a measurement "
+                "that changes with the body: a constant one cannot be asked for and its error would read 0. "
+                "Check its landmark ids (CLI: bodyspace build --landmarks FILE) or leave it out of the inputs")
+    # An input that is an affine function of the others (crotch_height and leg_length, one
+    # definition under two names) is one input asked twice: two values for it contradict each
+    # other, and an affine mapping's least squares are not determined. With fewer coefficients
+    # than inputs the inputs are functions of fewer numbers than they are, and near-affine ones
+    # (distances) may depend on each other by construction: only checked when k >= M.
+    if len(x) > x.shape[1] + 1 and k >= x.shape[1]:
+        for j, n in enumerate(names):
+            others = [i for i in range(len(names)) if i != j]
+            a = np.c_[x[:, others], np.ones(len(x))]
+            r = x[:, j] - a @ np.linalg.lstsq(a, x[:, j], rcond=None)[0]
+            if float(np.sqrt(np.mean(r ** 2))) < CONSTANT_CM * max(1.0, float(np.std(x[:, j]))):
+                raise ParameterError(
+                    f"mapping input '{n}' of the measurement set {mset.source} is an affine function of the other "
+                    f"inputs ({', '.join(names[i] for i in others)}) on all {len(x)} bodies drawn from the model: "
+                    "it is one input asked twice; expected inputs that each say something of their own: "
+                    f"leave '{n}' (or the input it repeats) out of the inputs")
+
+
+def affine_residuals(coefficients: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """Rms residual (M,), in the measurements' units, of the least-squares affine fit of each
+    measurement (N, M) on the coefficients (N, k); NaN when N <= k + 1 (not determined).
+
+    A measurement with a residual near 0 (below ``AFFINE_CM``) is an affine function of the
+    coefficients: with the vertex encoding every body is affine in them, so a straight distance
+    whose direction does not change from body to body is one (shoulder_width between mirrored
+    landmarks: |v_l - v_r| is the length of a vector that always points sideways). Every mapping
+    that predicts the coefficients by an affine least-squares fit on the inputs, the linear one
+    and each leaf of the forest (Rupprecht Equations 2 and 3), then returns such an input exactly:
+    its fit is the fit of an affine function of the inputs that includes the input itself. Its
+    error in ``mapping evaluate`` is 0 by construction and says nothing about the method.
+    """
+    z = np.asarray(coefficients, float)
+    m = np.asarray(measurements, float)
+    if len(z) <= z.shape[1] + 1:
+        return np.full(m.shape[1], np.nan)
+    a = np.c_[z, np.ones(len(z))]
+    sol = np.linalg.lstsq(a, m, rcond=None)[0]
+    return np.sqrt(np.mean((m - a @ sol) ** 2, axis=0))

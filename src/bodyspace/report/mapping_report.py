@@ -16,9 +16,23 @@ from matplotlib.figure import Figure
 
 from bodyspace.atomic import PNG_METADATA, atomic_path
 from bodyspace.report.render import contact_sheet
-from bodyspace.studies.mapping import MappingEvaluation
+from bodyspace.studies.mapping import MappingEvaluation, exact_by_construction_note
 
-__all__ = ["mapping_tables_markdown", "plot_errors", "write_mapping_report"]
+__all__ = ["format_error", "mapping_tables_markdown", "parameter_label", "plot_errors", "write_mapping_report"]
+
+
+def format_error(x: float, signed: bool = True) -> str:
+    """A table cell: 4 decimals, but a non-zero value too small for them in 1 significant digit
+    (``6e-06``), so no error that is not 0 is printed as ``0.0000``."""
+    x = float(x)
+    if x != 0.0 and np.isfinite(x) and abs(x) < 5e-5:
+        return f"{x:+.0e}" if signed else f"{x:.0e}"
+    return f"{x:+.4f}" if signed else f"{x:.4f}"
+
+
+def parameter_label(ev: MappingEvaluation, name: str) -> str:
+    """The parameter's name, with `` *`` when it is exact by construction (``exact_by_construction_note``)."""
+    return f"{name} *" if name in (ev.settings.get("exact_by_construction") or []) else name
 
 
 def mapping_tables_markdown(ev: MappingEvaluation) -> str:
@@ -28,15 +42,17 @@ def mapping_tables_markdown(ev: MappingEvaluation) -> str:
     rows = [head, rule]
     tabs = {m: ev.table(m) for m in ev.errors}
     for n in ev.names:
-        rows.append(f"| {n} | " + " | ".join(f"{tabs[m][n]['mean']:.4f} | {tabs[m][n]['variance']:.4f}"
-                                             for m in ev.errors) + " |")
+        rows.append(f"| {parameter_label(ev, n)} | " + " | ".join(
+            f"{format_error(tabs[m][n]['mean'], False)} | {format_error(tabs[m][n]['variance'], False)}"
+            for m in ev.errors) + " |")
     cells = sum(([f"{100 * ev.within(m):.1f} %", ""] for m in ev.errors), [])
     rows.append(f"| all {len(ev.names)} within 1 mm | " + " | ".join(cells) + " |")
     inputs = ev.settings.get("inputs")
     said = (f"Inputs: {', '.join(inputs)} (the model's measurement set, {ev.settings.get('measurement_set')})\n\n"
             if inputs else "")
+    note = exact_by_construction_note(ev)
     return (f"{said}Error (measured − requested) in cm over {len(ev.requests)} held-out feasible requests "
-            "(mean in cm, variance in cm²)\n\n" + "\n".join(rows) + "\n")
+            "(mean in cm, variance in cm²)\n\n" + "\n".join(rows) + "\n" + (f"\n{note}\n" if note else ""))
 
 
 def plot_errors(ev: MappingEvaluation, path) -> Path:

@@ -15,6 +15,12 @@ refinement iteration), so the default sizes are smaller (``default_sizes``) and
 ``estimate_seconds`` says how long it will take before starting; the measurements of all three
 methods are those of the truly decoded bodies.
 
+An input that is an affine function of the coefficients (a vertex model's shoulder_width between
+mirrored landmarks) is returned exactly by the linear mapping and by every forest leaf, both
+affine least-squares fits: its error of 0 says nothing about either, so it is flagged
+(``settings["exact_by_construction"]``, ``exact_by_construction_note``), with every input's affine
+residual (``settings["affine_residual_cm"]``).
+
 This module returns data (``MappingEvaluation``); ``report.mapping_report`` writes its tables
 and pictures.
 """
@@ -31,6 +37,8 @@ from bodyspace.mapping.gradients import SUBSTITUTES, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import analytic_names, refine
 from bodyspace.mapping.training import (
+    AFFINE_CM,
+    affine_residuals,
     default_sizes,
     make_training_set,
     measure_coefficients,
@@ -158,6 +166,9 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
     forest = forest_for(len(X), seed, n_trees, n_jobs).fit(X, Y)
     timings["forest_fit_s"] = time.perf_counter() - t
     names, mset = train.names, model.measurement_set
+    # An input that is affine in the coefficients is met exactly by every affine least-squares
+    # mapping (linear, each forest leaf): flagged, so an error of 0 is not read as a perfect method.
+    residual = affine_residuals(train.coefficients[:, :kk], X)
     # Rupprecht's six (loops, distances) have analytic Jacobians and are measured on the touched
     # vertices; stand-ins of another topology (slices) are measured on reconstructed bodies.
     measurer = None
@@ -202,8 +213,31 @@ def evaluate_mapping(model, samples: int | None = None, held_out: int | None = N
                             "dropped_bodies": int(train.dropped + held.dropped),
                             "encoding": model.encoding, "refine_misses": int(sum(bool(m) for m in ref.misses)),
                             "refine_iterations_mean": float(ref.iterations.mean()),
-                            "refine_iterations_max": int(ref.iterations.max()), "refine_decodes": int(ref.decodes)})
+                            "refine_iterations_max": int(ref.iterations.max()), "refine_decodes": int(ref.decodes),
+                            "affine_residual_cm": {n: (None if not np.isfinite(r) else float(r))
+                                                   for n, r in zip(names, residual)},
+                            "exact_by_construction": [n for n, r in zip(names, residual) if r < AFFINE_CM]})
     return ev, {"linear": lin, "forest": forest, "linearization": train.linearization}
+
+
+def exact_by_construction_note(ev: MappingEvaluation) -> str:
+    """One sentence on the inputs every affine least-squares mapping returns exactly ("" if none).
+
+    Such an input is an affine function of the model's coefficients over the training set
+    (``training.affine_residuals`` below ``training.AFFINE_CM``): its error in the tables is 0 up
+    to rounding for the linear mapping and the forest alike, which tests neither method.
+    """
+    exact = ev.settings.get("exact_by_construction") or []
+    if not exact:
+        return ""
+    res = ev.settings.get("affine_residual_cm", {})
+    said = ", ".join(f"{n} (affine residual {res.get(n, 0.0):.1e} cm)" for n in exact)
+    verb = "is an affine function" if len(exact) == 1 else "are affine functions"
+    return (f"exact by construction (*): {said} {verb} of this model's coefficients over the training set, "
+            "so the linear mapping and every forest leaf (affine least-squares fits on the inputs) return "
+            f"{'it' if len(exact) == 1 else 'them'} exactly; the error of 0 there tests neither method "
+            "(with the vertex encoding a straight distance whose direction does not change between bodies, "
+            "such as a shoulder width between mirrored landmarks, is one)")
 
 
 def _stage_fractions(samples, held_out, iterations=6.0):
