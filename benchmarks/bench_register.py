@@ -14,7 +14,10 @@ the fit, unposed as ``bodyspace register`` does, against the true rest body's: h
 within ISO 20685-1 (stature, heights and slice girths 4 mm, lengths and breadths 5 mm, chest,
 underbust, waist, hip 9 mm, volume, area, mass, BMI 1 %).
 
-    python benchmarks/bench_register.py [--scans 4] [--points 80000] [--no-baseline]
+Each bodyspace row also gives the fit's quality verdict (``quality.assess``: accepted or refused,
+the body parts that failed) and the limbs the per-part check restarted.
+
+    python benchmarks/bench_register.py [--scans 4] [--first 0] [--points 80000] [--no-baseline]
 """
 
 from __future__ import annotations
@@ -81,6 +84,7 @@ def amberg(scan, template, mset):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scans", type=int, default=4)
+    ap.add_argument("--first", type=int, default=0, help="the first scan's index (to split the scans over processes)")
     ap.add_argument("--points", type=int, default=80_000)
     ap.add_argument("--no-baseline", action="store_true", help="skip trimesh's nricp_amberg")
     args = ap.parse_args()
@@ -89,19 +93,26 @@ def main():
     mset = load_measurement_set()
     phenotype_basis(template)          # built once per process (cached), not timed
     rows = {"bodyspace, no landmarks": [], "bodyspace, 13 landmarks": [], "trimesh nricp_amberg, 13 landmarks": []}
-    for i in range(args.scans):
+    for i in range(args.first, args.first + args.scans):
         scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=args.points)
         truth_rest = pm.vertices(scan.phenotype[None])[0]
         lms = {n: scan.landmarks[n] for n in SURFACE_LANDMARKS}
-        for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False).vertices),
+        for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False)),
                           ("bodyspace, 13 landmarks", lambda: register_scan(scan.points, template=template, landmarks=lms,
-                                                                            check=False).vertices),
+                                                                            check=False)),
                           ("trimesh nricp_amberg, 13 landmarks", lambda: amberg(scan, template, mset))):
             if args.no_baseline and name.startswith("trimesh"):
                 continue
             t, c = time.perf_counter(), time.process_time()
             v = run()
             sec, cpu = time.perf_counter() - t, time.process_time() - c
+            verdict = ""
+            if not isinstance(v, np.ndarray):       # a Registration: its quality verdict, per body part
+                q = v.quality
+                verdict = (f", quality {q.quality:.2f} {'accepted' if q.accepted else 'REFUSED'}"
+                           f"{' (' + ', '.join(p.name for p in q.failed_parts) + ')' if q.failed_parts else ''}"
+                           f"{', restarted ' + ', '.join(v.restarted) if v.restarted else ''}")
+                v = v.vertices
             e = registration_errors(v, template.faces, scan)
             e["seconds"], e["cpu_seconds"] = sec, cpu
             e["landmarks_mm"], iso = landmarks_and_measurements(v, scan, template, mset, truth_rest)
@@ -109,7 +120,7 @@ def main():
             print(f"scan {i} ({scan.pose}, {len(scan.points)} points) {name}: correspondence {e['correspondence_mm']:.1f} mm "
                   f"(p95 {e['correspondence_p95_mm']:.1f}), surface {e['surface_mm']:.2f} mm, folded {e['folded']} "
                   f"(truth {e['folded_truth']}), {sec:.1f} s (CPU {cpu:.1f} s), landmarks {e['landmarks_mm']:.1f} mm, "
-                  f"ISO 20685-1 {iso[0]}/{iso[1]} (worst {iso[2]})", flush=True)
+                  f"ISO 20685-1 {iso[0]}/{iso[1]} (worst {iso[2]}){verdict}", flush=True)
     print("\nmean over scans:")
     for name, r in rows.items():
         print(f"  {name}: correspondence {np.mean([e['correspondence_mm'] for e in r]):.1f} mm, surface "

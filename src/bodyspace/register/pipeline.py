@@ -29,14 +29,14 @@ from bodyspace.data.template import Template, load_template
 from bodyspace.errors import RegistrationError
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
-from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment
+from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment, restart_limbs
 from bodyspace.register.correspondences import orient_normals
 from bodyspace.register.detail import Detail, detail_offsets
 from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 from bodyspace.register.prepare import prepare_scan
-from bodyspace.register.quality import Quality, assess
+from bodyspace.register.quality import EXPLAINED_GOOD, Quality, assess
 
 __all__ = ["Registration", "register_scan", "DEFAULT_STEPS"]
 
@@ -54,6 +54,12 @@ POSE_ROUNDS = ((0.10, 0.03, False, 0.004), (0.05, 0.02, True, 0.002), (0.04, 0.0
 # on an elbows-flexed scan from 1.41 mm, ending at 1 took the correspondence to 2.54 mm, at 10 to
 # 1.85 mm, at 30 to 1.54 mm (surface 0.79, 0.61, 0.52 mm).
 DEFAULT_STEPS = 6
+# Joint pose rounds fitted again (the last ones of POSE_ROUNDS) after a limb was restarted.
+RESTART_ROUNDS = 2
+# Limbs are restarted only on a scan the pose fit explains this much of (a step-forward scan that
+# lost a hand: 93.5 %); below it the scan is not one body (two people about 50 %, a chair 35 %)
+# and the fit is refused without spending the restarts on it.
+RESTART_MIN_EXPLAINED = 0.85
 DEFAULT_INNER = 2
 NICP_STIFFNESS_END = 30.0
 # Scan points the fits use at most (a subsample spread at random: 60 k points hold the surface
@@ -74,7 +80,8 @@ class Registration:
     points: (P, 3) the scan points used, internal frame. units, up: the scan's; assumed: what
         was found rather than given; seconds: time per stage.
     detail: the scan's relief over ``internal`` subdivided (``register_scan(detail_levels=...)``),
-        or None.
+        or None. restarted: the limbs the per-part check found off the scan after the pose fit and
+        restarted (``align.restart_limbs``), e.g. ["left arm"].
     """
 
     vertices: np.ndarray
@@ -91,6 +98,7 @@ class Registration:
     assumed: list[str] = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
     detail: Detail | None = None
+    restarted: list[str] = field(default_factory=list)
 
 
 def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, to_prepared) -> tuple:
@@ -200,6 +208,26 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         seconds["pose"] += time.perf_counter() - t
         _trace(f"pose {k + 1}", state)
 
+    # Every body part checked on the pose fit: a limb that every start of the alignment lost (a
+    # hand swinging behind a stepping body, a hand on the hip) is restarted alone from the
+    # library's limb poses, the best by its own residual both ways, then the joint rounds are
+    # fitted again (align.restart_limbs; nothing is done when every part is on its points).
+    report("checking the limbs", 0.48)
+    t = time.perf_counter()
+    x, _, _ = posed_vertices(rig, state)
+    check_pose = assess(x, template.faces, q, np.ones(len(x), dtype=bool), template=template, scan_tree=tree)
+    restarted = []
+    if check_pose.explained >= RESTART_MIN_EXPLAINED:
+        state, restarted = restart_limbs(q, qn, template, state, {p.name: p.quality for p in check_pose.parts},
+                                         tree, rng=rng)
+    for k, (start, end, joint, prior) in enumerate(POSE_ROUNDS[-RESTART_ROUNDS:] if restarted else ()):
+        state, _ = fit_pose(q, qn, template, state, iterations=pose_iterations, landmarks=lm_fit, scan_tree=tree,
+                            start_distance=start, end_distance=end, fit_scale=joint, pose_prior=prior,
+                            shape=(basis, coef, SHAPE_PRIOR, SCALE_PRIOR) if joint else None, rng=rng)
+        coef = state.coefficients if joint else coef
+        _trace(f"limbs {k + 1}", state)
+    seconds["limbs"] = time.perf_counter() - t
+
     report("non-rigid refinement", 0.5)
     t = time.perf_counter()
     x, _, _ = posed_vertices(rig, state)
@@ -211,12 +239,15 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     _trace("nicp", nicp.vertices)
 
     t = time.perf_counter()
-    quality = assess(nicp.vertices, template.faces, q, nicp.has_target)
+    quality = assess(nicp.vertices, template.faces, q, nicp.has_target, template=template, scan_tree=tree)
     seconds["quality"] = time.perf_counter() - t
     if check and not quality.accepted:
-        raise RegistrationError(f"{name}: refused, the fit does not explain the scan: {quality.describe()}; a scan "
-                                "of one person standing alone is expected (two people, an object or a partial scan "
-                                "are refused)")
+        lost = [p.name for p in quality.failed_parts]
+        what = (f"the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
+                f"the fit lost the {', '.join(lost)}")
+        raise RegistrationError(f"{name}: refused, {what}: {quality.describe()}; a scan of one person standing alone, "
+                                "limbs apart from the body where possible, is expected (two people, an object or a "
+                                "partial scan are refused)")
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
     detail = None
@@ -228,4 +259,4 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     seconds["total"] = time.perf_counter() - t0
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
-                        prep.units, prep.up, list(prep.assumed), seconds, detail)
+                        prep.units, prep.up, list(prep.assumed), seconds, detail, restarted)
