@@ -142,6 +142,9 @@ def test_register_fits_the_scan_and_accepts_it(cli_fit, scan, template):
     assert e["surface_mm"] < 2.0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["accepted"] and summary["units"] == "mm" and summary["up"].lstrip("-") == "z"
+    # Every body part on its points, none restarted (a restart costs seconds: only lost limbs get one).
+    assert len(summary["parts"]) == 14 and all(p["accepted"] for p in summary["parts"].values())
+    assert summary["failed_parts"] == [] and summary["restarted_limbs"] == []
 
 
 def test_cli_register_writes_outputs(cli_fit, scan, template, phenotype_model, tmp_path):
@@ -149,7 +152,9 @@ def test_cli_register_writes_outputs(cli_fit, scan, template, phenotype_model, t
     assert result.exit_code == 0, result.output
     names = {p.name for p in out.iterdir()}
     assert {"registered.obj", "registered_standard.obj", "distance.csv", "pose.json", "measurements.json",
-            "measurements.csv", "summary.json", "distance.png"} <= names
+            "measurements.csv", "summary.json", "quality.csv", "distance.png"} <= names
+    rows = (out / "quality.csv").read_text().splitlines()
+    assert rows[0].startswith("part,quality,accepted") and len(rows) == 15 and any(r.startswith("left hand,") for r in rows)
     m = json.loads((out / "measurements.json").read_text())["measurements"]
     truth = evaluate(load_measurement_set(), phenotype_model.vertices(scan.phenotype[None])[0], template.faces)
     assert abs(m["stature"]["value"] - 100 * truth["stature"].value) < 1.5      # cm
