@@ -8,8 +8,11 @@
 3. ``model_fit.fit_shape``: the shape coefficients and scale with the pose held;
 4. ``pose_fit.fit_pose``: the skeleton's pose by twist ICP with the shape held, then pose, shape
    and scale together in one Gauss-Newton problem (``POSE_ROUNDS``, gates narrowing);
+   Then every body part is checked (``quality.assess``) and a limb off its points is restarted
+   from library limb poses (``align.restart_limbs``) and the joint rounds fitted again;
 5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 30;
-6. ``quality.assess``: how much of the scan the fit explains; refused below ``MIN_QUALITY``;
+6. ``quality.assess``: how much of the scan the fit explains, as a whole and per body part both
+   ways; refused below ``MIN_QUALITY``, the failed parts named;
 7. optionally ``detail.detail_offsets``: the scan's relief as normal offsets on the fit
    subdivided at mid-edges (Hasler §3, end), to be re-added after a morph.
 

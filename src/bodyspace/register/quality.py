@@ -47,10 +47,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template
+from bodyspace.errors import RigError
 from bodyspace.mesh.geometry import face_areas
 from bodyspace.synth.foreign import closest_points
 
-__all__ = ["Quality", "PartQuality", "assess", "body_parts", "PARTS", "EXPLAINED_DISTANCE", "MIN_QUALITY"]
+__all__ = ["Quality", "PartQuality", "assess", "assess_parts", "body_parts", "PARTS", "EXPLAINED_DISTANCE",
+           "MIN_QUALITY"]
 
 EXPLAINED_DISTANCE = 0.010
 EXPLAINED_GOOD = 0.97
@@ -140,7 +142,9 @@ class Quality:
                 f"scan points")
         bad = self.failed_parts
         if bad:
-            text += "; not fitted: " + "; ".join(p.describe() for p in bad)
+            # The worst three in full (a chair fails every part: the list would bury the figure).
+            text += "; not fitted: " + "; ".join(p.describe() for p in bad[:3])
+            text += f"; and {', '.join(p.name for p in bad[3:])}" if len(bad) > 3 else ""
         elif self.parts:
             text += f"; every body part on its points (the least: {min(self.parts, key=lambda p: p.quality).name} " \
                     f"{min(p.quality for p in self.parts):.2f})"
@@ -167,15 +171,17 @@ def body_parts(template: Template, rig_name: str = "default") -> np.ndarray:
     key = (template.template_id, rig_name)
     if key not in _PARTS_CACHE:
         rig = template.rigs[rig_name]
+        missing = [b for bones in PARTS.values() for b in bones if b not in rig.bone_names]
+        if missing:
+            raise RigError(f"rig {rig_name}: no bone(s) {', '.join(missing)}; the per-part quality check expects "
+                           "MakeHuman's default rig (its bones name the body parts: quality.PARTS)")
         root_part = {rig.bone_index(b): k for k, bones in enumerate(PARTS.values()) for b in bones}
         per_bone = np.empty(rig.n_bones, dtype=int)
         for b in range(rig.n_bones):
             a = b
-            while a not in root_part:
+            while a >= 0 and a not in root_part:
                 a = int(rig.parents[a])
-                if a < 0:
-                    raise ValueError(f"rig {rig_name}: bone {rig.bone_names[b]} is below none of the parts' bones")
-            per_bone[b] = root_part[a]
+            per_bone[b] = root_part.get(a, list(PARTS).index("trunk"))     # below no part's bone: the trunk
         dominant = np.asarray(rig.weights.tocsr().argmax(axis=1)).ravel()
         _PARTS_CACHE[key] = per_bone[dominant]
     return _PARTS_CACHE[key]
@@ -190,12 +196,11 @@ def _patches(points: np.ndarray, link: float) -> np.ndarray:
     return connected_components(g, directed=False)[1]
 
 
-def assess_parts(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, labels: np.ndarray,
-                 scan_tree: cKDTree, sub_points: np.ndarray, sub_distance: np.ndarray, sub_face: np.ndarray
-                 ) -> tuple[PartQuality, ...]:
-    """Per-part quality (module docstring). vertices (V, 3), faces (F, 3): the fit; points
-    (P, 3): the scan (same frame, metres) with ``scan_tree`` its KD-tree; labels (V,): part of
-    each vertex (``body_parts``); sub_points (n, 3), sub_distance (n,), sub_face (n,): a random
+def assess_parts(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, scan_tree: cKDTree,
+                 sub_points: np.ndarray, sub_distance: np.ndarray, sub_face: np.ndarray) -> tuple[PartQuality, ...]:
+    """Per-part quality (module docstring). vertices (V, 3), faces (F, 3): the fit;
+    labels (V,): part of each vertex (``body_parts``); scan_tree: the KD-tree of the scan's
+    points (same frame, metres); sub_points (n, 3), sub_distance (n,), sub_face (n,): a random
     subsample of the scan's points, their distance to the fit and their nearest face."""
     n_parts = len(PARTS)
     fa = face_areas(vertices, faces)
@@ -237,6 +242,6 @@ def assess(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, has_targ
     parts = ()
     if template is not None:
         tree = scan_tree if scan_tree is not None else cKDTree(points)
-        parts = assess_parts(vertices, faces, points, body_parts(template), tree, points[sub], dist, corr.face)
+        parts = assess_parts(vertices, faces, body_parts(template), tree, points[sub], dist, corr.face)
         q = min(q, min(p.quality for p in parts))
     return Quality(explained, coverage, q, dist, sub, parts)
