@@ -51,18 +51,18 @@ __all__ = ["Registration", "register_scan", "DEFAULT_STEPS"]
 # elbows-flexed scan, 1.4 mm jointly (docs/registration.md).
 POSE_ROUNDS = ((0.10, 0.03, False, 0.004), (0.05, 0.02, True, 0.002), (0.04, 0.015, True, 0.001),
                (0.03, 0.01, True, 0.001))
-# NICP stiffness levels and iterations per level, and the last level's stiffness (measured:
-# docs/registration.md). After the joint pose and shape fit the model explains the body to about
-# 0.5 mm; the NICP is there for what it cannot (detail), so it stops stiffer than Hasler's 0.01:
-# on an elbows-flexed scan from 1.41 mm, ending at 1 took the correspondence to 2.54 mm, at 10 to
-# 1.85 mm, at 30 to 1.54 mm (surface 0.79, 0.61, 0.52 mm).
-DEFAULT_STEPS = 6
 # Joint pose rounds fitted again (the last ones of POSE_ROUNDS) after a limb was restarted.
 RESTART_ROUNDS = 2
 # Limbs are restarted only on a scan the pose fit explains this much of (a step-forward scan that
 # lost a hand: 93.5 %); below it the scan is not one body (two people about 50 %, a chair 35 %)
 # and the fit is refused without spending the restarts on it.
 RESTART_MIN_EXPLAINED = 0.85
+# NICP stiffness levels and iterations per level, and the last level's stiffness (measured:
+# docs/registration.md). After the joint pose and shape fit the model explains the body to about
+# 0.5 mm; the NICP is there for what it cannot (detail), so it stops stiffer than Hasler's 0.01:
+# on an elbows-flexed scan from 1.41 mm, ending at 1 took the correspondence to 2.54 mm, at 10 to
+# 1.85 mm, at 30 to 1.54 mm (surface 0.79, 0.61, 0.52 mm).
+DEFAULT_STEPS = 6
 DEFAULT_INNER = 2
 NICP_STIFFNESS_END = 30.0
 # Scan points the fits use at most (a subsample spread at random: 60 k points hold the surface
@@ -212,9 +212,9 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         _trace(f"pose {k + 1}", state)
 
     # Every body part checked on the pose fit: a limb that every start of the alignment lost (a
-    # hand swinging behind a stepping body, a hand on the hip) is restarted alone from the
-    # library's limb poses, the best by its own residual both ways, then the joint rounds are
-    # fitted again (align.restart_limbs; nothing is done when every part is on its points).
+    # hand swinging behind a stepping body, a hand on the hip) is restarted from the library's
+    # limb poses, the best by the limb's own residual both ways, then the joint rounds are fitted
+    # again (align.restart_limbs; nothing is done when every part is on its points).
     report("checking the limbs", 0.48)
     t = time.perf_counter()
     x, _, _ = posed_vertices(rig, state)
@@ -246,7 +246,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     seconds["quality"] = time.perf_counter() - t
     if check and not quality.accepted:
         lost = [p.name for p in quality.failed_parts]
-        what = (f"the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
+        what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
                 f"the fit lost the {', '.join(lost)}")
         raise RegistrationError(f"{name}: refused, {what}: {quality.describe()}; a scan of one person standing alone, "
                                 "limbs apart from the body where possible, is expected (two people, an object or a "
