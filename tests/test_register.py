@@ -251,3 +251,23 @@ def test_restart_limbs_finds_a_lost_arm(template):
                                     cKDTree(body), poses={"arm": ("rest", "t_pose", "arms_back"), "leg": ()})
     after = np.linalg.norm(posed_vertices(rig, fitted)[0][hand] - body[hand], axis=1).mean()
     assert changed == ["left arm"] and before > 0.2 and after < 0.02
+
+
+def test_restart_limbs_mirrors_the_other_arm(template):
+    """Hands on the hips, the fit's right arm hanging (the right hand lost, as with 13 landmarks
+    on the benchmark's scan): with no library start near the truth (only the A-pose), the left
+    arm mirrored is the start that brings the right hand back within 2 cm."""
+    rig = template.rigs["default"]
+    lib = load_pose_library()
+    truth = lib.rotations("hands_on_hips", rig)
+    body = pose_bodies(template.vertices, rig, truth)
+    arm = _subtree(rig.parents, rig.bone_index("clavicle.R"))
+    start = truth.copy()
+    start[arm] = np.eye(3)
+    state = PoseState(template.vertices, start, 1.0, np.zeros(3))
+    hand = body_parts(template) == list(PARTS).index("right hand")
+    parts = {name: 1.0 for name in PARTS} | {"right hand": 0.4}
+    fitted, changed = restart_limbs(body, vertex_normals(body, template.faces), template, state, parts,
+                                    cKDTree(body), poses={"arm": ("rest",), "leg": ()})
+    after = np.linalg.norm(posed_vertices(rig, fitted)[0][hand] - body[hand], axis=1).mean()
+    assert changed == ["right arm"] and after < 0.02

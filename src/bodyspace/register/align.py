@@ -269,6 +269,14 @@ RESTART_KEEP = 2
 RESTART_POINTS = 10_000
 
 
+_MIRROR = np.diag([-1.0, 1.0, 1.0])
+
+
+def _other_side(name: str) -> str:
+    """The bone of the other side: 'upperarm01.L' → 'upperarm01.R' (and back)."""
+    return name[:-2] + {".L": ".R", ".R": ".L"}[name[-2:]]
+
+
 def limb_score(template: Template, state: PoseState, points: np.ndarray, tree: cKDTree, limb_vertices: np.ndarray,
                limb_share: float) -> float:
     """A limb's residual both ways (metres): the mean distance of its vertices (ids (n,)) to the
@@ -285,8 +293,9 @@ def limb_score(template: Template, state: PoseState, points: np.ndarray, tree: c
 def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, parts: dict,
                   tree: cKDTree, *, poses: dict | None = None, rng=0) -> tuple[PoseState, list[str]]:
     """Restart each limb with a part the quality check failed, from the limb rotations of
-    ``LIMB_START_POSES`` (or ``poses``: "arm"/"leg" → pose names), and keep the start whose fit
-    has the least ``limb_score`` if it is less than the state's own.
+    ``LIMB_START_POSES`` (or ``poses``: "arm"/"leg" → pose names) and from the other side's limb
+    mirrored, and keep the start whose fit has the least ``limb_score`` if it is less than the
+    state's own.
 
     points (P, 3), normals (P, 3): the scan in the template's frame, ``tree`` its KD-tree; state:
     the pose fit's result; parts: part name → its quality in [0, 1] (``quality.assess_parts``).
@@ -319,10 +328,15 @@ def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, s
         share = float(area[np.isin(labels[template.faces[:, 0]], [names.index(p) for p in limb_parts])].sum()
                       / area.sum())
         bones = _subtree(rig.parents, rig.bone_index(root))
+        starts = [library.rotations(pose, rig)[bones] for pose in poses["arm" if "arm" in limb else "leg"]]
+        # The other side's limb mirrored (x → -x): a symmetric pose (hands on the hips) whose
+        # one side the fit placed gives the other side's start, whatever the library holds.
+        other = [rig.bone_index(_other_side(rig.bone_names[b])) for b in bones]
+        starts.append(_MIRROR @ state.rotations[other] @ _MIRROR)
         trials = []
-        for pose in poses["arm" if "arm" in limb else "leg"]:
+        for start in starts:
             rot = state.rotations.copy()
-            rot[bones] = library.rotations(pose, rig)[bones]
+            rot[bones] = start
             trial = fit(PoseState(state.rest, rot, state.scale, state.translation, state.coefficients),
                         RESTART_ITERATIONS[0], 0.15, 0.06)
             trials.append((limb_score(template, trial, sub, tree, ids, share), len(trials), trial))
