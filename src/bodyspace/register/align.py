@@ -292,7 +292,8 @@ def limb_score(template: Template, state: PoseState, points: np.ndarray, tree: c
 
 def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, parts: dict,
                   tree: cKDTree, *, poses: dict | None = None, rng=0) -> tuple[PoseState, list[str]]:
-    """Restart each limb with a part the quality check failed, from the limb rotations of
+    """Restart each limb with a part the quality check failed (a leg also when the trunk failed),
+    from the limb rotations of
     ``LIMB_START_POSES`` (or ``poses``: "arm"/"leg" → pose names) and from the other side's limb
     mirrored, and keep the start whose fit has the least ``limb_score`` if it is less than the
     state's own.
@@ -322,7 +323,8 @@ def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, s
 
     changed = []
     for limb, (root, limb_parts) in LIMBS.items():
-        if all(parts[p] >= MIN_QUALITY for p in limb_parts):
+        # A leg is restarted for its trunk too: the hips' skin is the trunk's (pelvis, belly).
+        if all(parts[p] >= MIN_QUALITY for p in limb_parts + (("trunk",) if "leg" in limb else ())):
             continue
         ids = np.flatnonzero(np.isin(labels, [names.index(p) for p in limb_parts]))
         share = float(area[np.isin(labels[template.faces[:, 0]], [names.index(p) for p in limb_parts])].sum()
