@@ -16,8 +16,10 @@ underbust, waist, hip 9 mm, volume, area, mass, BMI 1 %).
 
 Folds: the fit's folded triangles, and those it *adds*: folded in the fit but not in the true
 body (the true LBS-posed bodies fold 4-35 triangles themselves, in armpits and groins).
+Each bodyspace row also gives the fit's quality verdict (``quality.assess``: accepted or refused,
+the body parts that failed) and the limbs the per-part check restarted.
 
-    python benchmarks/bench_register.py [--scans 4] [--points 80000 | 50000,100000,150000,200000]
+    python benchmarks/bench_register.py [--scans 4] [--first 0] [--points 80000 | 50000,100000,150000,200000]
                                         [--only 0,2] [--no-baseline]
 """
 
@@ -90,6 +92,7 @@ def main():
     ap.add_argument("--scans", type=int, default=4)
     ap.add_argument("--points", default="80000", help="points per scan, or a comma list cycled over the scans")
     ap.add_argument("--only", default=None, help="comma list of scan numbers to run (default all)")
+    ap.add_argument("--first", type=int, default=0, help="the first scan's index (to split the scans over processes)")
     ap.add_argument("--no-baseline", action="store_true", help="skip trimesh's nricp_amberg")
     args = ap.parse_args()
     template = load_template()
@@ -100,22 +103,29 @@ def main():
     points = [int(p) for p in str(args.points).split(",")]
     only = None if args.only is None else {int(k) for k in args.only.split(",")}
     neighbors = face_adjacency(template.faces).neighbors
-    for i in range(args.scans):
+    for i in range(args.first, args.first + args.scans):
         if only is not None and i not in only:
             continue
         scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=points[i % len(points)])
         truth_folded = folded_faces(scan.body, template.faces, neighbors)
         truth_rest = pm.vertices(scan.phenotype[None])[0]
         lms = {n: scan.landmarks[n] for n in SURFACE_LANDMARKS}
-        for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False).vertices),
+        for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False)),
                           ("bodyspace, 13 landmarks", lambda: register_scan(scan.points, template=template, landmarks=lms,
-                                                                            check=False).vertices),
+                                                                            check=False)),
                           ("trimesh nricp_amberg, 13 landmarks", lambda: amberg(scan, template, mset))):
             if args.no_baseline and name.startswith("trimesh"):
                 continue
             t, c = time.perf_counter(), time.process_time()
             v = run()
             sec, cpu = time.perf_counter() - t, time.process_time() - c
+            verdict = ""
+            if not isinstance(v, np.ndarray):       # a Registration: its quality verdict, per body part
+                q = v.quality
+                verdict = (f", quality {q.quality:.2f} {'accepted' if q.accepted else 'REFUSED'}"
+                           f"{' (' + ', '.join(p.name for p in q.failed_parts) + ')' if q.failed_parts else ''}"
+                           f"{', restarted ' + ', '.join(v.restarted) if v.restarted else ''}")
+                v = v.vertices
             e = registration_errors(v, template.faces, scan)
             e["seconds"], e["cpu_seconds"] = sec, cpu
             fit_folded = folded_faces(from_frame(v, **scan.frame), template.faces, neighbors)
@@ -126,7 +136,7 @@ def main():
                   f"(p95 {e['correspondence_p95_mm']:.1f}), surface {e['surface_mm']:.2f} mm, folded {e['folded']} "
                   f"(truth {e['folded_truth']}, added {e['folds_added']}), {sec:.1f} s (CPU {cpu:.1f} s, load "
                   f"{os.getloadavg()[0]:.1f}), landmarks {e['landmarks_mm']:.1f} mm, "
-                  f"ISO 20685-1 {iso[0]}/{iso[1]} (worst {iso[2]})", flush=True)
+                  f"ISO 20685-1 {iso[0]}/{iso[1]} (worst {iso[2]}){verdict}", flush=True)
     print("\nmean over scans:")
     for name, r in rows.items():
         print(f"  {name}: correspondence {np.mean([e['correspondence_mm'] for e in r]):.1f} mm, surface "

@@ -189,12 +189,14 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
     db.meta["template"] = template.template_id
     report = io.StringIO()
     w = csv.writer(report)
-    w.writerow(["scan", "accepted", "quality", "explained_share", "coverage_share", "mean_distance_mm", "seconds",
-                "landmarks", "reason"])
+    w.writerow(["scan", "accepted", "quality", "explained_share", "coverage_share", "weakest_part",
+                "weakest_part_quality", "mean_distance_mm", "seconds", "landmarks", "reason"])
     for o in outcomes:
         q = o.quality
+        weakest = None if q is None or not q.parts else min(q.parts, key=lambda p: p.quality)
         w.writerow([o.path.name, int(o.accepted), "" if q is None else f"{q.quality:.4f}",
                     "" if q is None else f"{q.explained:.4f}", "" if q is None else f"{q.coverage:.4f}",
+                    "" if weakest is None else weakest.name, "" if weakest is None else f"{weakest.quality:.4f}",
                     "" if not np.isfinite(o.mean_distance) else f"{1000 * o.mean_distance:.3f}", f"{o.seconds:.1f}",
                     "" if o.landmarks is None else o.landmarks.name, o.reason])
     db.save(out, overwrite=force, extra_files={REGISTRATION_REPORT: report.getvalue()})

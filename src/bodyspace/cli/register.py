@@ -129,9 +129,16 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
             "shape_space": "the default (MakeHuman phenotype range)" if basis is None else
             f"{model}: {len(basis.sigma)} components", "units": reg.units, "up": reg.up, "assumed": reg.assumed,
             "quality": round(q.quality, 4), "explained_share": round(q.explained, 4),
-            "coverage_share": round(q.coverage, 4), "accepted": q.accepted,
+            "coverage_share": round(q.coverage, 4), "accepted": q.accepted, "failed_parts": q.to_dict()["failed_parts"],
+            "parts": q.to_dict()["parts"], "restarted_limbs": reg.restarted,
             "mean_vertex_distance_mm": round(1000 * float(np.mean(reg.distance)), 3),
             "seconds": {k: round(v, 2) for k, v in reg.seconds.items()}})
+        with open(tmp / "quality.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["part", "quality", "accepted", "seen_share", "mean_distance_mm", "unexplained_cm2", "area_cm2"])
+            for part, e in q.to_dict()["parts"].items():
+                w.writerow([part, e["quality"], int(e["accepted"]), e["seen_share"], e["mean_distance_mm"],
+                            e["unexplained_cm2"], e["area_cm2"]])
         if reg.detail is not None:
             save_detail(tmp / "detail.npz", reg.detail, written_by="bodyspace register", scan=str(scan),
                         base_mesh="registered_standard.obj")
@@ -144,7 +151,7 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
     if reg.detail is not None:
         console.print(f"detail: {reg.detail.describe()}", markup=False, highlight=False)
     console.print(f"wrote {out}/ (registered.obj in the scan's frame, registered_standard.obj in metres +Y up, "
-                  "distance.csv, pose.json, measurements.json/csv, summary.json, distance.png"
+                  "distance.csv, pose.json, measurements.json/csv, summary.json, quality.csv (per body part), distance.png"
                   f"{'; detail.npz, detailed.obj, detailed_standard.obj' if reg.detail is not None else ''})",
                   markup=False, highlight=False)
 

@@ -19,10 +19,12 @@ from scipy.spatial import cKDTree
 from bodyspace.data.template import Template
 from bodyspace.errors import ParameterError
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices, rest_state
+from bodyspace.register.quality import MIN_QUALITY, PARTS, body_parts
 from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.synth.poses import load_pose_library
 
-__all__ = ["Alignment", "similarity_from_landmarks", "heading_candidates", "initial_alignment"]
+__all__ = ["Alignment", "similarity_from_landmarks", "heading_candidates", "initial_alignment", "restart_limbs",
+           "limb_score", "LIMBS"]
 
 # Points of the subsample the candidates are scored on, and the pose-fit iterations per candidate.
 SCORE_POINTS = 6000
@@ -243,3 +245,110 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
         if sc2 < score:
             score, state = sc2, s2
     return Alignment(R, t, scale, state, tuple(scores))
+
+
+# Limbs restarted when the quality check finds one of their parts off the scan: the limb's root
+# bone (its subtree is restarted) and its ``quality.PARTS``.
+LIMBS = {"left arm": ("clavicle.L", ("left upper arm", "left forearm", "left hand")),
+         "right arm": ("clavicle.R", ("right upper arm", "right forearm", "right hand")),
+         "left leg": ("pelvis.L", ("left thigh", "left lower leg", "left foot")),
+         "right leg": ("pelvis.R", ("right thigh", "right lower leg", "right foot"))}
+# Library poses whose limb rotations a lost limb is restarted from: the arm poses (hanging,
+# forward, back, out, up, elbows bent, hands on the hips, crossed, behind the head) and the leg
+# poses (parallel, wide, a stride either way, a knee lifted, sitting). A limb's rotations are
+# relative to its parent, so an arm start is the same whatever the legs do.
+LIMB_START_POSES = {"arm": ("rest", "t_pose", "arms_forward", "arms_at_sides", "arms_back", "elbows_flexed",
+                            "hands_on_hips", "arms_crossed", "hands_behind_head", "arms_overhead"),
+                    "leg": ("rest", "wide_stance", "lunge_left", "lunge_right", "knee_lift_left", "knee_lift_right",
+                            "sitting", "half_squat")}
+# Pose-fit iterations of each restart: every start the first number, the RESTART_KEEP best by
+# score the second more (on the step-forward scan the start that found the hand was the best
+# after 3 iterations too); scan points the score is taken on.
+RESTART_ITERATIONS = (3, 6)
+RESTART_KEEP = 2
+RESTART_POINTS = 10_000
+
+
+_MIRROR = np.diag([-1.0, 1.0, 1.0])
+
+
+def _other_side(name: str) -> str:
+    """The bone of the other side: 'upperarm01.L' → 'upperarm01.R' (and back)."""
+    return name[:-2] + {".L": ".R", ".R": ".L"}[name[-2:]]
+
+
+def limb_score(template: Template, state: PoseState, points: np.ndarray, tree: cKDTree, limb_vertices: np.ndarray,
+               limb_share: float) -> float:
+    """A limb's residual both ways (metres): the mean distance of its vertices (ids (n,)) to the
+    scan, plus the summed distance of the scan points (P, 3) to the posed body per point the
+    limb should hold (``limb_share`` of the body's area times P); each distance capped at 10 cm.
+    Both ways: a limb placed on points another part already explains scores well one way and
+    badly the other."""
+    x, _, _ = posed_vertices(template.rigs["default"], state)
+    d1 = np.minimum(tree.query(x[limb_vertices])[0], 0.1).mean()
+    d2 = np.minimum(cKDTree(x).query(points)[0], 0.1).sum()
+    return float(d1 + d2 / max(1.0, limb_share * len(points)))
+
+
+def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, parts: dict,
+                  tree: cKDTree, *, poses: dict | None = None, rng=0) -> tuple[PoseState, list[str]]:
+    """Restart each limb with a part the quality check failed (a leg also when the trunk failed),
+    from the limb rotations of
+    ``LIMB_START_POSES`` (or ``poses``: "arm"/"leg" → pose names) and from the other side's limb
+    mirrored, and keep the start whose fit has the least ``limb_score`` if it is less than the
+    state's own.
+
+    points (P, 3), normals (P, 3): the scan in the template's frame, ``tree`` its KD-tree; state:
+    the pose fit's result; parts: part name → its quality in [0, 1] (``quality.assess_parts``).
+    Each start is a short fit of the whole pose (the limb alone, the trunk held, reached 42 mm
+    at the hand where the whole reached 4 mm: the shoulder follows the arm), in two stages: every
+    start ``RESTART_ITERATIONS[0]`` iterations, the ``RESTART_KEEP`` best by score
+    ``RESTART_ITERATIONS[1]`` more. Returns the state and the limbs whose rotations changed.
+    """
+    rig = template.rigs["default"]
+    rng = np.random.default_rng(rng)
+    poses = LIMB_START_POSES if poses is None else poses
+    labels = body_parts(template)
+    names = list(PARTS)
+    library = load_pose_library()
+    sub = points[rng.choice(len(points), size=min(RESTART_POINTS, len(points)), replace=False)]
+    x, _, _ = posed_vertices(rig, state)
+    tri = x[template.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+    def fit(s, iterations, start, end):
+        s, _ = fit_pose(points, normals, template, s, iterations=iterations, scan_tree=tree, start_distance=start,
+                        end_distance=end, template_samples=1500, scan_samples=2500, fit_scale=False, rng=rng)
+        return s
+
+    changed = []
+    for limb, (root, limb_parts) in LIMBS.items():
+        # A leg is restarted for its trunk too: the hips' skin is the trunk's (pelvis, belly).
+        if all(parts[p] >= MIN_QUALITY for p in limb_parts + (("trunk",) if "leg" in limb else ())):
+            continue
+        ids = np.flatnonzero(np.isin(labels, [names.index(p) for p in limb_parts]))
+        share = float(area[np.isin(labels[template.faces[:, 0]], [names.index(p) for p in limb_parts])].sum()
+                      / area.sum())
+        bones = _subtree(rig.parents, rig.bone_index(root))
+        starts = [library.rotations(pose, rig)[bones] for pose in poses["arm" if "arm" in limb else "leg"]]
+        # The other side's limb mirrored (x → -x): a symmetric pose (hands on the hips) whose
+        # one side the fit placed gives the other side's start, whatever the library holds.
+        other = [rig.bone_index(_other_side(rig.bone_names[b])) for b in bones]
+        starts.append(_MIRROR @ state.rotations[other] @ _MIRROR)
+        trials = []
+        for start in starts:
+            rot = state.rotations.copy()
+            rot[bones] = start
+            trial = fit(PoseState(state.rest, rot, state.scale, state.translation, state.coefficients),
+                        RESTART_ITERATIONS[0], 0.15, 0.06)
+            trials.append((limb_score(template, trial, sub, tree, ids, share), len(trials), trial))
+        best_score, best = limb_score(template, state, sub, tree, ids, share), state
+        for _, _, trial in sorted(trials, key=lambda t: t[:2])[:RESTART_KEEP]:
+            trial = fit(trial, RESTART_ITERATIONS[1], 0.06, 0.03)
+            score = limb_score(template, trial, sub, tree, ids, share)
+            if score < best_score:
+                best, best_score = trial, score
+        if best is not state:
+            state = best
+            changed.append(limb)
+    return state, changed

@@ -8,8 +8,11 @@
 3. ``model_fit.fit_shape``: the shape coefficients and scale with the pose held;
 4. ``pose_fit.fit_pose``: the skeleton's pose by twist ICP with the shape held, then pose, shape
    and scale together in one Gauss-Newton problem (``POSE_ROUNDS``, gates narrowing);
+   Then every body part is checked (``quality.assess``) and a limb off its points is restarted
+   from library limb poses (``align.restart_limbs``) and the joint rounds fitted again;
 5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 10;
-6. ``quality.assess``: how much of the scan the fit explains; refused below ``MIN_QUALITY``;
+6. ``quality.assess``: how much of the scan the fit explains, as a whole and per body part both
+   ways; refused below ``MIN_QUALITY``, the failed parts named;
 7. optionally ``detail.detail_offsets``: the scan's relief as normal offsets on the fit
    subdivided at mid-edges (Hasler §3, end), to be re-added after a morph.
 
@@ -29,14 +32,14 @@ from bodyspace.data.template import Template, load_template
 from bodyspace.errors import RegistrationError
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
-from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment
+from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment, restart_limbs
 from bodyspace.register.correspondences import orient_normals
 from bodyspace.register.detail import Detail, detail_offsets
 from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 from bodyspace.register.prepare import prepare_scan
-from bodyspace.register.quality import Quality, assess
+from bodyspace.register.quality import EXPLAINED_GOOD, Quality, assess
 
 __all__ = ["Registration", "register_scan", "DEFAULT_STEPS"]
 
@@ -48,6 +51,12 @@ __all__ = ["Registration", "register_scan", "DEFAULT_STEPS"]
 # elbows-flexed scan, 1.4 mm jointly (docs/registration.md).
 POSE_ROUNDS = ((0.10, 0.03, False, 0.004), (0.05, 0.02, True, 0.002), (0.04, 0.015, True, 0.001),
                (0.03, 0.01, True, 0.001))
+# Joint pose rounds fitted again (the last ones of POSE_ROUNDS) after a limb was restarted.
+RESTART_ROUNDS = 2
+# Limbs are restarted only on a scan the pose fit explains this much of (a step-forward scan that
+# lost a hand: 93.5 %); below it the scan is not one body (two people about 50 %, a chair 35 %)
+# and the fit is refused without spending the restarts on it.
+RESTART_MIN_EXPLAINED = 0.85
 # NICP stiffness levels and iterations per level, and the last level's stiffness (measured:
 # docs/registration.md). After the joint pose and shape fit the model explains the body to about
 # 0.5 mm; the NICP is there for what it cannot (detail), so it stops stiffer than Hasler's 0.01:
@@ -78,7 +87,8 @@ class Registration:
     points: (P, 3) the scan points used, internal frame. units, up: the scan's; assumed: what
         was found rather than given; seconds: time per stage.
     detail: the scan's relief over ``internal`` subdivided (``register_scan(detail_levels=...)``),
-        or None.
+        or None. restarted: the limbs the per-part check found off the scan after the pose fit and
+        restarted (``align.restart_limbs``), e.g. ["left arm"].
     """
 
     vertices: np.ndarray
@@ -95,6 +105,7 @@ class Registration:
     assumed: list[str] = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
     detail: Detail | None = None
+    restarted: list[str] = field(default_factory=list)
 
 
 def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, to_prepared) -> tuple:
@@ -204,6 +215,26 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         seconds["pose"] += time.perf_counter() - t
         _trace(f"pose {k + 1}", state)
 
+    # Every body part checked on the pose fit: a limb that every start of the alignment lost (a
+    # hand swinging behind a stepping body, a hand on the hip) is restarted from the library's
+    # limb poses, the best by the limb's own residual both ways, then the joint rounds are fitted
+    # again (align.restart_limbs; nothing is done when every part is on its points).
+    report("checking the limbs", 0.48)
+    t = time.perf_counter()
+    x, _, _ = posed_vertices(rig, state)
+    check_pose = assess(x, template.faces, q, np.ones(len(x), dtype=bool), template=template, scan_tree=tree)
+    restarted = []
+    if check_pose.explained >= RESTART_MIN_EXPLAINED:
+        state, restarted = restart_limbs(q, qn, template, state, {p.name: p.quality for p in check_pose.parts},
+                                         tree, rng=rng)
+    for k, (start, end, joint, prior) in enumerate(POSE_ROUNDS[-RESTART_ROUNDS:] if restarted else ()):
+        state, _ = fit_pose(q, qn, template, state, iterations=pose_iterations, landmarks=lm_fit, scan_tree=tree,
+                            start_distance=start, end_distance=end, fit_scale=joint, pose_prior=prior,
+                            shape=(basis, coef, SHAPE_PRIOR, SCALE_PRIOR) if joint else None, rng=rng)
+        coef = state.coefficients if joint else coef
+        _trace(f"limbs {k + 1}", state)
+    seconds["limbs"] = time.perf_counter() - t
+
     report("non-rigid refinement", 0.5)
     t = time.perf_counter()
     x, _, _ = posed_vertices(rig, state)
@@ -215,12 +246,15 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     _trace("nicp", nicp.vertices)
 
     t = time.perf_counter()
-    quality = assess(nicp.vertices, template.faces, q, nicp.has_target)
+    quality = assess(nicp.vertices, template.faces, q, nicp.has_target, template=template, scan_tree=tree)
     seconds["quality"] = time.perf_counter() - t
     if check and not quality.accepted:
-        raise RegistrationError(f"{name}: refused, the fit does not explain the scan: {quality.describe()}; a scan "
-                                "of one person standing alone is expected (two people, an object or a partial scan "
-                                "are refused)")
+        lost = [p.name for p in quality.failed_parts]
+        what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
+                f"the fit lost the {', '.join(lost)}")
+        raise RegistrationError(f"{name}: refused, {what}: {quality.describe()}; a scan of one person standing alone, "
+                                "limbs apart from the body where possible, is expected (two people, an object or a "
+                                "partial scan are refused)")
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
     detail = None
@@ -232,4 +266,4 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     seconds["total"] = time.perf_counter() - t0
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
-                        prep.units, prep.up, list(prep.assumed), seconds, detail)
+                        prep.units, prep.up, list(prep.assumed), seconds, detail, restarted)
