@@ -191,7 +191,7 @@ def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray, armpi
     farther than ``ARMPIT_DISTANCE`` from the armpit loop along the torso's surface; ``"height"``
     (the earlier rule) more than ``ARMPIT_DROP`` below the loop's lowest vertex. Returns the keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool
     (the bones MakeHuman's weights use, less the hip helper bones), ``allowed`` (V, B) bool (the
-    jaw only on its chin region, the upper-arm bones off the torso below the armpit) and
+    jaw only on its chin region, the upper-arm bones off the torso away from the armpit) and
     ``twist_of`` (B,) int (the arm twist bones). Rules whose bones a rig does not have are
     skipped (they are named for MakeHuman's default rigs).
     """
@@ -245,8 +245,9 @@ def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: n
     template's mean body. The bones are the rig's bones at that body (its regressors); the
     bones MakeHuman's weights use deform (39 of the default rig's 163, the face-control, tongue
     and root bones, get none), less the hip helper bones, with the part-aware mask and the arm
-    twist pairs of ``template_heat_rules`` (jaw on the chin only, no upper arm on the chest below
-    the armpit, each arm twist bone heated with the bone it twists).
+    twist pairs of ``template_heat_rules`` (jaw on the chin only, no upper arm on the torso
+    farther than ``ARMPIT_DISTANCE`` from the armpit loop along the surface, each arm twist bone
+    heated with the bone it twists).
     """
     if vertices is None or faces is None:
         t = load_template()
