@@ -50,8 +50,9 @@ OTHER_BODIES = {"gender": [0.0, 1.0, 0.0, 0.5], "weight": [1.0, 0.2, 0.2, 0.7], 
 # Eight more held-out bodies: the half fraction 2^(4-1) of sex x weight x muscle x height at 0.1 / 0.9
 # (height = sex XOR weight XOR muscle), so every pair of the four spans its four corners.
 _SEX, _WEIGHT, _MUSCLE = (np.array(c, dtype=float) for c in np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"))
+_HEIGHT = (_SEX + _WEIGHT + _MUSCLE) % 2
 HELD_OUT_EXTRA = {k: list(0.1 + 0.8 * a.ravel()) for k, a in
-                  (("gender", _SEX), ("weight", _WEIGHT), ("muscle", _MUSCLE), ("height", (_SEX + _WEIGHT + _MUSCLE) % 2))}
+                  (("gender", _SEX), ("weight", _WEIGHT), ("muscle", _MUSCLE), ("height", _HEIGHT))}
 
 
 def body_set(name: str) -> dict:
@@ -157,8 +158,8 @@ def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOO
     library = load_pose_library()
     bodies_name, phenotypes = bodies, body_set(bodies)
     bodies = PhenotypeModel(template).vertices(phenotypes)
-    print(f"{len(bodies)} bodies ({bodies_name}) x {len(library.names)} poses, {skinning.upper()}, default rig; bone heat with at "
-          f"most {influences} influences, c = {heat}, smoothing {smoothing}")
+    print(f"{len(bodies)} bodies ({bodies_name}) x {len(library.names)} poses, {skinning.upper()}, default rig; "
+          f"bone heat with at most {influences} influences, c = {heat}, smoothing {smoothing}")
     results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat, smoothing),
                        skinning, volume)
     print_tables(library.names, results)

@@ -12,8 +12,8 @@ from scipy.sparse.csgraph import dijkstra
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.operators import cotangent_laplacian
 from bodyspace.rig.kinematics import forward_kinematics
-from bodyspace.rig.posing import (ARMPIT_DISTANCE, ARMPIT_DROP, JAW_REGION, bone_heat_rig_weights, count_folded_triangles,
-                                  pose_bodies, template_heat_rules)
+from bodyspace.rig.posing import (ARMPIT_DISTANCE, ARMPIT_DROP, JAW_REGION, bone_heat_rig_weights,
+                                  count_folded_triangles, pose_bodies, template_heat_rules)
 from bodyspace.rig.skinning import linear_blend_skinning
 from bodyspace.rig.weights import (DEFAULT_SMOOTHING, bone_heat_weights, nearest_visible_bones, segments_blocked,
                                    smooth_within_support)

@@ -189,11 +189,12 @@ def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray, armpi
     rig: a template ``Rig``; vertices (V, 3) a body of the template topology in metres, +Y up;
     faces (F, 3). armpit: where the upper-arm bones stop on the torso: ``"surface"`` (default)
     farther than ``ARMPIT_DISTANCE`` from the armpit loop along the torso's surface; ``"height"``
-    (the earlier rule) more than ``ARMPIT_DROP`` below the loop's lowest vertex. Returns the keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool
-    (the bones MakeHuman's weights use, less the hip helper bones), ``allowed`` (V, B) bool (the
-    jaw only on its chin region, the upper-arm bones off the torso away from the armpit) and
-    ``twist_of`` (B,) int (the arm twist bones). Rules whose bones a rig does not have are
-    skipped (they are named for MakeHuman's default rigs).
+    (the earlier rule) more than ``ARMPIT_DROP`` below the loop's lowest vertex. Returns the
+    keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool (the bones MakeHuman's
+    weights use, less the hip helper bones), ``allowed`` (V, B) bool (the jaw only on its chin
+    region, the upper-arm bones off the torso away from the armpit) and ``twist_of`` (B,) int
+    (the arm twist bones). Rules whose bones a rig does not have are skipped (they are named for
+    MakeHuman's default rigs).
     """
     V, B = vertices.shape[0], rig.n_bones
     mh = rig.weights.tocsc()
