@@ -13,7 +13,7 @@ correction (``rig.volume.preserve_volume``, ``pose_bodies(..., preserve_volume=T
 time of the correction against the skinning alone in the same run.
 
 Run: python benchmarks/compare_skin_weights.py [--influences 4] [--heat 1.0] [--smoothing 0.03] [--skinning lbs]
-[--other-bodies] [--volume]
+[--bodies paper|train|other|heldout] [--volume]
 """
 
 from __future__ import annotations
@@ -39,30 +39,50 @@ from bodyspace.synth.poses import load_pose_library
 # heavy male with no muscle.
 BODIES = {"gender": [1.0, 0.0, 1.0], "weight": [0.5, 0.5, 1.0], "muscle": [0.5, 0.5, 0.0],
           "height": [0.6, 0.4, 0.5]}
+# Three more training bodies (muscular heavy short woman, slight short man, a muscular middle
+# body): with BODIES, the six bodies the template's rules are chosen on (``--bodies train``).
+TRAIN_EXTRA = {"gender": [0.0, 1.0, 0.3], "weight": [0.8, 0.3, 0.4], "muscle": [0.8, 0.3, 0.9],
+               "height": [0.2, 0.2, 0.7]}
 # Four other bodies (heavy short woman, muscular tall lean man, lean tall woman, a middle body),
-# not used to choose the template's bone-heat rules: a held-out check of them (``--other-bodies``).
+# not used to choose the template's bone-heat rules: a held-out check of them (``--bodies other``).
 OTHER_BODIES = {"gender": [0.0, 1.0, 0.0, 0.5], "weight": [1.0, 0.2, 0.2, 0.7], "muscle": [0.2, 1.0, 0.5, 0.5],
                 "height": [0.3, 0.9, 0.8, 0.5]}
+# Eight more held-out bodies: the half fraction 2^(4-1) of sex x weight x muscle x height at 0.1 / 0.9
+# (height = sex XOR weight XOR muscle), so every pair of the four spans its four corners.
+_SEX, _WEIGHT, _MUSCLE = (np.array(c, dtype=float) for c in np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"))
+_HEIGHT = (_SEX + _WEIGHT + _MUSCLE) % 2
+HELD_OUT_EXTRA = {k: list(0.1 + 0.8 * a.ravel()) for k, a in
+                  (("gender", _SEX), ("weight", _WEIGHT), ("muscle", _MUSCLE), ("height", _HEIGHT))}
 
+
+def body_set(name: str) -> dict:
+    """Phenotypes of a named set: "paper" (BODIES), "train" (BODIES + TRAIN_EXTRA, the six the rules
+    are chosen on), "other" (OTHER_BODIES), "heldout" (OTHER_BODIES + HELD_OUT_EXTRA, twelve)."""
+    join = lambda a, b: {k: list(a[k]) + list(b[k]) for k in a}           # noqa: E731
+    return {"paper": BODIES, "train": join(BODIES, TRAIN_EXTRA), "other": OTHER_BODIES,
+            "heldout": join(OTHER_BODIES, HELD_OUT_EXTRA)}[name]
 
 def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -> dict:
     """name → (V, B) weights; bone heat on the template's mean body: plain (MakeHuman's deforming
     bones, no mask: what any mesh gets), and with the template's rules (``template_heat_rules``:
-    hip helper bones out, jaw on the chin, no upper arm on the chest below the armpit, arm twist
-    bones heated with the bone they twist; what
+    hip helper bones out, jaw on the chin, no upper arm on the torso farther than 10 cm from the
+    armpit loop (and the earlier 6 cm height line, ``armpit="height"``), arm twist bones heated
+    with the bone they twist; what
     ``pose_bodies(weights="bone_heat")`` uses)."""
     v = template.vertices
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
     args = (v, template.faces, rig.heads(v), rig.tails(v), influences)
     cut = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=0.0)
     plain = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
+    height_line = bone_heat_weights(*args, **template_heat_rules(rig, v, template.faces, armpit="height"),
+                                    heat=heat, smoothing=smoothing)
     rules = template_heat_rules(rig, v, template.faces)
     t = time.perf_counter()
     heat_w = bone_heat_weights(*args, **rules, heat=heat, smoothing=smoothing)
     print(f"bone heat with the template's rules: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
           f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
     return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat, cut only": cut,
-            "bone heat, no rules": plain, "bone heat": heat_w}
+            "bone heat, no rules": plain, "bone heat, armpit height line": height_line, "bone heat": heat_w}
 
 
 def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs", volume: bool = False) -> dict:
@@ -132,13 +152,14 @@ def print_tables(names, results) -> None:
 
 
 def main(influences: int = 4, heat: float = 1.0, smoothing: float = DEFAULT_SMOOTHING, skinning: str = "lbs",
-         other_bodies: bool = False, volume: bool = False) -> None:
+         bodies: str = "paper", volume: bool = False) -> None:
     template = load_template()
     rig = template.rigs["default"]
     library = load_pose_library()
-    bodies = PhenotypeModel(template).vertices(OTHER_BODIES if other_bodies else BODIES)
-    print(f"{len(bodies)} bodies x {len(library.names)} poses, {skinning.upper()}, default rig; bone heat with at "
-          f"most {influences} influences, c = {heat}, smoothing {smoothing}")
+    bodies_name, phenotypes = bodies, body_set(bodies)
+    bodies = PhenotypeModel(template).vertices(phenotypes)
+    print(f"{len(bodies)} bodies ({bodies_name}) x {len(library.names)} poses, {skinning.upper()}, default rig; "
+          f"bone heat with at most {influences} influences, c = {heat}, smoothing {smoothing}")
     results = evaluate(template, rig, library, bodies, weight_sets(template, rig, influences, heat, smoothing),
                        skinning, volume)
     print_tables(library.names, results)
@@ -151,8 +172,10 @@ if __name__ == "__main__":
     parser.add_argument("--heat", type=float, default=1.0)
     parser.add_argument("--smoothing", type=float, default=DEFAULT_SMOOTHING)
     parser.add_argument("--skinning", choices=("lbs", "dqs"), default="lbs")
-    parser.add_argument("--other-bodies", action="store_true",
-                        help="the four held-out bodies (OTHER_BODIES) instead of the three of docs/poses.md")
+    parser.add_argument("--bodies", choices=("paper", "train", "other", "heldout"), default="paper",
+                        help="paper: the three of docs/poses.md; train: those and three more (the rules are chosen "
+                             "on these six); other: four held-out bodies; heldout: those and eight more (twelve)")
+    parser.add_argument("--other-bodies", action="store_true", help="the same as --bodies other")
     parser.add_argument("--volume", action="store_true", help="also each weight set with the volume correction")
     a = parser.parse_args()
-    main(a.influences, a.heat, a.smoothing, a.skinning, a.other_bodies, a.volume)
+    main(a.influences, a.heat, a.smoothing, a.skinning, "other" if a.other_bodies else a.bodies, a.volume)

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import trimesh
+from scipy.sparse.csgraph import dijkstra
 
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.operators import cotangent_laplacian
 from bodyspace.rig.kinematics import forward_kinematics
-from bodyspace.rig.posing import bone_heat_rig_weights, count_folded_triangles, pose_bodies
+from bodyspace.rig.posing import (ARMPIT_DISTANCE, ARMPIT_DROP, JAW_REGION, bone_heat_rig_weights,
+                                  count_folded_triangles, pose_bodies, template_heat_rules)
 from bodyspace.rig.skinning import linear_blend_skinning
 from bodyspace.rig.weights import (DEFAULT_SMOOTHING, bone_heat_weights, nearest_visible_bones, segments_blocked,
                                    smooth_within_support)
@@ -364,7 +366,6 @@ def test_template_rules_fold_less_and_keep_the_chest(template, rig, heat_weights
     from bodyspace.measure.definitions import load_measurement_set
     from bodyspace.measure.evaluate import measure
     from bodyspace.measure.parts import PART_INDEX, parts_from_weights
-    from bodyspace.rig.posing import ARMPIT_DROP, JAW_REGION
     from bodyspace.synth.poses import load_pose_library
     W, names = heat_weights.tocsc(), list(rig.bone_names)
     for b in ("pelvis.L", "pelvis.R"):
@@ -373,8 +374,24 @@ def test_template_rules_fold_less_and_keep_the_chest(template, rig, heat_weights
     assert W[:, jaw].nnz > 0
     assert (rig.weights.tocsc()[W[:, jaw].indices, jaw].toarray() > JAW_REGION).all()
     parts = parts_from_weights(rig.weights, rig.bone_names)
-    low_chest = np.flatnonzero((parts == PART_INDEX["torso"]) & (template.vertices[:, 1] < 0.445 - ARMPIT_DROP))
-    assert W[low_chest][:, [names.index("upperarm01.L"), names.index("upperarm01.R")]].nnz == 0
+    # the upper arm stops on the torso ARMPIT_DISTANCE from the armpit loop along the torso's
+    # surface (an independent shortest-path computation): none beyond, some within
+    v, f = template.vertices, template.faces
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    on_torso = parts == PART_INDEX["torso"]
+    loop = np.unique(e[(parts[e[:, 0]] == PART_INDEX["upper_arm_l"]) & on_torso[e[:, 1]], 1])
+    inner = e[on_torso[e[:, 0]] & on_torso[e[:, 1]]]
+    graph = sp.coo_matrix((np.linalg.norm(v[inner[:, 0]] - v[inner[:, 1]], axis=1), (inner[:, 0], inner[:, 1])),
+                          shape=(len(v), len(v))).tocsr()
+    dist = dijkstra(graph, directed=False, indices=loop, min_only=True)
+    left_arm = W[:, names.index("upperarm01.L")].toarray().ravel()
+    assert (left_arm[on_torso & (dist > ARMPIT_DISTANCE)] == 0).all()
+    assert (left_arm[on_torso & (dist > 0.5 * ARMPIT_DISTANCE) & (dist < ARMPIT_DISTANCE)] > 0).sum() > 50
+    # the earlier rule (a height below the loop) is still there on request, and a typo is refused
+    old = template_heat_rules(rig, v, f, armpit="height")["allowed"][:, names.index("upperarm01.L")]
+    assert not old[on_torso & (v[:, 1] < v[loop, 1].min() - ARMPIT_DROP)].any()
+    with pytest.raises(ParameterError, match="armpit='heigth'"):
+        template_heat_rules(rig, v, f, armpit="heigth")
     # the arm twist bone: none on the torso (the armpit's torso side has one arm bone, not
     # two), most of the pair's weight at the elbow
     arm, twist = names.index("upperarm01.L"), names.index("upperarm02.L")

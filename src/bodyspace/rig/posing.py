@@ -10,6 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
 
 from bodyspace.atomic import atomic_path
 from bodyspace.data.assets import cache_dir
@@ -163,10 +164,15 @@ HIP_HELPER_BONES = ("pelvis.L", "pelvis.R")
 # lip, so the mouth still opens);
 JAW_BONE, JAW_REGION = "jaw", 0.8
 # the upper arm (and shoulder) bones pull the chest ring up with a raised arm (chest girth -3.8 cm
-# in arms_overhead): no torso vertex more than this far below the armpit (the lowest upper-arm
-# vertex bordering the torso) is weighted by them. 6 cm puts the line 0.5 cm above the bust
-# points on the template; 5.5-6.5 cm keep the chest within 2.5 cm, and folds are lowest at 6 cm
-# (187 / 176 / 191 at 5.5 / 6 / 6.5 cm).
+# in arms_overhead): no torso vertex farther than ARMPIT_DISTANCE from the armpit loop (the torso
+# vertices bordering the upper arm), measured along the torso's surface of the rest body, is
+# weighted by them. Chosen on six training bodies x 39 poses (docs/skinning.md "Held-out
+# bodies"): 6 / 8 / 9 / 10 / 12 cm gave 344 / 267 / 242 / 238 / 250 folds and a worst chest of
+# 0.6 / 1.2 / 1.9 / 2.3 / 3.6 cm; 10 cm has the fewest folds with the chest within 2.5 cm.
+# A surface distance follows the loop round the front and back of the armpit, where a height
+# below its lowest vertex (the earlier rule, ``armpit="height"``: ARMPIT_DROP = 6 cm, 255 folds
+# there) cuts the back and front at the side's level.
+ARMPIT_DISTANCE = 0.10
 ARMPIT_DROP = 0.06
 # MakeHuman's arm twist bones, heated as one bone with the bone they twist and then split along
 # it (``bone_heat_weights(twist_of=...)``): at the shoulder a twist bone otherwise takes one of
@@ -177,15 +183,18 @@ TWIST_BONES = {"upperarm02.L": "upperarm01.L", "upperarm02.R": "upperarm01.R",
                "lowerarm02.L": "lowerarm01.L", "lowerarm02.R": "lowerarm01.R"}
 
 
-def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray) -> dict:
+def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray, armpit: str = "surface") -> dict:
     """The deforming bones, the part-aware mask and the twist pairs for bone heat on a template body.
 
     rig: a template ``Rig``; vertices (V, 3) a body of the template topology in metres, +Y up;
-    faces (F, 3). Returns the keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool
-    (the bones MakeHuman's weights use, less the hip helper bones), ``allowed`` (V, B) bool (the
-    jaw only on its chin region, the upper-arm bones off the torso below the armpit) and
-    ``twist_of`` (B,) int (the arm twist bones). Rules whose bones a rig does not have are
-    skipped (they are named for MakeHuman's default rigs).
+    faces (F, 3). armpit: where the upper-arm bones stop on the torso: ``"surface"`` (default)
+    farther than ``ARMPIT_DISTANCE`` from the armpit loop along the torso's surface; ``"height"``
+    (the earlier rule) more than ``ARMPIT_DROP`` below the loop's lowest vertex. Returns the
+    keyword arguments of ``bone_heat_weights``: ``deform`` (B,) bool (the bones MakeHuman's
+    weights use, less the hip helper bones), ``allowed`` (V, B) bool (the jaw only on its chin
+    region, the upper-arm bones off the torso away from the armpit) and ``twist_of`` (B,) int
+    (the arm twist bones). Rules whose bones a rig does not have are skipped (they are named for
+    MakeHuman's default rigs).
     """
     V, B = vertices.shape[0], rig.n_bones
     mh = rig.weights.tocsc()
@@ -200,16 +209,28 @@ def template_heat_rules(rig: Rig, vertices: np.ndarray, faces: np.ndarray) -> di
         allowed[:, j] = np.asarray(mh[:, j].toarray()).ravel() > JAW_REGION
     parts = parts_from_weights(rig.weights, rig.bone_names)              # (V,) part per vertex
     bone_part = np.array([part_of_bone(b) for b in rig.bone_names])      # (B,)
+    if armpit not in ("surface", "height"):
+        raise ParameterError(f"armpit={armpit!r}; expected 'surface' or 'height'")
     y = vertices[:, 1]
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     torso = PART_INDEX["torso"]
+    on_torso = parts == torso
+    inner = edges[on_torso[edges[:, 0]] & on_torso[edges[:, 1]]]
+    # The torso's own edge graph, so the distance does not short-cut through the arm.
+    graph = sp.csr_matrix((np.linalg.norm(vertices[inner[:, 0]] - vertices[inner[:, 1]], axis=1),
+                           (inner[:, 0], inner[:, 1])), shape=(V, V))
     for side in ("l", "r"):
         arm = PART_INDEX["upper_arm_" + side]
-        border = edges[(parts[edges[:, 0]] == arm) & (parts[edges[:, 1]] == torso), 0]
-        if not len(border) or not (bone_part == arm).any():
+        crossing = edges[(parts[edges[:, 0]] == arm) & (parts[edges[:, 1]] == torso)]   # (E', 2) arm, torso
+        if not len(crossing) or not (bone_part == arm).any():
             continue
-        below = (parts == torso) & (y < y[border].min() - ARMPIT_DROP)
-        allowed[np.ix_(below, bone_part == arm)] = False
+        if armpit == "height":
+            far = on_torso & (y < y[crossing[:, 0]].min() - ARMPIT_DROP)
+        else:
+            loop = np.unique(crossing[:, 1])
+            far = on_torso & (dijkstra(graph, directed=False, indices=loop, min_only=True,
+                                       limit=2 * ARMPIT_DISTANCE) > ARMPIT_DISTANCE)
+        allowed[np.ix_(far, bone_part == arm)] = False
     twist_of = np.full(B, -1, dtype=np.int64)
     for child, parent in TWIST_BONES.items():
         if child in names and parent in names and deform[names.index(child)] and deform[names.index(parent)]:
@@ -225,8 +246,9 @@ def bone_heat_rig_weights(rig: Rig, vertices: np.ndarray | None = None, faces: n
     template's mean body. The bones are the rig's bones at that body (its regressors); the
     bones MakeHuman's weights use deform (39 of the default rig's 163, the face-control, tongue
     and root bones, get none), less the hip helper bones, with the part-aware mask and the arm
-    twist pairs of ``template_heat_rules`` (jaw on the chin only, no upper arm on the chest below
-    the armpit, each arm twist bone heated with the bone it twists).
+    twist pairs of ``template_heat_rules`` (jaw on the chin only, no upper arm on the torso
+    farther than ``ARMPIT_DISTANCE`` from the armpit loop along the surface, each arm twist bone
+    heated with the bone it twists).
     """
     if vertices is None or faces is None:
         t = load_template()

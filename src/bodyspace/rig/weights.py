@@ -541,7 +541,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     allowed: (V, B) bool (dense or sparse), the bones each vertex may be weighted by (default
         all): a vertex takes only allowed bones as its heat source, and a bone's heat is cut
         where it is not allowed (before the cut to ``max_influences``). A part-aware mask, e.g.
-        the jaw only on the chin, the upper arm not on the chest (``posing.bone_heat_rig_weights``).
+        the jaw only on the chin, the upper arm not on the torso away from the armpit
+        (``posing.bone_heat_rig_weights``).
         A row with no True allows all.
     twist_of: (B,) int, for a twist bone the bone it twists (its parent, whose tail is its
         head; e.g. MakeHuman's upperarm02 of upperarm01), -1 for the others (default none).
