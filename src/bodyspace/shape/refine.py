@@ -11,7 +11,8 @@ For each level (k, span), smallest k first, with the k' components of the level 
 (k' = 0 at the first level) and the components ``S = C[:span]``:
 
 1. every training body y_i has coefficients z_i on the first k components: at the start the
-   vertex fit's (``fit_coefficients``, a short budget), later the ones carried over from the
+   vertex fit's (``fit_coefficients`` from the code projection, as a held-out mesh's fit starts;
+   a short budget), later the ones carried over from the
    previous alternation;
 2. at each body ``decode(mean + z_i C[:k])`` the decoder's Jacobian on S (exact tangents,
    rigid motions projected out: the error is taken after a rigid alignment), J_i (3V, span),
