@@ -250,17 +250,19 @@ def test_refined_basis(rre, population):
     space = ShapeSpace(enc, 6, basis="refined", refine_levels=[(1, 3), (2, 5)]).fit(codes, vertices=scans)
     c, v = space.components_, vertex.components_
     np.testing.assert_allclose(c @ c.T, np.eye(6), atol=1e-10)
-    for span in (3, 5):   # same span: the first `span` vertex components lie in the refined ones' span
-        np.testing.assert_allclose((v[:span] @ c[:span].T) @ c[:span], v[:span], atol=1e-9)
+    # The last level's span is kept (the first 5 vertex components lie in the refined ones' span),
+    # and so are the components past it and the first one (``refine.KEEP``).
+    np.testing.assert_allclose((v[:5] @ c[:5].T) @ c[:5], v[:5], atol=1e-9)
     np.testing.assert_allclose(c[5:], v[5:], atol=1e-12)
+    np.testing.assert_allclose(c[0], v[0], atol=1e-12)
     rep = space.refine_report_
     assert rep.levels.tolist() == [[1, 3], [2, 5]] and space.refine_levels_.tolist() == [[1, 3], [2, 5]]
-    for errors in rep.train_error_m:
-        assert np.all(np.diff(errors) < 0)
+    assert rep.train_error_m[0] == []          # k = 1 <= KEEP: nothing to turn
+    assert np.all(np.diff(rep.train_error_m[1]) < 0)
     # From a bad order (vertex components 1 and 5 swapped) the refinement finds the first one
     # again: the training bodies' fit at k = 1 as good as the vertex order's, not the swapped one's.
     swapped = _with_components(vertex, v[[4, 1, 2, 3, 0, 5]].copy())
-    comps, rep1 = refine_basis(swapped, scans, [(1, 5)])
+    comps, rep1 = refine_basis(swapped, scans, [(1, 5)], keep=0)
     before, vertex_order = (fit_coefficients(s, scans, 1).error_m.mean() for s in (swapped, vertex))
     after = fit_coefficients(_with_components(vertex, comps), scans, 1).error_m.mean()
     assert before > 2 * vertex_order and after < 1.02 * vertex_order and rep1.alternations[0] >= 1

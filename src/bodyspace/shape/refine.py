@@ -50,8 +50,13 @@ __all__ = ["DEFAULT_LEVELS", "RefineReport", "refine_basis", "check_levels"]
 # (k, span) levels: the k = 4 and k = 8 components re-chosen inside the first 8 and 16 (where
 # the vertex order left RRE behind vertex PCA on the posed study; k = 1, 16, 32 were ahead).
 DEFAULT_LEVELS = ((4, 8), (8, 16))
-# Alternations per level at most (each: one decode and span tangent directions per body).
-MAX_ALTERNATIONS = 4
+# Alternations per level at most (each: one decode and span tangent directions per body, and a
+# short vertex fit from the new coefficients: ALTERNATION_STEPS decodes and one Jacobian).
+MAX_ALTERNATIONS = 3
+ALTERNATION_STEPS = 3
+# Leading components never rotated: the vertex order's first one (RRE's vertex fit with it
+# already beat vertex PCA at k = 1 on the posed study, docs/encoding.md).
+KEEP = 1
 # The training bodies' first fit at each level: a short budget (most of the gain is in the first
 # steps, shape/vertex_fit.py); the alternations refine the coefficients afterwards.
 FIT_STEPS = 6
@@ -69,7 +74,7 @@ class RefineReport:
     Attributes:
         levels: (L, 2) int (k, span) of each level.
         train_error_m: list of L lists: the training bodies' mean vertex error (m) at k after the
-            short fit, then after each kept alternation.
+            short fit, then after each kept alternation (empty for a skipped level).
         alternations: (L,) alternations kept per level.
     """
 
@@ -137,7 +142,7 @@ def _free_directions(w_free: np.ndarray, m: np.ndarray, fixed: int) -> np.ndarra
 
 
 def refine_basis(space, bodies: np.ndarray, levels=DEFAULT_LEVELS, *, max_alternations: int = MAX_ALTERNATIONS,
-                 progress=None) -> tuple[np.ndarray, RefineReport]:
+                 keep: int = KEEP, progress=None) -> tuple[np.ndarray, RefineReport]:
     """Leading components of a fitted ``space`` re-chosen for the vertex fit (module docstring).
 
     Args:
@@ -145,6 +150,7 @@ def refine_basis(space, bodies: np.ndarray, levels=DEFAULT_LEVELS, *, max_altern
         bodies: (N, V, 3) the training bodies (any rigid placement).
         levels: (k, span) pairs, k and span increasing (``check_levels``).
         max_alternations: alternations per level at most.
+        keep: the leading components never rotated (a level with k <= keep is skipped).
         progress: ``progress(message)`` or None.
     Returns:
         ``(components (K, D), RefineReport)``: orthonormal, the first ``span`` of each level
@@ -159,32 +165,21 @@ def refine_basis(space, bodies: np.ndarray, levels=DEFAULT_LEVELS, *, max_altern
     say = progress or (lambda msg: None)
     parts = _parts(enc)
     report = RefineReport(lv, [], np.zeros(len(lv), dtype=np.int64))
-    fixed = 0
+    fixed = int(keep)
     for li, (k, span) in enumerate(lv):
-        tmp = _with_components(space, comps)
-        fit = fit_coefficients(tmp, y, int(k), max_iter=FIT_STEPS, max_jacobians=FIT_JACOBIANS)
+        if k <= fixed:                                                  # nothing of the first k may turn
+            report.train_error_m.append([])
+            continue
+        fit = fit_coefficients(_with_components(space, comps), y, int(k), max_iter=FIT_STEPS,
+                               max_jacobians=FIT_JACOBIANS)
         z = fit.coefficients[:, :k]
         errors = [float(fit.error_m.mean())]
         say(f"level k = {k} in {span}: training bodies fitted, {1000 * errors[0]:.1f} mm")
-        for it in range(max_alternations + 1):
-            last = it == max_alternations
-            dist = np.empty(len(y))
+        for it in range(max_alternations):
             hs, gs = np.empty((len(y), span, span)), np.empty((len(y), span))
             with single_threaded_blas():
                 for i in range(len(y)):
-                    dist[i], hs[i], gs[i] = _linearize(enc, space.mean_, comps, span, y[i], z[i], parts, not last)
-            err = float(dist.mean())
-            if it > 0:
-                if err >= errors[-1]:
-                    comps, z = kept_comps, kept_z                       # the rotation did not help: undo it
-                    break
-                errors.append(err)
-                report.alternations[li] = it
-                say(f"level k = {k} in {span}: alternation {it}, {1000 * err:.1f} mm")
-                if err > errors[-2] * (1.0 - TOL):
-                    break
-            if last:
-                break
+                    _, hs[i], gs[i] = _linearize(enc, space.mean_, comps, span, y[i], z[i], parts)
             kept_comps, kept_z = comps.copy(), z.copy()
             # Where each body wants to be inside the span: w_i = (z_i, 0) - step.
             u0 = np.zeros((len(y), span))
@@ -195,9 +190,24 @@ def refine_basis(space, bodies: np.ndarray, levels=DEFAULT_LEVELS, *, max_altern
             comps[:span] = rot @ comps[:span]
             # The coefficients on the new first k: the same linearization's damped Gauss-Newton
             # solution restricted to them (u = P z', P the new first k directions in the old
-            # coordinates), so the next alternation starts at the best point the model knows.
+            # coordinates), then a short vertex fit from there: the new basis is judged by a fit,
+            # as the old one was (a linearized point alone was up to ~10 % worse than a fit and
+            # made every rotation look like a loss).
             p = rot[:k].T                                                   # (span, k)
             z = np.stack([_damped_solve(p.T @ h @ p, p.T @ (h @ u - g)) for h, g, u in zip(hs, gs, u0)])
+            fit = fit_coefficients(_with_components(space, comps), y, int(k), start=z, max_iter=ALTERNATION_STEPS,
+                                   max_jacobians=1)
+            err = float(fit.error_m.mean())
+            if err >= errors[-1]:
+                comps, z = kept_comps, kept_z                               # the rotation did not help: undo it
+                say(f"level k = {k} in {span}: alternation {it + 1} undone ({1000 * err:.1f} mm)")
+                break
+            z = fit.coefficients[:, :k]
+            errors.append(err)
+            report.alternations[li] = it + 1
+            say(f"level k = {k} in {span}: alternation {it + 1}, {1000 * err:.1f} mm")
+            if err > errors[-2] * (1.0 - TOL):
+                break
         report.train_error_m.append(errors)
         fixed = int(k)
     return comps, report
