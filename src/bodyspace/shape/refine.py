@@ -8,7 +8,7 @@ vertex-ordered directions could not fold the arms (``hands_behind_head``, ``arms
 components by alternating, on the training bodies, between their coefficients and the basis:
 
 For each level (k, span), smallest k first, with the k' components of the level before fixed
-(k' = 0 at the first level) and the components ``S = C[:span]``:
+(k' = ``keep`` at the first level, default the first component) and ``S = C[:span]``:
 
 1. every training body y_i has coefficients z_i on the first k components: at the start the
    vertex fit's (``fit_coefficients`` from the code projection, as a held-out mesh's fit starts;
@@ -23,13 +23,16 @@ For each level (k, span), smallest k first, with the k' components of the level 
    predicts), after the fixed components have taken what they can (the Schur complement of
    M on the free coordinates): the k - k' leading ones minimize the predicted vertex error of
    the training bodies in the new first k, given the fixed ones;
-4. z_i <- the new first k coordinates of w_i, and repeat from 2 while the training bodies'
-   mean vertex error at k falls (a step that raises it is undone and ends the level).
+4. z_i <- the same linearization's solution on the new first k components, then a short vertex
+   fit from there (``ALTERNATION_STEPS`` steps, one Jacobian); the rotation is kept if the
+   training bodies' mean vertex error at k fell (else undone, and the level ends), and the level
+   alternates from 2 while it falls by more than ``TOL``.
 
 The span of S never changes, so the components past ``span`` and every k >= span keep their
 spaces; the fixed components keep the smaller k of earlier levels. Cost per level: one short
-vertex fit per training body, then per alternation one decode that keeps its factorization and
-``span`` tangent directions per body (measured in docs/encoding.md).
+vertex fit per training body, then per alternation one decode that keeps its factorization,
+``span`` tangent directions and a 3-step fit per body (measured: ~4 CPU s a training body for
+the default levels, docs/encoding.md).
 
 Why nested from the smallest k (measured, docs/encoding.md): a level at k = 8 that rotates all
 of its span reorders the first 4 components too, and lost k = 4 (80 -> 122 mm on a fold).
@@ -43,7 +46,7 @@ import numpy as np
 
 from bodyspace.errors import ParameterError
 from bodyspace.mesh.solver import single_threaded_blas
-from bodyspace.shape.vertex_fit import _error, _parts, _rigid_basis, align_parts, fit_coefficients
+from bodyspace.shape.vertex_fit import align_parts, fit_coefficients, mesh_parts, residual_error, rigid_basis
 
 __all__ = ["DEFAULT_LEVELS", "RefineReport", "refine_basis", "check_levels"]
 
@@ -106,11 +109,11 @@ def _linearize(enc, mean, comps, span, y, z, parts, need_jac=True):
     tan = enc.tangent(mean + z @ comps[:k]) if need_jac else None
     body = tan.vertices if need_jac else enc.decode(mean + z @ comps[:k])[0]
     r = body - align_parts(y, body, parts)
-    dist = _error(r)[1]
+    dist = residual_error(r)[1]
     if not need_jac:
         return dist, None, None
     jac = tan.jvp(comps[:span]).reshape(span, -1).T                     # (3V, span)
-    rigid = _rigid_basis(body, parts)
+    rigid = rigid_basis(body, parts)
     jac -= rigid @ (rigid.T @ jac)                                      # the alignment takes rigid motions
     return dist, jac.T @ jac, jac.T @ r.ravel()
 
@@ -163,7 +166,7 @@ def refine_basis(space, bodies: np.ndarray, levels=DEFAULT_LEVELS, *, max_altern
     if y.ndim != 3 or y.shape[1:] != (enc.n_vertices, 3):
         raise ParameterError(f"bodies: shape {y.shape}, expected (N, {enc.n_vertices}, 3)")
     say = progress or (lambda msg: None)
-    parts = _parts(enc)
+    parts = mesh_parts(enc)
     report = RefineReport(lv, [], np.zeros(len(lv), dtype=np.int64))
     fixed = int(keep)
     for li, (k, span) in enumerate(lv):
