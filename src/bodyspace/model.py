@@ -22,7 +22,7 @@ Array layout of a model file (``FORMAT_VERSION = 3``); each part writes its own 
     pca_*                   the shape space (``ShapeSpace.to_arrays("pca_")``): mean (D,),
                             components (K, D) float32, explained_variance(_ratio), singular_values
                             (K,), n_samples (); optional vertex_variance (K,) (basis "vertex"
-                            or "refined") and refine_levels (L, 2) int64 (basis "refined"; a
+                            or "refined") and refine_levels (L, 2) float64 whole numbers (basis "refined"; a
                             file without them loads as before: no version change)
     fitted_scans            (N,) int64      rows of the source database the model was fitted on
     measurement_set         optional (B,) uint8: UTF-8 JSON of the model's measurement set

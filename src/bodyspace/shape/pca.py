@@ -339,14 +339,17 @@ class ShapeSpace:
         bit-exactly), ``explained_variance``, ``explained_variance_ratio``, ``singular_values``
         (K,) float64, ``n_samples`` () int64, with ``basis_ == "vertex"`` or ``"refined"`` its
         ``vertex_variance`` (K,) float64, and with ``"refined"`` its ``refine_levels`` (L, 2)
-        int64 (their presence says the basis; a reader that knows neither takes the components
-        as they are, which is all the refinement changed)."""
+        (whole numbers, stored float64) (their presence says the basis; a reader that knows
+        neither takes the components as they are, which is all the refinement changed)."""
         self._require_fit()
         basis = getattr(self, "basis_", "code")
         extra = ({} if basis == "code" else
                  {prefix + "vertex_variance": np.asarray(self.vertex_variance_, dtype=np.float64)})
         if basis == "refined":
-            extra[prefix + "refine_levels"] = np.asarray(self.refine_levels_, dtype=np.int64).reshape(-1, 2)
+            # float64 (small integers, exact) like every other shape-space array: a reader that
+            # does not know the field (format_version 3 files before it) checks it as one of its
+            # floats and loads the components, which are all the refinement changed.
+            extra[prefix + "refine_levels"] = np.asarray(self.refine_levels_, dtype=np.float64).reshape(-1, 2)
         return {**extra, prefix + "mean": np.asarray(self.mean_, dtype=np.float64),
                 prefix + "components": np.asarray(self.components_, dtype=np.float32),
                 prefix + "explained_variance": np.asarray(self.explained_variance_, dtype=np.float64),
@@ -389,10 +392,13 @@ class ShapeSpace:
         levels = None
         if prefix + "refine_levels" in arrays:
             raw = np.asarray(arrays[prefix + "refine_levels"])
-            if vertex_var is None or raw.ndim != 2 or raw.shape[1] != 2 or raw.dtype.kind not in "iu":
+            whole = (raw.dtype.kind in "iu" or (raw.dtype.kind == "f" and np.isfinite(raw).all()
+                                                 and (raw == np.round(raw)).all()))
+            if vertex_var is None or raw.ndim != 2 or raw.shape[1] != 2 or not whole:
                 raise ParameterError(f"shape space: '{prefix}refine_levels' has shape {raw.shape} and dtype "
-                                     f"{raw.dtype}, expected (L, 2) integers beside '{prefix}vertex_variance'")
-            basis, levels = "refined", (check_levels(raw, len(comps)) if len(raw) else raw.astype(np.int64))
+                                     f"{raw.dtype}, expected (L, 2) whole numbers beside '{prefix}vertex_variance'")
+            raw = raw.astype(np.int64)
+            basis, levels = "refined", (check_levels(raw, len(comps)) if len(raw) else raw)
         space = cls(encoder, n_components=len(comps), basis=basis,
                     refine_levels=None if levels is None else levels.tolist())
         total = float(var[0] / ratio[0]) if len(var) and ratio[0] > 0 else float(var.sum())
