@@ -40,7 +40,7 @@ from scipy.optimize import least_squares
 from bodyspace.data.template import load_template
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace, fit_coefficients
-from bodyspace.shape.vertex_fit import _rigid_basis, align_parts
+from bodyspace.shape.vertex_fit import rigid_basis, align_parts
 from bodyspace.synth.population import build_population
 
 
@@ -54,7 +54,7 @@ def since(start):
 
 
 def rigid_basis_qr(body, parts):
-    """The previous ``_rigid_basis`` (the baseline): the 6 P motion fields, then a QR."""
+    """The previous ``rigid_basis`` (the baseline): the 6 P motion fields, then a QR."""
     cols = []
     for idx in parts:
         x = body[idx] - body[idx].mean(axis=0)
@@ -133,8 +133,8 @@ def main() -> None:
     print("|---|---|---|---|---|")
     tan = enc.tangent(space.transform(codes[held[:1]])[0] @ space.components_ + space.mean_)
     one = [np.arange(enc.n_vertices)]
-    ours, theirs = median_cpu(lambda: _rigid_basis(tan.vertices, one)), median_cpu(lambda: rigid_basis_qr(tan.vertices, one))
-    a, b = _rigid_basis(tan.vertices, one), rigid_basis_qr(tan.vertices, one)
+    ours, theirs = median_cpu(lambda: rigid_basis(tan.vertices, one)), median_cpu(lambda: rigid_basis_qr(tan.vertices, one))
+    a, b = rigid_basis(tan.vertices, one), rigid_basis_qr(tan.vertices, one)
     diff = np.abs(a @ a.T[:, :200] - b @ b.T[:, :200]).max()  # the same projector (bases differ by a rotation)
     print(f"| rigid-motion basis (3V = {3 * enc.n_vertices}, 6) | {ours[0]:.4f} ({ours[1]:.4f}) | {theirs[0]:.4f} "
           f"({theirs[1]:.4f}) | x{theirs[1] / max(ours[1], 1e-9):.1f} | projector {diff:.1e} |")

@@ -10,9 +10,11 @@ from bodyspace.errors import ParameterError
 from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.shape import (
     ShapeSpace,
+    fit_coefficients,
     mean_relative_edge_change,
     relative_volume_change,
 )
+from bodyspace.shape.refine import _free_directions, _with_components, refine_basis
 
 
 @pytest.fixture(scope="module")
@@ -235,3 +237,76 @@ def test_vertex_basis_of_the_vertex_encoding_is_vertex_pca(population):
     np.testing.assert_allclose(a.vertex_variance_, a.explained_variance_)
     back = ShapeSpace.from_arrays(a.to_arrays(), encoder=enc)
     assert back.basis_ == "vertex" and np.allclose(back.vertex_variance_, a.vertex_variance_)
+
+
+def test_refined_basis(rre, population):
+    """basis="refined": the vertex order's leading components rotated inside each level's span
+    (the spans, and so every k >= span, unchanged; the first k of a level kept by the next), the
+    training bodies' vertex fit error at each level's k lowered, and a file's arrays round-trip
+    (a file without the levels loads as the vertex order, as files written before)."""
+    enc, codes = rre
+    _, _, scans = population
+    vertex = ShapeSpace(enc, 6, basis="vertex").fit(codes, vertices=scans)
+    space = ShapeSpace(enc, 6, basis="refined", refine_levels=[(1, 3), (2, 5)]).fit(codes, vertices=scans)
+    c, v = space.components_, vertex.components_
+    np.testing.assert_allclose(c @ c.T, np.eye(6), atol=1e-10)
+    # The last level's span is kept (the first 5 vertex components lie in the refined ones' span),
+    # and so are the components past it and the first one (``refine.KEEP``).
+    np.testing.assert_allclose((v[:5] @ c[:5].T) @ c[:5], v[:5], atol=1e-9)
+    np.testing.assert_allclose(c[5:], v[5:], atol=1e-12)
+    np.testing.assert_allclose(c[0], v[0], atol=1e-12)
+    rep = space.refine_report_
+    assert rep.levels.tolist() == [[1, 3], [2, 5]] and space.refine_levels_.tolist() == [[1, 3], [2, 5]]
+    assert rep.train_error_m[0] == []          # k = 1 <= KEEP: nothing to turn
+    assert np.all(np.diff(rep.train_error_m[1]) < 0)
+    # From a bad order (vertex components 1 and 5 swapped) the refinement finds the first one
+    # again: the training bodies' fit at k = 1 as good as the vertex order's, not the swapped one's.
+    swapped = _with_components(vertex, v[[4, 1, 2, 3, 0, 5]].copy())
+    comps, rep1 = refine_basis(swapped, scans, [(1, 5)], keep=0)
+    before, vertex_order = (fit_coefficients(s, scans, 1).error_m.mean() for s in (swapped, vertex))
+    after = fit_coefficients(_with_components(vertex, comps), scans, 1).error_m.mean()
+    assert before > 2 * vertex_order and after < 1.02 * vertex_order and rep1.alternations[0] >= 1
+    # The explained variances are the codes' variance along the new components.
+    z = space.transform(codes)
+    np.testing.assert_allclose(space.explained_variance_, z.var(axis=0, ddof=1), rtol=1e-9)
+    back = ShapeSpace.from_arrays(space.to_arrays(), encoder=enc)
+    assert back.basis_ == "refined" and back.refine_levels_.tolist() == [[1, 3], [2, 5]]
+    np.testing.assert_allclose(back.components_, c.astype(np.float32))
+    old = {key: a for key, a in space.to_arrays().items() if key != "pca_refine_levels"}
+    assert ShapeSpace.from_arrays(old, encoder=enc).basis_ == "vertex"
+    bad = dict(space.to_arrays(), pca_refine_levels=np.array([[3, 2]]))
+    with pytest.raises(ParameterError, match="refine levels"):
+        ShapeSpace.from_arrays(bad, encoder=enc)
+    with pytest.raises(ParameterError, match=r"refine levels: \[\[2, 9\]\].*span <= 6"):
+        ShapeSpace(enc, 6, basis="refined", refine_levels=[(2, 9)]).fit(codes, vertices=scans)
+    # Default levels are cut to the components kept; an affine decoder has nothing to refine.
+    assert ShapeSpace(enc, 3, basis="refined").fit(codes).refine_levels_.tolist() == []
+    venc = VertexEncoder(*population[:2]).fit(scans)
+    lin = ShapeSpace(venc, basis="refined").fit(venc.encode(scans))
+    assert lin.basis_ == "refined" and lin.refine_levels_.shape == (0, 2)
+    assert ShapeSpace.from_arrays(lin.to_arrays(), encoder=venc).basis_ == "refined"
+
+
+def test_refine_free_directions():
+    """The basis step: the new free directions are the targets' principal ones in the metric M,
+    after the fixed coordinates took what they can (M's Schur complement)."""
+    rng = np.random.default_rng(0)
+    d = np.array([0.0, 0.6, 0.8, 0.0])                   # free coordinates 1..4 (fixed: coordinate 0)
+    w = np.zeros((20, 5))
+    w[:, 0] = rng.normal(size=20)
+    w[:, 1:] = rng.normal(size=(20, 1)) * d + 1e-3 * rng.normal(size=(20, 4))
+    rot = _free_directions(w[:, 1:], np.eye(5), fixed=1)
+    np.testing.assert_allclose(rot @ rot.T, np.eye(4), atol=1e-12)
+    assert abs(rot[0] @ d) > 0.999
+    # A coupled metric: moving coordinate 1 also moves what coordinate 0 does, and the fixed
+    # coordinate 0 takes that part: the best free direction for targets along coordinate 0 is
+    # then none in particular, and for targets along d the Schur metric weighs coordinate 1 less.
+    m = np.eye(5)
+    m[0, 1] = m[1, 0] = 0.9
+    rot_m = _free_directions(w[:, 1:], m, fixed=1)
+    schur = np.eye(4)
+    schur[0, 0] = 1 - 0.81
+    lam, vec = np.linalg.eigh(schur)
+    half = (vec * np.sqrt(lam)) @ vec.T
+    best = np.linalg.solve(half, np.linalg.svd(w[:, 1:] @ half)[2][0])
+    assert abs(rot_m[0] @ best / np.linalg.norm(best)) > 0.999

@@ -176,11 +176,11 @@ def test_rigid_basis_is_orthonormal_and_spans_each_parts_rigid_motions():
     """The closed-form basis (inertia tensor, no QR): orthonormal columns, and a small rigid
     motion of one part (the others still) lies in its span; a part on a line (one rotation
     without effect) gets a zero column, not NaN."""
-    from bodyspace.shape.vertex_fit import _rigid_basis
+    from bodyspace.shape.vertex_fit import rigid_basis
     rng = np.random.default_rng(0)
     body = rng.normal(size=(300, 3)) * [0.3, 1.0, 0.2] + [2.0, -1.0, 0.5]
     parts = [np.arange(120), np.arange(120, 300)]
-    b = _rigid_basis(body, parts)
+    b = rigid_basis(body, parts)
     assert b.shape == (900, 12)
     np.testing.assert_allclose(b.T @ b, np.eye(12), atol=1e-12)
     move = np.zeros_like(body)
@@ -190,5 +190,5 @@ def test_rigid_basis_is_orthonormal_and_spans_each_parts_rigid_motions():
     moved[:120] += rng.normal(size=(120, 3)) * 0.01                  # not rigid: partly outside
     assert np.linalg.norm((moved - body).ravel() - b @ (b.T @ (moved - body).ravel())) > 0.5 * 0.01
     line = np.outer(np.linspace(0.0, 1.0, 10), [0.0, 1.0, 0.0])
-    flat = _rigid_basis(line, [np.arange(10)])
+    flat = rigid_basis(line, [np.arange(10)])
     assert np.isfinite(flat).all() and np.linalg.matrix_rank(flat) == 5

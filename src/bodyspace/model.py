@@ -21,7 +21,9 @@ Array layout of a model file (``FORMAT_VERSION = 3``); each part writes its own 
                             "rre" ``encoder_mean_rotvecs`` (F, 3, 3) rad, ``encoder_mean_stretch`` (F, 6)
     pca_*                   the shape space (``ShapeSpace.to_arrays("pca_")``): mean (D,),
                             components (K, D) float32, explained_variance(_ratio), singular_values
-                            (K,), n_samples ()
+                            (K,), n_samples (); optional vertex_variance (K,) (basis "vertex"
+                            or "refined") and refine_levels (L, 2) float64 whole numbers (basis "refined"; a
+                            file without them loads as before: no version change)
     fitted_scans            (N,) int64      rows of the source database the model was fitted on
     measurement_set         optional (B,) uint8: UTF-8 JSON of the model's measurement set
                             (``MeasurementSet.to_dict``: landmarks of its topology, conditions,
@@ -283,7 +285,8 @@ class BodyModel:
             basis: ``ShapeSpace``'s component order: "code" (Hasler's PCA of the codes) or
                 "vertex" (code directions ordered by the vertex variance they carry: with RRE
                 the first components move whole limbs; exact solver only; the scans are read
-                once more for it).
+                once more for it), or "refined" (the vertex order refined for the vertex fit of
+                the scans, ``shape.refine``: a few vertex fits of every scan, docs/encoding.md).
             progress: ``progress(message, fraction)``.
             scratch: folder of the temporary code file of an out-of-core fit (default: the
                 system's temporary folder, ``TMPDIR``); it needs N x D x 4 bytes free.
@@ -374,7 +377,7 @@ class BodyModel:
             # 3. PCA
             t = time.perf_counter()
             report(f"PCA of {n} codes of length {d}" + (f" (on disk, {codes.path})" if out_of_core else ""), 0.82)
-            space.fit(codes, vertices=db.read(rows) if basis == "vertex" and not encoder.is_linear else None)
+            space.fit(codes, vertices=db.read(rows) if basis != "code" and not encoder.is_linear else None)
             complete = True
         finally:
             del codes

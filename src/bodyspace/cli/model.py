@@ -59,7 +59,8 @@ def build(database: Path = typer.Argument(..., help="Scan database folder (bodys
           basis: str = typer.Option("code", "--basis",
                                     help="Order of the PCA components: code (by code variance, Hasler) or vertex "
                                          "(by the vertex-space variance they carry: an RRE model's first components "
-                                         "then move whole limbs; docs/encoding.md)."),
+                                         "then move whole limbs) or refined (the vertex order refined for fitting "
+                                         "meshes: a few vertex fits of every scan; docs/encoding.md)."),
           scratch: Optional[Path] = typer.Option(None, "--scratch", help="Folder for the code file of a large build "
                                                  "(the codes of every scan, N x D x 4 bytes, read in blocks by the "
                                                  "PCA so memory does not grow with N; kept when the build is "

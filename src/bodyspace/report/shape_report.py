@@ -87,7 +87,7 @@ def _model_title(key: str, result: dict) -> str:
         return key
     if key == info["encoder"]:
         return f"{key} PCA"
-    order = " (vertex-ordered)" if info.get("basis", "code") == "vertex" else ""
+    order = {"vertex": " (vertex-ordered)", "refined": " (vertex-ordered, refined)"}.get(info.get("basis", "code"), "")
     return f"{info['encoder']} PCA{order}, {_PROJECTION_TITLES.get(info['projection'], info['projection'])}"
 
 

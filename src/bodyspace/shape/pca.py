@@ -27,14 +27,15 @@ from bodyspace.errors import ParameterError
 from bodyspace.encoding.vertex import VertexEncoder
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.rowfile import RowFile
+from bodyspace.shape.refine import DEFAULT_LEVELS, check_levels, refine_basis
 from bodyspace.shape.solvers import mean_and_scatter, pca_block_krylov, pca_full, vertex_ordered_basis
 from bodyspace.shape.vertex_fit import fit_coefficients
 from bodyspace.validation import as_generator
 
 SOLVERS = ("auto", "full", "krylov")
-# How the components are chosen (see ``ShapeSpace``): by code variance, or by the vertex-space
-# variance they carry.
-BASES = ("code", "vertex")
+# How the components are chosen (see ``ShapeSpace``): by code variance, by the vertex-space
+# variance they carry, or that order refined for the vertex fit (``shape.refine``).
+BASES = ("code", "vertex", "refined")
 # basis="vertex" decodes the training codes in batches of this many bodies.
 DECODE_BATCH = 16
 # How ``project`` finds a mesh's coefficients (see ``ShapeSpace.project``).
@@ -84,7 +85,13 @@ class ShapeSpace:
             k components; exact solver only). For a non-linear decoder (RRE) the first few
             "vertex" components move whole limbs, which the code PCA puts late; the fitted
             coefficients are then correlated (``sample`` draws them independently, with each
-            one's variance). For the vertex encoding both are vertex PCA.
+            one's variance). For the vertex encoding both are vertex PCA. "refined": the vertex
+            order, then its leading components re-chosen for the vertex fit of the training
+            bodies (``shape.refine.refine_basis``, levels ``refine_levels``; costs a few vertex
+            fits of every training body, docs/encoding.md); an affine decoder needs none.
+        refine_levels: (k, span) pairs of ``basis="refined"`` (default
+            ``refine.DEFAULT_LEVELS``, levels cut to the components kept: a span past them is
+            cut to their count, a level with nothing to rotate is dropped).
 
     Attributes (after ``fit``):
         mean_: (D,) mean code.
@@ -94,15 +101,18 @@ class ShapeSpace:
         singular_values_: (K,).
         total_variance_: float, the variance of the codes summed over all D features.
         solver_: "full" or "krylov", the solver used.
-        basis_: "code" or "vertex"; vertex_variance_ (K,): with basis "vertex", the vertex-space
-            variance (m^2) of each vertex component (None with "code").
+        basis_: "code", "vertex" or "refined"; vertex_variance_ (K,): with basis "vertex" or
+            "refined", the vertex-space variance (m^2) of vertex PCA's component k (None with
+            "code"); refine_levels_ (L, 2): the levels refined (None unless "refined");
+            refine_report_: ``refine.RefineReport`` of the fit (not stored in a file).
         n_components_, n_samples_, n_features_in_: ints.
     """
 
     def __init__(self, encoder=None, n_components: int | float | None = None, *, solver: str = "auto",
-                 copy: bool = True, rng=0, n_jobs: int | None = None, basis: str = "code"):
+                 copy: bool = True, rng=0, n_jobs: int | None = None, basis: str = "code", refine_levels=None):
         self.encoder = encoder
         self.basis = basis
+        self.refine_levels = refine_levels
         self.n_components = n_components
         self.solver = solver
         self.copy = copy
@@ -187,10 +197,10 @@ class ShapeSpace:
             raise ParameterError(f"n_components={nc!r}, expected None, an int >= 1 or a float in (0, 1)")
         if self.basis not in BASES:
             raise ParameterError(f"basis={self.basis!r}, expected one of {', '.join(BASES)}")
-        vertex_basis = self.basis == "vertex" and not getattr(self.encoder, "is_linear", True)
+        vertex_basis = self.basis != "code" and not getattr(self.encoder, "is_linear", True)
         solver = resolve_solver(self.solver, n, d, nc)
         if vertex_basis and solver != "full":
-            raise ParameterError(f"basis='vertex' needs the exact PCA (solver='full'); got solver={self.solver!r} "
+            raise ParameterError(f"basis={self.basis!r} needs the exact PCA (solver='full'); got solver={self.solver!r} "
                                  f"for {n} x {d} codes")
         if solver == "krylov" and not (nc is None or isinstance(nc, numbers.Integral)):
             raise ParameterError(f"n_components={nc!r}: a variance fraction needs the exact PCA (solver='full'); "
@@ -205,8 +215,11 @@ class ShapeSpace:
         self.solver_ = solver
         self.basis_ = self.basis
         if not vertex_basis:
-            # An affine decoder's codes are vertex offsets: its PCA is already the vertex order.
-            self.vertex_variance_ = self.explained_variance_.copy() if self.basis == "vertex" else None
+            # An affine decoder's codes are vertex offsets: its PCA is already the vertex order
+            # (and the vertex fit is the code projection: nothing to refine).
+            self.vertex_variance_ = self.explained_variance_.copy() if self.basis != "code" else None
+            self.refine_levels_ = np.zeros((0, 2), dtype=np.int64) if self.basis == "refined" else None
+            self.refine_report_ = None
         return self
 
     def _fit_full(self, x: np.ndarray, n: int, d: int) -> None:
@@ -265,16 +278,36 @@ class ShapeSpace:
             for s in range(0, n, DECODE_BATCH):
                 bodies[s:s + DECODE_BATCH] = enc.decode(x[s:s + DECODE_BATCH])
         aligned = VertexEncoder(bodies.mean(axis=0), enc.faces).fit(bodies).encode(bodies)
-        del bodies
+        if self.basis != "refined":
+            del bodies
         comps, vertex_var = vertex_ordered_basis(x, mean, aligned)    # centres x
+        del aligned
         total = float(np.einsum("ij,ij->", x, x)) / (n - 1)
-        coefficients = x @ comps.T
-        var = np.einsum("ij,ij->j", coefficients, coefficients) / (n - 1)    # code variance along each
         # n_components as a count, or a fraction of the vertex variance (the order's measure; the
         # vertex components hold all of it).
         k = self._n_keep(vertex_var, float(vertex_var.sum()), n, d)
+        comps = comps[:k]
+        self.refine_levels_, self.refine_report_ = None, None
+        if self.basis == "refined":
+            levels = self._refine_levels(k)
+            if len(levels):
+                self._set(mean, np.ones(k), comps, np.ones(k), total, n, d, k)
+                comps, self.refine_report_ = refine_basis(self, bodies, levels)
+            self.refine_levels_ = levels
+            del bodies
+        coefficients = x @ comps.T
+        var = np.einsum("ij,ij->j", coefficients, coefficients) / (n - 1)    # code variance along each
         self._set(mean, np.sqrt(var * (n - 1)), comps, var, total, n, d, k)
         self.vertex_variance_ = vertex_var[:k]
+
+    def _refine_levels(self, k: int) -> np.ndarray:
+        """The (L, 2) levels of ``basis="refined"`` for k kept components: ``refine_levels``
+        checked, or the default ones cut to k (a span past k cut to k, a level with k >= its
+        cut span dropped)."""
+        if self.refine_levels is not None:
+            return check_levels(self.refine_levels, k)
+        levels = [(lk, min(span, k)) for lk, span in DEFAULT_LEVELS if lk < min(span, k)]
+        return check_levels(levels, k) if levels else np.zeros((0, 2), dtype=np.int64)
 
     def _set(self, mean, s, vt, var, total, n, d, k) -> None:
         self.mean_ = np.asarray(mean, dtype=np.float64)
@@ -304,11 +337,19 @@ class ShapeSpace:
         """The learned state as flat arrays for an npz file: ``mean`` (D,) float64, ``components``
         (K, D) float32 (half the file; a model keeps its components float32-exact, so it loads
         bit-exactly), ``explained_variance``, ``explained_variance_ratio``, ``singular_values``
-        (K,) float64, ``n_samples`` () int64, and with ``basis_ == "vertex"`` its
-        ``vertex_variance`` (K,) float64 (its presence says the basis)."""
+        (K,) float64, ``n_samples`` () int64, with ``basis_ == "vertex"`` or ``"refined"`` its
+        ``vertex_variance`` (K,) float64, and with ``"refined"`` its ``refine_levels`` (L, 2)
+        (whole numbers, stored float64) (their presence says the basis; a reader that knows
+        neither takes the components as they are, which is all the refinement changed)."""
         self._require_fit()
-        extra = ({} if getattr(self, "basis_", "code") == "code" else
+        basis = getattr(self, "basis_", "code")
+        extra = ({} if basis == "code" else
                  {prefix + "vertex_variance": np.asarray(self.vertex_variance_, dtype=np.float64)})
+        if basis == "refined":
+            # float64 (small integers, exact) like every other shape-space array: a reader that
+            # does not know the field (format_version 3 files before it) checks it as one of its
+            # floats and loads the components, which are all the refinement changed.
+            extra[prefix + "refine_levels"] = np.asarray(self.refine_levels_, dtype=np.float64).reshape(-1, 2)
         return {**extra, prefix + "mean": np.asarray(self.mean_, dtype=np.float64),
                 prefix + "components": np.asarray(self.components_, dtype=np.float32),
                 prefix + "explained_variance": np.asarray(self.explained_variance_, dtype=np.float64),
@@ -348,11 +389,23 @@ class ShapeSpace:
             if vertex_var.shape != (len(comps),) or not np.isfinite(vertex_var).all():
                 raise ParameterError(f"shape space: '{prefix}vertex_variance' has shape {vertex_var.shape}, "
                                      f"expected ({len(comps)},) finite values")
-        space = cls(encoder, n_components=len(comps), basis=basis)
+        levels = None
+        if prefix + "refine_levels" in arrays:
+            raw = np.asarray(arrays[prefix + "refine_levels"])
+            whole = (raw.dtype.kind in "iu" or (raw.dtype.kind == "f" and np.isfinite(raw).all()
+                                                 and (raw == np.round(raw)).all()))
+            if vertex_var is None or raw.ndim != 2 or raw.shape[1] != 2 or not whole:
+                raise ParameterError(f"shape space: '{prefix}refine_levels' has shape {raw.shape} and dtype "
+                                     f"{raw.dtype}, expected (L, 2) whole numbers beside '{prefix}vertex_variance'")
+            raw = raw.astype(np.int64)
+            basis, levels = "refined", (check_levels(raw, len(comps)) if len(raw) else raw)
+        space = cls(encoder, n_components=len(comps), basis=basis,
+                    refine_levels=None if levels is None else levels.tolist())
         total = float(var[0] / ratio[0]) if len(var) and ratio[0] > 0 else float(var.sum())
         space._set(mean, sv, comps, var, total, int(n_samples), mean.shape[0], len(comps))
         space.explained_variance_ratio_ = ratio
         space.basis_, space.vertex_variance_ = basis, vertex_var
+        space.refine_levels_, space.refine_report_ = levels, None
         return space
 
     def transform(self, X) -> np.ndarray:

@@ -25,7 +25,7 @@ right-hand sides a direction, several directions in one pass over it, and a Pois
 Jacobian is therefore kept between steps and corrected along every accepted step by Broyden's
 update; it is made anew where a kept one fails (a rejected step) and when the fit stalls on a
 kept one, so the last step is taken on an exact Jacobian (at most ``MAX_JACOBIANS``).
-The rigid motions projected out of each Jacobian come in closed form (``_rigid_basis``) and the
+The rigid motions projected out of each Jacobian come in closed form (``rigid_basis``) and the
 fit's small dense products run on one BLAS thread (both measured in docs/encoding.md).
 """
 
@@ -40,13 +40,15 @@ from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.mesh.topology import check_registered_meshes, vertex_components
 
-__all__ = ["VertexFit", "align_parts", "fit_coefficients", "MAX_ITER", "MAX_JACOBIANS", "TOL"]
+__all__ = ["VertexFit", "align_parts", "fit_coefficients", "mesh_parts", "residual_error", "rigid_basis", "MAX_ITER",
+           "MAX_JACOBIANS", "TOL"]
 
 # Steps (decodes) per mesh at most, and the relative decrease of the squared error below which
 # the fit stops (measured on posed bodies: most of the gain in the first 3-5 steps,
-# docs/encoding.md).
+# docs/encoding.md; 1e-2 instead of 1e-3 gave the same mean errors to 0.1 mm on 6 held-out
+# posed scans at k = 4 and 8 with 10-15 % less CPU time, benchmarks/RESULTS.md).
 MAX_ITER = 10
-TOL = 1e-3
+TOL = 1e-2
 # Exact Jacobians per mesh at most (each costs k tangent directions; Broyden updates in between).
 MAX_JACOBIANS = 4
 # Levenberg-Marquardt damping at the start, relative to the diagonal of J^T J (Marquardt's
@@ -73,7 +75,7 @@ class VertexFit:
     jacobians: np.ndarray
 
 
-def _parts(encoder) -> list[np.ndarray]:
+def mesh_parts(encoder) -> list[np.ndarray]:
     """Vertex index arrays of the connected parts of the encoder's topology."""
     n, label = vertex_components(encoder.faces, encoder.n_vertices)
     return [np.flatnonzero(label == c) for c in range(n)]
@@ -89,7 +91,7 @@ def align_parts(target: np.ndarray, body: np.ndarray, parts) -> np.ndarray:
     return out
 
 
-def _rigid_basis(body: np.ndarray, parts) -> np.ndarray:
+def rigid_basis(body: np.ndarray, parts) -> np.ndarray:
     """Orthonormal basis (3V, 6 P) of the infinitesimal rigid motions of each part of ``body``.
 
     In closed form, no QR of a (3V, 6 P) matrix (measured: 45 ms a call under load, two calls a
@@ -112,7 +114,7 @@ def _rigid_basis(body: np.ndarray, parts) -> np.ndarray:
     return out.reshape(len(out), -1).T
 
 
-def _error(residual: np.ndarray) -> tuple[float, float]:
+def residual_error(residual: np.ndarray) -> tuple[float, float]:
     """(sum of squared distances, mean distance) of a residual (V, 3)."""
     d2 = np.einsum("ij,ij->i", residual, residual)
     return float(d2.sum()), float(np.sqrt(d2).mean())
@@ -149,12 +151,12 @@ def fit_coefficients(space, vertices, n_components: int | None = None, *, start=
     n = len(y)
     err, err0 = np.zeros(n), np.zeros(n)
     iters, jacs = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
-    parts = _parts(enc)
+    parts = mesh_parts(enc)
     if getattr(enc, "is_linear", False):
         # The code metric is the vertex metric: the code projection is the fit.
         bodies = space.reconstruct(z)
         for m in range(n):
-            err[m] = err0[m] = _error(bodies[m] - align_parts(y[m], bodies[m], parts))[1]
+            err[m] = err0[m] = residual_error(bodies[m] - align_parts(y[m], bodies[m], parts))[1]
         return VertexFit(z, err, err0, iters, jacs)
     comps = space.components_[:k]
     # The fit's dense products are small ((3V, k) by (k, k) or (3V, 6)): one BLAS thread. Two
@@ -181,7 +183,7 @@ def _fit_one(enc, mean: np.ndarray, comps: np.ndarray, y: np.ndarray, z: np.ndar
     z = np.array(z, dtype=float)
     tan = enc.tangent(mean + z @ comps)
     r = tan.vertices - align_parts(y, tan.vertices, parts)
-    sq, dist = _error(r)
+    sq, dist = residual_error(r)
     dist0 = dist
     lam, nu = DAMPING, 2.0
     jac = None
@@ -192,7 +194,7 @@ def _fit_one(enc, mean: np.ndarray, comps: np.ndarray, y: np.ndarray, z: np.ndar
             if made >= max_jacobians:
                 break
             jac = tan.jvp(comps).reshape(k, -1).T                       # (3V, k)
-            basis = _rigid_basis(tan.vertices, parts)
+            basis = rigid_basis(tan.vertices, parts)
             jac -= basis @ (basis.T @ jac)                              # the alignment takes rigid motions
             jtj = jac.T @ jac
             made += 1
@@ -204,13 +206,13 @@ def _fit_one(enc, mean: np.ndarray, comps: np.ndarray, y: np.ndarray, z: np.ndar
         z_new = z + delta
         tan_new = enc.tangent(mean + z_new @ comps)
         r_new = tan_new.vertices - align_parts(y, tan_new.vertices, parts)
-        sq_new, dist_new = _error(r_new)
+        sq_new, dist_new = residual_error(r_new)
         steps += 1
         if sq_new < sq:
             rho = (sq - sq_new) / max(predicted, 1e-300)
             stalled = sq - sq_new < tol * sq
             # Broyden: make the kept Jacobian reproduce the observed change along delta.
-            basis = _rigid_basis(tan_new.vertices, parts)
+            basis = rigid_basis(tan_new.vertices, parts)
             dr = (r_new - r).ravel()
             dr -= basis @ (basis.T @ dr)
             u = (dr - jac @ delta) / (delta @ delta)
