@@ -28,9 +28,17 @@ from bodyspace.register.pose_fit import MIN_COS, PoseState, sample_vertices
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 
-__all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "BASIS_COMPONENTS"]
+__all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "BASIS_COMPONENTS", "PHENOTYPE_COMPONENTS"]
 
-# Components of the default shape space and the bodies its PCA is taken over.
+# Components of the default (phenotype) shape space and the bodies its PCA is taken over. 24
+# components hold 99.9 % of the variance but not the body's measurements: the least-squares projection of
+# three test scans' true bodies onto them kept only 22, 25, 22 of 31 measurements within ISO
+# 20685-1 (RMS 0.9-1.6 mm, calves and thighs 2-3 tolerances off), onto 40 and 60 all 31 (RMS
+# 0.2-0.3 and 0.13-0.18 mm). Registered with 60: ISO 137 -> 145 of 186 on the good fits,
+# correspondence and surface no worse on any of them (docs/registration.md, fourth round).
+PHENOTYPE_COMPONENTS = 60
+# Components a user's model (``user_model.basis_from_model``) contributes at most: not measured
+# beyond 24 (a small database's last components may be noise).
 BASIS_COMPONENTS = 24
 BASIS_SAMPLES = 300
 # Weight of the prior c_k / σ_k against the RMS residual (metres).
@@ -78,14 +86,15 @@ def _phenotype_basis(template: Template, n_components: int, n_samples: int) -> S
     return ShapeBasis(mean.reshape(V, 3), comps.reshape(k, V, 3), np.sqrt(np.maximum(evals, 0) / (n_samples - 1)))
 
 
-def phenotype_basis(template: Template, n_components: int = BASIS_COMPONENTS,
+def phenotype_basis(template: Template, n_components: int = PHENOTYPE_COMPONENTS,
                     n_samples: int = BASIS_SAMPLES) -> ShapeBasis:
     """PCA of ``n_samples`` adults with phenotypes uniform over [0, 1] (race mix: Dirichlet,
     age 18-90 years),
-    ``n_components`` kept (24 hold 99.9 % of the variance). Fixed seed; cached per template."""
+    ``n_components`` kept (``PHENOTYPE_COMPONENTS`` says why 60, not the 24 that hold 99.9 % of the
+    variance). Fixed seed; cached per template."""
     key = (id(template), int(n_components), int(n_samples))
     if key not in _BASES:
-        _BASES.clear()            # one template at a time: a basis is 24 bodies of memory
+        _BASES.clear()            # one template at a time: a basis is PHENOTYPE_COMPONENTS bodies of memory
         _BASES[key] = _phenotype_basis(template, int(n_components), int(n_samples))
     return _BASES[key]
 
