@@ -228,27 +228,43 @@ def test_quality_names_a_lost_hand(scan, template):
             assert "not fitted: left hand" in q.describe() and not q.to_dict()["parts"]["left hand"]["accepted"]
 
 
+def _lost_arm(template, pose: str, clavicle: str, hand_name: str, hand_score: float, arm_start=None):
+    """The posed mean body of library ``pose`` as the scan, the fit's state with the arm below
+    ``clavicle`` set to ``arm_start`` (rotations of that subtree; None: unposed), the hand's
+    vertices and per-part scores that flag the hand."""
+    rig = template.rigs["default"]
+    truth = load_pose_library().rotations(pose, rig)
+    body = pose_bodies(template.vertices, rig, truth)
+    arm = _subtree(rig.parents, rig.bone_index(clavicle))
+    start = truth.copy()
+    start[arm] = np.eye(3) if arm_start is None else arm_start[arm]
+    state = PoseState(template.vertices, start, 1.0, np.zeros(3))
+    hand = body_parts(template) == list(PARTS).index(hand_name)
+    parts = {name: 1.0 for name in PARTS} | {hand_name: hand_score}
+    return rig, body, state, hand, parts
+
+
+def _restart_and_hand_error(template, body, state, hand, parts, arm_poses):
+    """restart_limbs with the given arm starts (no leg starts): the hand's mean error after it (m)
+    and the limbs it changed."""
+    fitted, changed = restart_limbs(body, vertex_normals(body, template.faces), template, state, parts,
+                                    cKDTree(body), poses={"arm": arm_poses, "leg": ()})
+    rig = template.rigs["default"]
+    return np.linalg.norm(posed_vertices(rig, fitted)[0][hand] - body[hand], axis=1).mean(), changed
+
+
 def test_restart_limbs_finds_a_lost_arm(template):
     """A body stepping forward, its left arm swinging back (points: the posed mean body's
     vertices); the fit's left arm held forward (the hand 30 cm off): flagged, the arm is
     restarted from library arm poses and the one whose fit has the least residual both ways
     brings the hand within 2 cm (measured 14 mm after the restart's 9 iterations; the pipeline
     fits the joint rounds after it); the other limbs, not flagged, are left alone."""
-    rig = template.rigs["default"]
-    lib = load_pose_library()
-    truth = lib.rotations("step_forward_left", rig)
-    body = pose_bodies(template.vertices, rig, truth)
-    arm = _subtree(rig.parents, rig.bone_index("clavicle.L"))
-    start = truth.copy()
-    start[arm] = lib.rotations("arms_forward", rig)[arm]
-    state = PoseState(template.vertices, start, 1.0, np.zeros(3))
-    hand = body_parts(template) == list(PARTS).index("left hand")
+    forward = load_pose_library().rotations("arms_forward", template.rigs["default"])
+    rig, body, state, hand, parts = _lost_arm(template, "step_forward_left", "clavicle.L", "left hand", 0.2,
+                                              arm_start=forward)
     before = np.linalg.norm(posed_vertices(rig, state)[0][hand] - body[hand], axis=1).mean()
-    parts = {name: 1.0 for name in PARTS} | {"left hand": 0.2}
     # Three arm starts (the pipeline's 10 cost more time, not more of the test); the truth is none.
-    fitted, changed = restart_limbs(body, vertex_normals(body, template.faces), template, state, parts,
-                                    cKDTree(body), poses={"arm": ("rest", "t_pose", "arms_back"), "leg": ()})
-    after = np.linalg.norm(posed_vertices(rig, fitted)[0][hand] - body[hand], axis=1).mean()
+    after, changed = _restart_and_hand_error(template, body, state, hand, parts, ("rest", "t_pose", "arms_back"))
     assert changed == ["left arm"] and before > 0.2 and after < 0.02
 
 
@@ -256,17 +272,6 @@ def test_restart_limbs_mirrors_the_other_arm(template):
     """Hands on the hips, the fit's right arm hanging (the right hand lost, as with 13 landmarks
     on the benchmark's scan): with no library start near the truth (only the A-pose), the left
     arm mirrored is the start that brings the right hand back within 2 cm."""
-    rig = template.rigs["default"]
-    lib = load_pose_library()
-    truth = lib.rotations("hands_on_hips", rig)
-    body = pose_bodies(template.vertices, rig, truth)
-    arm = _subtree(rig.parents, rig.bone_index("clavicle.R"))
-    start = truth.copy()
-    start[arm] = np.eye(3)
-    state = PoseState(template.vertices, start, 1.0, np.zeros(3))
-    hand = body_parts(template) == list(PARTS).index("right hand")
-    parts = {name: 1.0 for name in PARTS} | {"right hand": 0.4}
-    fitted, changed = restart_limbs(body, vertex_normals(body, template.faces), template, state, parts,
-                                    cKDTree(body), poses={"arm": ("rest",), "leg": ()})
-    after = np.linalg.norm(posed_vertices(rig, fitted)[0][hand] - body[hand], axis=1).mean()
+    _, body, state, hand, parts = _lost_arm(template, "hands_on_hips", "clavicle.R", "right hand", 0.4)
+    after, changed = _restart_and_hand_error(template, body, state, hand, parts, ("rest",))
     assert changed == ["right arm"] and after < 0.02

@@ -631,6 +631,19 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     return girth, plane, missed
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _hull_push(x, y, hull, m, floor, c):
+    """One step of a monotone chain: drop the chain's last points (down to ``floor`` of them) that
+    do not turn left before point ``c``, append ``c``; returns the chain's new length."""
+    while m > floor:
+        a, b = hull[m - 2], hull[m - 1]
+        if (x[b] - x[a]) * (y[c] - y[a]) - (y[b] - y[a]) * (x[c] - x[a]) > 0:
+            break
+        m -= 1
+    hull[m] = c
+    return m + 1
+
+
 @numba.njit(cache=True, nogil=True)
 def _hull_chain(x, y, k, order, hull):
     """Andrew's monotone chain on points (x[:k], y[:k]): the hull's point indices, counter-
@@ -650,24 +663,10 @@ def _hull_chain(x, y, k, order, hull):
                 break
     m = 0
     for i in range(k):                                   # lower chain
-        c = order[i]
-        while m >= 2:
-            a, b = hull[m - 2], hull[m - 1]
-            if (x[b] - x[a]) * (y[c] - y[a]) - (y[b] - y[a]) * (x[c] - x[a]) > 0:
-                break
-            m -= 1
-        hull[m] = c
-        m += 1
+        m = _hull_push(x, y, hull, m, 1, order[i])
     lower = m
     for i in range(k - 2, -1, -1):                       # upper chain
-        c = order[i]
-        while m > lower:
-            a, b = hull[m - 2], hull[m - 1]
-            if (x[b] - x[a]) * (y[c] - y[a]) - (y[b] - y[a]) * (x[c] - x[a]) > 0:
-                break
-            m -= 1
-        hull[m] = c
-        m += 1
+        m = _hull_push(x, y, hull, m, lower, order[i])
     return m - 1 if k > 1 else m                         # the last point repeats the first
 
 
