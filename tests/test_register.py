@@ -228,6 +228,26 @@ def test_quality_names_a_lost_hand(scan, template):
             assert "not fitted: left hand" in q.describe() and not q.to_dict()["parts"]["left hand"]["accepted"]
 
 
+def test_quality_takes_a_part_the_scanner_missed_for_a_hole(scan, template):
+    """The true body against its own scan with the left foot's points taken out (a foot the
+    scanner missed): nothing of the scan is unexplained, so the unseen foot is a hole, and the fit
+    is accepted; the same scan with the left forearm twisted 65° is still refused, the hand named."""
+    points = from_frame(scan.points, **scan.frame)
+    foot = body_parts(template) == list(PARTS).index("left foot")
+    near_foot = cKDTree(scan.body[foot]).query(points)[0] < 0.03
+    holed = points[~near_foot]
+    everywhere = np.ones(template.n_vertices, dtype=bool)
+    q = assess(scan.body, template.faces, holed, everywhere, template=template)
+    seen = {p.name: p.seen for p in q.parts}
+    assert seen["left foot"] < 0.3 and q.accepted, q.describe()
+    rig = template.rigs["default"]
+    head, tail = rig.heads(scan.body)[[rig.bone_index("lowerarm02.L"), rig.bone_index("wrist.L")]]
+    R = np.repeat(np.eye(3)[None], rig.n_bones, axis=0)
+    R[rig.bone_index("lowerarm02.L")] = rotvec_to_matrix(np.radians(65) * (tail - head) / np.linalg.norm(tail - head))
+    lost = assess(pose_bodies(scan.body, rig, R), template.faces, holed, everywhere, template=template)
+    assert not lost.accepted and "left hand" in [p.name for p in lost.failed_parts]
+
+
 def _lost_arm(template, pose: str, clavicle: str, hand_name: str, hand_score: float, arm_start=None):
     """The posed mean body of library ``pose`` as the scan, the fit's state with the arm below
     ``clavicle`` set to ``arm_start`` (rotations of that subtree; None: unposed), the hand's

@@ -32,7 +32,8 @@ lower leg and foot; a vertex's part is its dominant bone's, ``body_parts``):
   make no patch.
 
 A part's quality is ``min(seen / SEEN_GOOD[part], 1 - unexplained / (UNEXPLAINED_SHARE · the
-part's area))`` clipped to [0, 1]; the whole's ``quality`` is the least of
+part's area))`` clipped to [0, 1], the first term only when a patch of unexplained scan surface
+lies within ``LOST_REACH`` of the part (a part the scanner missed is a hole, not a lost part); the whole's ``quality`` is the least of
 ``explained / EXPLAINED_GOOD``, ``coverage / COVERAGE_GOOD``, every part's quality and 1. A scan is
 refused below ``MIN_QUALITY`` and the refusal names the part (``Quality.describe``).
 """
@@ -84,6 +85,9 @@ SEEN_GOOD = {"head": 0.90, "trunk": 0.90, "upper arm": 0.85, "forearm": 0.90, "h
 UNEXPLAINED_SHARE = 1.0
 PATCH_MIN_AREA = 0.002
 PATCH_LINK = 0.03
+# A part's unseen share counts only with an unexplained patch this near it (metres): where a
+# lost limb's own points are (the step-forward scan's hand: 24 cm from the fitted one).
+LOST_REACH = 0.30
 
 
 @dataclass(frozen=True)
@@ -212,17 +216,26 @@ def assess_parts(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, sc
     per_point = fa.sum() / max(1, int(np.sum(sub_distance <= EXPLAINED_DISTANCE)))
     far = np.flatnonzero(sub_distance > EXPLAINED_DISTANCE)
     unexplained = np.zeros(n_parts)
+    lost_points = np.zeros((0, 3))
     if len(far):
         lab = _patches(sub_points[far], PATCH_LINK)
         size = np.bincount(lab) * per_point
         big = size[lab] >= PATCH_MIN_AREA
         np.add.at(unexplained, face_part[sub_face[far[big]]], per_point)
+        lost_points = sub_points[far[big]]
     d = scan_tree.query(vertices)[0]
+    # A part off its points is lost only if scan is left unexplained within LOST_REACH of it: a
+    # lost limb's points are. Otherwise an unseen part is the scan's hole (a foot the scanner
+    # missed: the true body's own foot 28 % seen on a step-forward scan), not judged by it.
+    near_lost = np.zeros(n_parts, dtype=bool)
+    if len(lost_points):
+        reach = cKDTree(lost_points).query(vertices, distance_upper_bound=LOST_REACH)[0] <= LOST_REACH
+        near_lost[np.unique(labels[reach])] = True
     out = []
     for k, name in enumerate(PARTS):
         inside = labels == k
         seen = float(np.mean(d[inside] <= SEEN_DISTANCE))
-        q_seen = seen / SEEN_GOOD[_kind(name)]
+        q_seen = seen / SEEN_GOOD[_kind(name)] if near_lost[k] else 1.0
         q_unexp = 1.0 - unexplained[k] / (UNEXPLAINED_SHARE * part_area[k])
         q = float(np.clip(min(q_seen, q_unexp), 0.0, 1.0))
         out.append(PartQuality(name, float(part_area[k]), seen, float(d[inside].mean()), float(unexplained[k]), q))

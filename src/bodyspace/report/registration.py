@@ -28,8 +28,10 @@ def distance_figure(points: np.ndarray, distance: np.ndarray, path: str | os.Pat
     fig = new_figure(9.0, 8.0, dpi)
     norm = colors.Normalize(0.0, MAX_SHOWN_MM)
     cmap = matplotlib.colormaps["viridis"]
+    lines = textwrap.fill(title, 110).splitlines() if title else []
+    top = 0.92 - 0.022 * max(0, len(lines) - 1)         # the views start below every title line
     for k, (view, sign) in enumerate((("front", 1.0), ("back", -1.0))):
-        ax = fig.add_axes([0.02 + 0.44 * k, 0.06, 0.42, 0.86])
+        ax = fig.add_axes([0.02 + 0.44 * k, 0.06, 0.42, top - 0.06])
         order = np.argsort(sign * p[:, 2])          # far first
         ax.scatter(sign * p[order, 0], p[order, 1], c=d[order], s=1.5, cmap=cmap, norm=norm, linewidths=0)
         ax.set_aspect("equal")
@@ -38,6 +40,6 @@ def distance_figure(points: np.ndarray, distance: np.ndarray, path: str | os.Pat
     cax = fig.add_axes([0.90, 0.15, 0.02, 0.7])
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax)
     bar.set_label("distance to the fit (mm)")
-    if title:
-        fig.suptitle(textwrap.fill(title, 110), fontsize=9)
+    if lines:
+        fig.suptitle("\n".join(lines), fontsize=9)
     return save_png(fig, path, dpi)
