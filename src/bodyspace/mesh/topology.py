@@ -68,6 +68,23 @@ def edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(directed_edges(faces), axis=1), axis=0)
 
 
+def face_adjacency_matrix(faces: np.ndarray) -> sp.csr_matrix:
+    """Symmetric (F, F) 0/1 matrix, indices sorted, of the faces (F, 3) that share an edge (each
+    pair of faces on an edge; no manifold or orientation check, unlike ``face_adjacency``)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    n_faces = len(faces)
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(n_faces), 3)
+    key = e[:, 0] * (int(faces.max(initial=0)) + 1) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    k, o = key[order], owner[order]
+    same = np.flatnonzero(k[1:] == k[:-1])
+    i, j = o[same], o[same + 1]
+    A = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n_faces, n_faces)).tocsr()
+    A.sort_indices()
+    return A
+
+
 def face_adjacency(faces: np.ndarray) -> FaceAdjacency:
     """Triangle edge-adjacency with explicit boundary slots.
 

@@ -17,6 +17,7 @@ from bodyspace.data.assets import cache_dir
 from bodyspace.data.template import Rig, load_template
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.measure.parts import PART_INDEX, part_of_bone, parts_from_weights
+from bodyspace.mesh.topology import face_adjacency_matrix
 from bodyspace.rig.kinematics import (
     dual_quaternion_skinning,
     forward_kinematics,
@@ -379,17 +380,9 @@ def pose_bodies(vertices: np.ndarray, rig: Rig, rotations: np.ndarray, *, on_gro
 
 @lru_cache(maxsize=4)
 def _face_adjacency(faces_bytes: bytes, n_faces: int) -> sp.csr_matrix:
-    """Symmetric (F, F) 0/1 matrix of faces sharing an edge (manifold edges of a triangle mesh)."""
-    faces = np.frombuffer(faces_bytes, dtype=np.int64).reshape(n_faces, 3)
-    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    owner = np.repeat(np.arange(n_faces), 3)
-    key = e[:, 0] * (int(faces.max()) + 1) + e[:, 1]
-    order = np.argsort(key, kind="stable")
-    k, o = key[order], owner[order]
-    same = np.flatnonzero(k[1:] == k[:-1])
-    i, j = o[same], o[same + 1]
-    A = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n_faces, n_faces))
-    return A.tocsr()
+    """``face_adjacency_matrix`` of the faces in ``faces_bytes`` (int64, (n_faces, 3)), cached:
+    every call of ``count_folded_triangles`` on one mesh needs the same matrix."""
+    return face_adjacency_matrix(np.frombuffer(faces_bytes, dtype=np.int64).reshape(n_faces, 3))
 
 
 def count_folded_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

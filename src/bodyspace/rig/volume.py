@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.mesh.geometry import boundary_loops
+from bodyspace.mesh.topology import face_adjacency_matrix
 from bodyspace.parallel import halves, run_both
 
 __all__ = ["VolumeRig", "preserve_volume", "volume_rig", "SMOOTHING_STEPS"]
@@ -163,26 +164,11 @@ def volume_rig(weights, parents, faces) -> VolumeRig:
     loop_vertices = np.concatenate([np.asarray(lp, dtype=np.int64) for lp in loops] or [np.zeros(0, np.int64)])
     loop_starts = np.concatenate([[0], np.cumsum([len(lp) for lp in loops])]).astype(np.int64)
     W.sort_indices()
-    fa = _face_adjacency(f)
+    fa = face_adjacency_matrix(f)         # the neighbours of count_folded_triangles' test
     return VolumeRig(joints, par[joints], Hk.indptr.astype(np.int64), Hk.indices.astype(np.int64),
                      Hk.data.copy(), share, W.indptr.astype(np.int64), W.indices.astype(np.int64), W.data.copy(),
                      adj.indptr.astype(np.int64), adj.indices.astype(np.int64), f, loop_vertices, loop_starts,
                      fa.indptr.astype(np.int64), fa.indices.astype(np.int64))
-
-
-def _face_adjacency(faces: np.ndarray) -> sp.csr_matrix:
-    """(F, F) faces sharing an edge: the neighbours of ``posing.count_folded_triangles``' test."""
-    F = len(faces)
-    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    owner = np.repeat(np.arange(F), 3)
-    key = e[:, 0] * (int(faces.max(initial=0)) + 1) + e[:, 1]
-    order = np.argsort(key, kind="stable")
-    k, o = key[order], owner[order]
-    same = np.flatnonzero(k[1:] == k[:-1])
-    i, j = o[same], o[same + 1]
-    A = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(F, F)).tocsr()
-    A.sort_indices()
-    return A
 
 
 def preserve_volume(posed: np.ndarray, rest: np.ndarray, transforms: np.ndarray, heads: np.ndarray,
