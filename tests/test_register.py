@@ -171,14 +171,17 @@ def test_cli_landmarks_on_a_remeshed_body(template, phenotype_model, tmp_path):
     mesh = tmp_path / "foreign.obj"
     trimesh.Trimesh(body.vertices, body.faces, process=False).export(mesh)
     out = tmp_path / "lm.json"
-    result = runner.invoke(app, ["landmarks", str(mesh), "--out", str(out), "--up", "z"])
+    result = runner.invoke(app, ["landmarks", str(mesh), "--out", str(out)])     # up and units found
     assert result.exit_code == 0, result.output
     lms, n = load_landmarks(out)
     v, _ = load_mesh(mesh)
     err = [np.linalg.norm(w @ v[ids] - body.true_landmarks[name]) for name, (ids, w) in lms.items()]
     assert np.mean(err) < 20.0                                   # millimetres
-    measured = runner.invoke(app, ["measure", str(mesh), "--landmarks", str(out), "--units", "mm", "--up", "z",
-                                   "--json"])
+    # The measure command it suggests runs as printed (it once left out the up axis it had found).
+    printed = " ".join(result.output.split())
+    suggested = printed[printed.index("bodyspace measure ") + len("bodyspace "):].rstrip(")").split()
+    assert suggested[suggested.index("--up") + 1] == "z" and suggested[suggested.index("--units") + 1] == "mm"
+    measured = runner.invoke(app, suggested + ["--json"])
     assert measured.exit_code == 0, measured.output
 
 

@@ -214,6 +214,21 @@ def test_contact_sheet_pixel_size(tmp_path):
     assert max(h60, w60) <= 20 * 20 + 1 and min(h60, w60) > 100
 
 
+def test_contact_sheet_wraps_a_long_title_inside_the_picture(tmp_path):
+    # An animate filmstrip's title ran off both edges of a two-body sheet.
+    v, f = upright_capsule(1.7)
+    title = "131_01 on child.ply (skeleton embedded (mesh up z, mm; fit residual 1.9 mm), " * 3
+    path = R.contact_sheet([v, v], f, tmp_path / "long.png", views=("front", "side"), title=title, dpi=60)
+    img = imread(path)[..., :3]
+    ink = img.mean(axis=2) < 0.5                        # dark text (the body is skin, the ruler grey)
+    rows = np.flatnonzero(ink.any(axis=1))
+    assert rows.size and not ink[:, :2].any() and not ink[:, -2:].any()
+    # Several lines of text above the bodies, none cut at the top.
+    assert not ink[:2].any()
+    text_rows = rows[rows < np.flatnonzero(skin_mask(img).any(axis=1)).min()]
+    assert np.ptp(text_rows) > 2 * 9 * 60 / 72
+
+
 def test_contact_sheet_uses_one_vertical_scale(tmp_path):
     (v1, f), (v2, _) = upright_capsule(1.0), upright_capsule(2.0)
     v2 = v2 + [0.0, 0.3, 0.0]              # not on y=0: the sheet must still stand it on the floor

@@ -191,10 +191,21 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
         contact_sheet([v], [faces], png, labels=[f"{mesh.name}: {len(lms)} landmarks"], views=("front", "side"),
                       polylines=[crosses], title="bodyspace landmarks", panel_height=6.0)
     console.print(f"{reg.quality.describe()}", markup=False, highlight=False)
+    # The up axis the registration found (signed), so the suggested command runs as printed:
+    # measure does not guess the up axis, it refuses a body that is not +Y up.
+    up_found = up or scan_up_axis(reg.to_scan)
     console.print(f"wrote {out} ({len(lms)} landmarks, the body part and skin weights of each of the "
                   f"{len(vertices)} vertices; bodyspace measure {mesh} "
-                  f"--landmarks {out} --units {units or reg.units}{'' if up is None else f' --up {up}'})",
+                  f"--landmarks {out} --units {units or reg.units}{'' if up_found == 'y' else f' --up {up_found}'})",
                   markup=False, highlight=False)
+
+
+def scan_up_axis(to_scan: np.ndarray) -> str:
+    """The scan frame's axis nearest the body's up direction ("y", "-z", ...), from the (4, 4)
+    internal → scan transform of a registration."""
+    up = to_scan[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    axis = int(np.argmax(np.abs(up)))
+    return ("-" if up[axis] < 0 else "") + "xyz"[axis]
 
 
 def registration_model(model: Path | None, template) -> tuple:

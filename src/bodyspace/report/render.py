@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -302,10 +303,14 @@ def contact_sheet(meshes, faces, path: str | os.PathLike, labels: Sequence[str] 
 
     # Scale (metres per inch) from panel_height, then shrink everything if the sheet is huge.
     upright = ruler and all(view in _UPRIGHT for view in views)
-    caption_in, title_in, ruler_in = 0.32, (0.45 if title else 0.0), (0.45 if upright else 0.0)
+    caption_in, ruler_in = 0.32, (0.45 if upright else 0.0)
     m_per_in = body_h / panel_height
     row_h_in = panel_height * 1.08 + caption_in
     w_in = ncols * cell_w / m_per_in + ruler_in
+    # The title is wrapped to the sheet's width (a long one ran off both edges); the shrink
+    # below scales the font and the sheet alike, so the characters a line holds are fixed here.
+    title_lines = textwrap.wrap(title, max(20, int(w_in * 72 / (0.55 * 9.0 * 1.35)))) if title else []
+    title_in = 0.45 + 0.24 * (len(title_lines) - 1) if title_lines else 0.0
     h_in = nrows * row_h_in + title_in
     shrink = min(1.0, max_inches / max(w_in, h_in))
     m_per_in /= shrink
@@ -353,7 +358,7 @@ def contact_sheet(meshes, faces, path: str | os.PathLike, labels: Sequence[str] 
     ax.set_xlim(0.0, data_w)
     ax.set_ylim(0.0, data_h)
     if title:
-        fig.suptitle(title, y=1.0 - 0.5 * title_in * dpi / h_px, va="center",
+        fig.suptitle("\n".join(title_lines), y=1.0 - 0.5 * title_in * dpi / h_px, va="center",
                      fontsize=fontsize * 1.35)
     return save_png(fig, path, dpi)
 
