@@ -151,6 +151,9 @@ def test_what_cannot_be_rigged_is_refused_naming_what_was_found(bodies):
     for vertices, faces in ((box.vertices, box.faces), (sphere.vertices, sphere.faces), bust):
         with pytest.raises(RigError, match="humanoid"):
             embed_skeleton(vertices, faces)
+    # A failed fit says how the mesh was read (a wrong guess of the up axis made a 1.3 m body 0.68 m tall).
+    with pytest.raises(RigError, match=r"read with up x \(given\) and units m \(found\).*give them"):
+        embed_skeleton(v, fb.faces, up="x")
 
 
 def test_rig_command_rigs_a_foreign_mesh(bodies, tmp_path):

@@ -725,8 +725,12 @@ def embed_skeleton(vertices: np.ndarray, faces: np.ndarray, *, up: str | None = 
     if not rms <= MAX_RESIDUAL_SHARE * height:
         raise RigError(f"{mesh_name}: not a humanoid in an A- or T-pose: the best fit of the template body leaves "
                        f"{1000 * rms:.0f} mm RMS between the surfaces (at most {100 * MAX_RESIDUAL_SHARE:g} % of its "
-                       f"{height:.2f} m height, {1000 * MAX_RESIDUAL_SHARE * height:.0f} mm, for a body); expected a "
-                       "person standing with arms out (A- or T-pose)")
+                       f"{height:.2f} m height, {1000 * MAX_RESIDUAL_SHARE * height:.0f} mm, for a body; read "
+                       f"with up {frame.up} ({'given' if up else 'found'}) and units {frame.units} "
+                       f"({'given' if units else 'found'})); expected a "
+                       "person standing with arms out (A- or T-pose)"
+                       + ("" if up is not None and units is not None else
+                          ". If the up axis or the unit is wrong, give them (--up, --units)"))
     heads, G = _pose(model, st)
     T = G.copy()
     T[:, :3, :] *= st.s
