@@ -157,11 +157,42 @@ def test_parts_of_a_posed_body_keep_each_part_in_one_piece(template, phenotype_m
     assert (raw != clean).sum() > 0
 
 
+def test_parts_are_assigned_only_on_a_standing_body(template, phenotype_model, case, tmp_path):
+    """A landmark file without body parts and a seated body: assigned on the seated body itself, a
+    6,000-vertex body's chest came out +10 cm and its upper arms +15 cm (the arms lie nearer to
+    the torso's lines than to their own bones). Now its part girths are NaN with the reason and
+    the fix; measured together with a standing body of the topology, they take that body's parts
+    and are within 2 cm of standing (API and command line alike)."""
+    topo, fset, _, _ = case
+    v = phenotype_model.vertices({})[0]
+    posed = pose_bodies(np.repeat(v[None], 2, 0), template.rigs["default"],
+                        load_pose_library().stack(["rest", "sitting"], template.rigs["default"]), on_ground=True)
+    rest, sitting = transfer(topo.correspondence, template.faces, posed)
+    alone = evaluate(fset, sitting, topo.faces, check_scale=False)
+    for k in ("chest_girth", "waist_girth", "upper_arm_girth_l", "neck_girth"):
+        assert np.isnan(alone[k].value) and alone[k].note.startswith("body parts unknown"), (k, alone[k])
+        assert "not upright" in alone[k].note and "bodyspace landmarks" in alone[k].note
+    assert np.isfinite(alone["mass"].value) and np.isfinite(alone["arm_length_l"].value)
+    unknown = with_standing_body(fset, sitting, topo.faces)
+    assert unknown.vertex_parts is None and unknown.parts_unknown is not None
+    both = evaluate(fset, np.stack([sitting, rest]), topo.faces, check_scale=False)   # parts of the 2nd
+    names = []
+    for i, body in enumerate((sitting, rest)):
+        names.append(tmp_path / f"b{i}.obj")
+        save_mesh(names[-1], body, topo.faces)
+    res = CliRunner().invoke(app, ["measure", *map(str, names), "--landmarks", fset.source, "--json"])
+    assert res.exit_code == 0, res.output
+    cli = json.loads(res.stdout)
+    for k in ("chest_girth", "waist_girth", "upper_arm_girth_l", "upper_arm_girth_r", "thigh_girth_l"):
+        assert abs(both[k].value[0] - both[k].value[1]) < 0.02, (k, both[k].value)
+        assert abs(cli[str(names[0])][k]["value"] - cli[str(names[1])][k]["value"]) < 2.0, k
+
+
 def test_cli_measure_with_a_landmark_file_places_the_joints_on_the_mesh(case, tmp_path):
-    """``measure MESH --landmarks FILE`` has no standing body of the topology: each mesh places its
-    own neck joints (rings at the neck's base and at the head's pivot lie on the neck's axis
-    even with the head tilted). Head tilted 30° sideways: within 1 cm of upright (measured 0.89
-    and 0.93 cm; with the landmarks' axis up to 1.48 cm)."""
+    """``measure MESH... --landmarks FILE`` with a landmark file without joints: the first standing
+    mesh places the neck joints for all (rings at the neck's base and at the head's pivot lie on
+    the neck's axis even with the head tilted). Head tilted 30° sideways: within 1 cm of upright
+    (each mesh's own joints measured 0.89 and 0.93 cm; the landmarks' axis up to 1.48 cm)."""
     topo, fset, _, bodies = case
     names = []
     for i in (0, 2, 4):                                   # upright; -30° over neck and head; -30° head alone

@@ -106,11 +106,18 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
                                        words=words)
             v, postures[label] = _standing(v, f, path, as_posed)
-            # A landmark file without a standing body of its topology: the mesh places its own body
-            # parts and neck joints (its neck plane then leans with its neck, not with its head).
+            bodies.append((v, f))
+        # A landmark file without body parts or joints for its topology: the first mesh that stands
+        # places them for all (a seated body cannot: its arms lie against its torso); else each
+        # mesh places its own joints, and its girths are NaN with the reason if it does not stand.
+        for v, f in bodies:
+            placed = with_standing_body(mset, v, f)
+            if placed.parts_unknown is None:
+                mset = placed
+                break
+        for (path, label), (v, f) in zip(zip(meshes, labels), bodies):
             own = with_standing_body(mset, v, f)
             results[label] = evaluate(own, v, f, keep_polylines=png is not None, mesh_name=str(path))
-            bodies.append((v, f))
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]

@@ -77,7 +77,7 @@ import scipy.sparse as sp
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
 from bodyspace.measure.parts import axis_joints, decode_parts, encode_parts, part_landmarks, parts_from_landmarks
-from bodyspace.measure.points import axis_points, check_axis, fail, point_names
+from bodyspace.measure.points import axis, axis_points, check_axis, fail, format_point, point_names
 
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
@@ -96,8 +96,10 @@ class MeasurementSet:
     n_vertices: vertex count the set was made for (None: any mesh the ids fit).
     vertex_parts: (V,) int8 body part of each vertex (``parts.PARTS``, -1 none), what a
         measurement's ``part`` restricts its slice to; None: assigned from the landmarks of
-        the measured body (``parts.parts_from_landmarks``; give a standing body's labels with
-        ``with_vertex_parts`` to measure posed bodies of another topology).
+        the first measured body that stands (``parts.parts_from_landmarks``; give a standing
+        body's labels with ``with_vertex_parts`` to measure posed bodies of another topology).
+    parts_unknown: why the parts could not be assigned (``with_standing_body`` was given a body
+        that does not stand): the measurements that go round a part are NaN with it.
     """
 
     landmarks: dict[str, tuple[np.ndarray, np.ndarray]]
@@ -107,6 +109,7 @@ class MeasurementSet:
     template: str = "hm08"
     source: str = "<memory>"
     vertex_parts: np.ndarray | None = field(default=None, compare=False, repr=False)
+    parts_unknown: str | None = field(default=None, compare=False, repr=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -447,6 +450,49 @@ def _without_joints(a: dict, landmarks) -> dict:
     return out
 
 
+# The condition that says a body stands: body parts are assigned from the landmarks only on a body
+# that does (a seated or bent body's limbs lie nearer to the torso's lines than to their own bones).
+STANDING_CONDITION = "upright"
+
+
+def condition_notes(conditions: dict[str, dict], lm: dict, n: int) -> dict[str, list]:
+    """Per condition (``MeasurementSet.conditions``), per body: None if it holds, else the reason
+    it fails. lm: point name → (N, 3) of ``n`` bodies (``points.axis`` reads them)."""
+    out = {}
+    for cname, c in conditions.items():
+        lo, hi = float(c.get("min_angle_deg", 0.0)), float(c.get("max_angle_deg", 12.0))
+        directed = bool(c.get("directed", False))
+        rel = c.get("relative_to", "up")
+        ref = axis(rel, lm, n)
+        ref_name = "vertical" if rel == "up" else f"axis {format_point(rel[0])}→{format_point(rel[1])}"
+        limit = f"at most {hi:.0f}°" if lo == 0 else f"expected {lo:.0f}-{hi:.0f}°"
+        notes: list = [None] * n
+        for a in c["axes"]:
+            # An axis is a line unless the condition is directed (an arm down is not an arm up).
+            cos = np.sum(axis(a, lm, n) * ref, axis=-1)
+            ang = np.degrees(np.arccos(np.clip(cos if directed else np.abs(cos), -1, 1)))
+            for i in np.flatnonzero((ang > hi) | (ang < lo)):
+                if notes[i] is None:
+                    notes[i] = (f"not {cname}: axis {format_point(a[0])}→{format_point(a[1])} is {ang[i]:.0f}° "
+                                f"from {ref_name} ({limit})")
+        out[cname] = notes
+    return out
+
+
+def standing_note(mset: MeasurementSet, lm: dict) -> str | None:
+    """None if the one body whose landmark points are ``lm`` (name → (1, 3)) stands by the set's
+    ``STANDING_CONDITION`` (or the set has none), else the reason it does not."""
+    c = mset.conditions.get(STANDING_CONDITION)
+    return None if c is None else condition_notes({STANDING_CONDITION: c}, lm, 1)[STANDING_CONDITION][0]
+
+
+def parts_unknown_note(why: str) -> str:
+    """The note of a measurement that goes round a body part when the parts are unknown."""
+    return (f"body parts unknown: the landmark file has none for this topology and they are assigned only "
+            f"on a standing body ({why}); give a landmark file with them (bodyspace landmarks MESH writes "
+            "one), or measure a standing body of this topology in the same call")
+
+
 def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray | None = None) -> MeasurementSet:
     """``mset`` ready to measure posed bodies of its topology, from one standing body (V, 3) of it
     (metres, +Y up; e.g. a model's mean rest body): the body part of every vertex if the set has
@@ -456,7 +502,8 @@ def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.nda
     joints). Both are vertex data, so they follow the skin into every pose: the tape keeps its
     part and the neck girth's plane leans with the neck, not with a head tilted on it.
     Labels and joints the set already has are kept; the set is returned unchanged when it needs
-    neither."""
+    neither. A body that does not stand (``STANDING_CONDITION``) gets no labels: the set then says
+    why (``parts_unknown``), and its part-aware measurements are NaN with that reason."""
     needs_parts = mset.vertex_parts is None and any(m.get("part") for m in mset.measurements)
     needs_joints = any(isinstance(m.get(k), dict) and m[k].get("from") is None
                        for m in mset.measurements for k in ("normal", "axis"))
@@ -468,9 +515,13 @@ def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.nda
                                f"({mset.n_vertices or 'V'}, 3) vertices of the set's topology")
     points = mset.landmark_matrix(len(v)) @ v
     lm = {name: points[i] for i, name in enumerate(mset.landmarks)}
-    labels = mset.vertex_parts
+    labels, unknown = mset.vertex_parts, mset.parts_unknown
     if needs_parts:
-        labels = parts_from_landmarks(v, lm, faces)
+        why = standing_note(mset, {name: p[None] for name, p in lm.items()})
+        if why is None:
+            labels, unknown = parts_from_landmarks(v, lm, faces), None
+        else:
+            unknown = parts_unknown_note(why)
     measurements = []
     for m in mset.measurements:
         for k in ("normal", "axis"):
@@ -480,7 +531,7 @@ def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.nda
                 if joints is not None:            # else the fallback (a mesh too coarse for a ring)
                     m = dict(m, **{k: dict(a, **{"from": joints[0], "to": joints[1]})})
         measurements.append(m)
-    return replace(mset, measurements=tuple(measurements), vertex_parts=labels)
+    return replace(mset, measurements=tuple(measurements), vertex_parts=labels, parts_unknown=unknown)
 
 
 def _closest(base: MeasurementSet, landmarks) -> str:
