@@ -16,12 +16,14 @@ from bodyspace.cli import app
 from bodyspace.errors import MeasurementError
 from bodyspace.measure import evaluate, load_landmarks, load_measurement_set, with_standing_body
 from bodyspace.measure.definitions import measurement_set_from_dict, with_landmarks
+from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.measure.methods import Chunk, stature_for_mass
 from bodyspace.measure.parts import PART_INDEX, merge_islands, parts_from_landmarks
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.rig.posing import pose_bodies
-from bodyspace.synth.foreign import foreign_topology, transfer
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document
+from bodyspace.synth.foreign import carry_joints, foreign_topology, transfer
 from bodyspace.synth.poses import load_pose_library
 
 NECK_AND_HEAD = ["neck01", "neck02", "neck03", "head"]
@@ -186,6 +188,39 @@ def test_parts_are_assigned_only_on_a_standing_body(template, phenotype_model, c
     for k in ("chest_girth", "waist_girth", "upper_arm_girth_l", "upper_arm_girth_r", "thigh_girth_l"):
         assert abs(both[k].value[0] - both[k].value[1]) < 0.02, (k, both[k].value)
         assert abs(cli[str(names[0])][k]["value"] - cli[str(names[1])][k]["value"]) < 2.0, k
+
+
+def test_carried_neck_joints_follow_the_neck_in_every_pose(template, phenotype_model, case, tmp_path):
+    """What ``bodyspace landmarks`` writes for a foreign mesh: the template's body parts and its
+    neck joints carried across (here from the exact template body, without a registration). The
+    neck girth is then within 1 cm of the template's own value in each pose, through the file and
+    the command line. (Measured with a registration's parts on a 6,000-vertex 2.27 m body, joints
+    placed as rings on the mesh instead put the plane 8-12 cm wrong in a side bend, sitting and
+    with the head down; the carried joints within 0.7 cm.)"""
+    topo, fset, _, _ = case
+    v = phenotype_model.vertices({})[0]
+    poses = ["rest", "sitting", "side_bend_left", "look_down"]
+    rig = template.rigs["default"]
+    posed = pose_bodies(np.repeat(v[None], len(poses), 0), rig, load_pose_library().stack(poses, rig), on_ground=True)
+    truth = evaluate(load_measurement_set(), posed, template.faces, check_scale=False)["neck_girth"].value
+    bodies = transfer(topo.correspondence, template.faces, posed)
+    carried = carry_vertex_data(posed[0], template, bodies[0], topo.faces)
+    joints = carry_joints(load_measurement_set(), posed[0], template.faces, bodies[0], topo.faces)
+    doc = landmark_document(load_landmarks(fset.source)[0], len(bodies[0]), carried, joints)
+    path = tmp_path / "carried.json"
+    path.write_text(json.dumps(doc))
+    placed = landmark_measurement_set(path)
+    neck = evaluate(placed, bodies, topo.faces, check_scale=False)["neck_girth"].value
+    assert np.abs(neck - truth).max() < 0.01, (neck, truth)
+    save_mesh(tmp_path / "look_down.obj", bodies[3], topo.faces)
+    res = CliRunner().invoke(app, ["measure", str(tmp_path / "look_down.obj"), "--landmarks", str(path), "--json"])
+    assert res.exit_code == 0, res.output
+    assert abs(json.loads(res.stdout)["neck_girth"]["value"] / 100 - truth[3]) < 0.01
+    bad = dict(doc, joints={"neck_girth": {"normal": {"from": {"vertices": [len(bodies[0]) + 5], "weights": [1.0]},
+                                                      "to": joints["neck_girth"]["normal"]["to"]}}})
+    path.write_text(json.dumps(bad))
+    with pytest.raises(MeasurementError, match=r"joint neck_girth.normal.from uses vertex \d+, but the topology has"):
+        landmark_measurement_set(path)
 
 
 def test_cli_measure_with_a_landmark_file_places_the_joints_on_the_mesh(case, tmp_path):

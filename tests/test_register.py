@@ -177,6 +177,8 @@ def test_cli_landmarks_on_a_remeshed_body(template, phenotype_model, tmp_path):
     v, _ = load_mesh(mesh)
     err = [np.linalg.norm(w @ v[ids] - body.true_landmarks[name]) for name, (ids, w) in lms.items()]
     assert np.mean(err) < 20.0                                   # millimetres
+    joints = json.loads(out.read_text())["joints"]["neck_girth"]["normal"]     # carried from the template
+    assert all(0 <= i < len(v) for end in ("from", "to") for i in joints[end]["vertices"])
     # The measure command it suggests runs as printed (it once left out the up axis it had found).
     printed = " ".join(result.output.split())
     suggested = printed[printed.index("bodyspace measure ") + len("bodyspace "):].rstrip(")").split()

@@ -21,16 +21,9 @@ from bodyspace.cli.common import ForceOption, check_file_output, console, progre
 from bodyspace.data.database import META_FILE, VERTICES_FILE, ScanDatabase
 from bodyspace.data.template import load_template
 from bodyspace.errors import BodyspaceError, MeasurementError, MeshError
-from bodyspace.measure import (
-    check_compatible,
-    evaluate,
-    load_landmarks,
-    load_measurement_set,
-    to_json,
-    with_landmarks,
-)
-from bodyspace.measure import conventions
-from bodyspace.measure.definitions import load_landmark_parts, with_standing_body, with_vertex_parts
+from bodyspace.measure import check_compatible, conventions, evaluate, load_measurement_set, to_json
+from bodyspace.measure.definitions import with_standing_body
+from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.parallel import in_order
@@ -89,12 +82,8 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         words = _convention_flags(landmarks)
         conventions.check_arguments(units, up, words)
         mset = load_measurement_set() if model is None else model_measurement_set(model)
-        if landmarks is not None:
-            lms, nv = load_landmarks(landmarks)
-            mset = with_landmarks(mset, lms, nv, str(landmarks))
-            parts = load_landmark_parts(landmarks)    # carried by bodyspace landmarks, if any
-            if parts is not None:
-                mset = with_vertex_parts(mset, parts)
+        if landmarks is not None:        # with the parts and joints bodyspace landmarks carries, if any
+            mset = landmark_measurement_set(landmarks, base=mset)
         labels = _labels([str(p) for p in meshes])
         results, bodies, postures = {}, [], {}
         for path, label in zip(meshes, labels):
@@ -339,8 +328,7 @@ def measure_database(folder: Path, csv_out: Path | None, *, landmarks: Path | No
     landmarks = landmarks if landmarks is not None or model is not None else db.landmarks_path
     mset = load_measurement_set() if model is None else model_measurement_set(model)
     if landmarks is not None:
-        lms, nv = load_landmarks(landmarks)
-        mset = with_landmarks(mset, lms, nv, str(landmarks))
+        mset = landmark_measurement_set(landmarks, base=mset)
     _check_vertex_count(folder / "vertices.npy", db.n_vertices, mset, landmarks, model)
     check_compatible(mset, db.read([0])[0], db.faces, str(folder))
     rest = db.rest_rows()

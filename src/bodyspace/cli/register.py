@@ -20,7 +20,7 @@ from bodyspace.measure.conventions import MESH_UNITS, UP_AXES
 from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.register.detail import MAX_LEVELS, apply_detail, save_detail
 from bodyspace.register.landmark_files import read_scan_landmarks
-from bodyspace.register.landmarks import carry_vertex_data, landmark_document, mesh_landmarks
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document, mesh_joints, mesh_landmarks
 from bodyspace.model import BodyModel
 from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
 from bodyspace.register.user_model import basis_from_model, check_model_topology
@@ -175,7 +175,8 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     with progress("landmarks") as report:
         lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
     carried = carry_vertex_data(reg.vertices, template, vertices, faces)
-    doc = landmark_document(lms, len(vertices), carried, written_by="bodyspace",
+    doc = landmark_document(lms, len(vertices), carried, mesh_joints(reg, template, vertices, faces),
+                            written_by="bodyspace",
                             note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}; "
                                  "vertex_parts and skin_weights are the template's body parts and skin weights "
                                  "carried to this mesh")

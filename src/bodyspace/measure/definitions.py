@@ -77,7 +77,8 @@ import scipy.sparse as sp
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.methods import METHODS, known_methods, template_vertices
 from bodyspace.measure.parts import axis_joints, decode_parts, encode_parts, part_landmarks, parts_from_landmarks
-from bodyspace.measure.points import axis, axis_points, check_axis, fail, format_point, point_names
+from bodyspace.measure.points import (axis, axis_points, check_axis, check_inline_point, fail, format_point,
+                                     point_names)
 
 FORMAT = "bodyspace-measurements"
 DEFAULT_PATH = Path(__file__).resolve().parents[1] / "data" / "measurements" / "hm08.json"
@@ -399,6 +400,54 @@ def load_landmark_parts(path: str | os.PathLike) -> np.ndarray | None:
         raise MeasurementError(f"{path}: field 'vertex_parts' is {type(text).__name__}; expected a string of one "
                                "letter a vertex (as bodyspace landmarks writes), or no such field")
     return decode_parts(text, f"{path} field 'vertex_parts'")
+
+
+def load_landmark_joints(path: str | os.PathLike) -> dict | None:
+    """The joints a landmark file carries for the set's joint axes (its optional ``"joints"``:
+    measurement name → axis field → {"from", "to"} inline points; ``bodyspace landmarks`` writes
+    the template's, ``synth.foreign.carry_joints``), or None. Checked here, applied by
+    ``with_axis_joints``."""
+    path = Path(path)
+    d = _read_json(path)
+    joints = d.get("joints") if isinstance(d, dict) else None
+    if joints is None:
+        return None
+    expected = ("an object of measurement name → {\"normal\" or \"axis\": {\"from\": point, \"to\": point}} "
+                "(as bodyspace landmarks writes), or no such field")
+    if not isinstance(joints, dict):
+        raise MeasurementError(f"{path}: field 'joints' is {type(joints).__name__}; expected {expected}")
+    for name, fields in joints.items():
+        if not isinstance(fields, dict) or not fields or set(fields) - {"normal", "axis"}:
+            raise MeasurementError(f"{path}: field 'joints' entry {name!r} is {fields!r}; expected {expected}")
+        for key, ends in fields.items():
+            where = f"{path}: field 'joints' {name}.{key}"
+            if not isinstance(ends, dict) or set(ends) != {"from", "to"}:
+                raise MeasurementError(f"{where} is {ends!r}; expected {{\"from\": point, \"to\": point}}")
+            for end in ("from", "to"):
+                check_inline_point(f"{where}.{end}", ends[end])
+    return joints
+
+
+def with_axis_joints(mset: MeasurementSet, joints: dict, source: str = "joints") -> MeasurementSet:
+    """``mset`` with the joints of its joint axes set from ``joints`` (``load_landmark_joints``):
+    each measurement named there whose axis field is a joint axis gets its "from" and "to".
+    Names the set does not have (a measurement dropped for a missing landmark) are skipped; a
+    vertex id beyond the set's topology is an error naming ``source``."""
+    measurements = []
+    for m in mset.measurements:
+        for key, ends in joints.get(m["name"], {}).items():
+            a = m.get(key)
+            if not isinstance(a, dict):
+                continue
+            for end in ("from", "to"):
+                top = max(ends[end]["vertices"])
+                if mset.n_vertices is not None and top >= mset.n_vertices:
+                    raise MeasurementError(f"{source}: joint {m['name']}.{key}.{end} uses vertex {top}, but the "
+                                           f"topology has {mset.n_vertices} vertices; expected the joints of this "
+                                           "mesh (write the file again with bodyspace landmarks MESH)")
+            m = dict(m, **{key: dict(a, **{"from": ends["from"], "to": ends["to"]})})
+        measurements.append(m)
+    return replace(mset, measurements=tuple(measurements))
 
 
 def with_landmarks(base: MeasurementSet, landmarks: dict, n_vertices: int | None = None,

@@ -18,10 +18,12 @@ import numpy as np
 from bodyspace.measure.definitions import (
     MeasurementError,
     MeasurementSet,
+    load_landmark_joints,
     load_landmark_parts,
     load_landmarks,
     load_measurement_set,
     point_fields,
+    with_axis_joints,
     with_landmarks,
     with_vertex_parts,
 )
@@ -50,7 +52,8 @@ def landmark_measurement_set(path, n_vertices: int | None = None, base: Measurem
                              flag: str = "") -> MeasurementSet:
     """The measurement set a landmark file gives for meshes of ``n_vertices``: ``base`` (default:
     the shipped hm08 set) re-pointed at the file's landmarks (``with_landmarks``: loops of the
-    template dropped), made for ``n_vertices`` (or the file's own ``n_vertices``). A file that
+    template dropped), made for ``n_vertices`` (or the file's own ``n_vertices``), with the body
+    parts and joints the file carries (``bodyspace landmarks`` writes them). A file that
     declares another vertex count is refused; ``flag`` names the option in that message."""
     landmarks, declared = load_landmarks(path)
     where = f"{flag} {path}" if flag else str(path)
@@ -60,7 +63,10 @@ def landmark_measurement_set(path, n_vertices: int | None = None, base: Measurem
     base = load_measurement_set() if base is None else base
     mset = with_landmarks(base, landmarks, n_vertices if n_vertices is not None else declared, str(path))
     parts = load_landmark_parts(path)      # the template's body parts, carried by bodyspace landmarks
-    return mset if parts is None else with_vertex_parts(mset, parts)
+    if parts is not None:
+        mset = with_vertex_parts(mset, parts)
+    joints = load_landmark_joints(path)    # and the template's neck joints
+    return mset if joints is None else with_axis_joints(mset, joints, where)
 
 
 def check_set_on_bodies(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray,

@@ -6,7 +6,9 @@ topology. ``mesh_landmarks`` makes one: the template is registered to the mesh a
 landmark of the measurement set (a weighted set of template vertices) is carried onto the
 mesh by ``synth.foreign.carry_landmarks``: every template vertex it uses replaced by its closest
 point of the mesh's surface (three vertices, barycentric weights). The result is a
-``load_landmarks`` document for the mesh's own vertex ids.
+``load_landmarks`` document for the mesh's own vertex ids. The joints of the set's joint axes
+(the neck girth's neck and head joints) are carried the same way (``mesh_joints``), so the neck
+girth's plane leans with the neck in every pose as on the template.
 
 The template's body-part groups and skin weights are carried the other way
 (``carry_vertex_data``): each vertex of the mesh finds its closest point on the registered
@@ -36,9 +38,9 @@ from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.measure.parts import encode_parts
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.register.pipeline import Registration, register_scan
-from bodyspace.synth.foreign import carry_landmarks, closest_points
+from bodyspace.synth.foreign import carry_joints, carry_landmarks, closest_points
 
-__all__ = ["mesh_landmarks", "landmark_document", "carry_vertex_data", "CarriedData", "MAX_INFLUENCES",
+__all__ = ["mesh_landmarks", "mesh_joints", "landmark_document", "carry_vertex_data", "CarriedData", "MAX_INFLUENCES",
            "load_carried_weights"]
 
 # Bones kept per vertex of carried skin weights (glTF skins take 4 per vertex).
@@ -108,15 +110,27 @@ def mesh_landmarks(vertices: np.ndarray, faces: np.ndarray, *, template: Templat
     return carry_landmarks(mset, reg.vertices, template.faces, vertices, faces), reg
 
 
+def mesh_joints(registration: Registration, template: Template, vertices: np.ndarray, faces: np.ndarray,
+                mset: MeasurementSet | None = None) -> dict:
+    """The set's joint-axis joints (the neck girth's) carried from the registered template to the
+    mesh (V2, 3), (F2, 3) (``synth.foreign.carry_joints``), for ``landmark_document``."""
+    mset = mset if mset is not None else load_measurement_set()
+    return carry_joints(mset, registration.vertices, template.faces, np.asarray(vertices, dtype=float),
+                        np.asarray(faces, dtype=np.int64))
+
+
 def landmark_document(landmarks: dict[str, tuple[np.ndarray, np.ndarray]], n_vertices: int,
-                      carried: CarriedData | None = None, **extra) -> dict:
+                      carried: CarriedData | None = None, joints: dict | None = None, **extra) -> dict:
     """The landmarks as a ``load_landmarks`` JSON document (``extra`` fields added first), with
-    the carried body parts and skin weights when given (module docstring)."""
+    the carried body parts and skin weights, and the joints of the set's joint axes
+    (``synth.foreign.carry_joints``), when given (module docstring)."""
     out = {}
     for name, (ids, w) in landmarks.items():
         out[name] = int(ids[0]) if len(ids) == 1 else {"vertices": [int(i) for i in ids],
                                                        "weights": [float(x) for x in w]}
     doc = {**extra, "landmarks": out, "n_vertices": int(n_vertices)}
+    if joints:
+        doc["joints"] = joints
     if carried is not None:
         if carried.vertex_parts is not None:
             doc["vertex_parts"] = encode_parts(carried.vertex_parts)

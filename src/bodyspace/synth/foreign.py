@@ -487,19 +487,22 @@ class ForeignTopology:
         return {"landmarks": out, "n_vertices": self.n_vertices}
 
 
-def carry_landmarks(mset: MeasurementSet, source_vertices: np.ndarray, source_faces: np.ndarray,
-                    vertices: np.ndarray, faces: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """A measurement set's landmarks (on the source topology) as weighted sets of another mesh.
+def carry_points(points: dict[str, tuple[np.ndarray, np.ndarray]], source_vertices: np.ndarray,
+                 source_faces: np.ndarray, vertices: np.ndarray, faces: np.ndarray
+                 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Points given as weighted sets of a source mesh's vertices, as weighted sets of another mesh.
 
-    source_vertices (V, 3), source_faces (F, 3): a body of the set's topology; vertices (V2, 3), faces (F2, 3): the same
-    body remeshed. Each source vertex a landmark uses is replaced by its closest point of the new
-    surface (three vertices with barycentric weights), and the landmark's weights are mixed
-    accordingly, so the new set stays convex and reproduces the position up to the distance
-    between the two surfaces (< 1 mm at 5,000 vertices). Returns name → (ids (k,), weights (k,)).
+    points: name → (vertex ids (k,), convex weights (k,)) of the source; source_vertices (V, 3),
+    source_faces (F, 3): the source body; vertices (V2, 3), faces (F2, 3): the same body in another
+    meshing. Each source vertex a point uses is replaced by its closest point of the new surface
+    (three vertices with barycentric weights), and the point's weights are mixed accordingly, so
+    it stays convex and is reproduced up to the distance between the two surfaces (< 1 mm at
+    5,000 vertices). Returns name → (ids (k2,), weights (k2,)).
     """
     normals = vertex_normals(source_vertices, source_faces)
     out = {}
-    for name, (ids, w) in mset.landmarks.items():
+    for name, (ids, w) in points.items():
+        ids, w = np.asarray(ids), np.asarray(w, dtype=float)
         corr, _ = closest_points(source_vertices[ids], vertices, faces, normals[ids])
         new_ids = faces[corr.face].ravel()
         new_w = (w[:, None] * corr.barycentric).ravel()
@@ -507,6 +510,38 @@ def carry_landmarks(mset: MeasurementSet, source_vertices: np.ndarray, source_fa
         uniq, inv = np.unique(new_ids[keep], return_inverse=True)
         merged = np.bincount(inv, new_w[keep])
         out[name] = (uniq, merged / merged.sum())
+    return out
+
+
+def carry_landmarks(mset: MeasurementSet, source_vertices: np.ndarray, source_faces: np.ndarray,
+                    vertices: np.ndarray, faces: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """A measurement set's landmarks (on the source topology) as weighted sets of another mesh
+    (``carry_points``). Returns name → (ids (k,), weights (k,))."""
+    return carry_points(mset.landmarks, source_vertices, source_faces, vertices, faces)
+
+
+def carry_joints(mset: MeasurementSet, source_vertices: np.ndarray, source_faces: np.ndarray,
+                 vertices: np.ndarray, faces: np.ndarray) -> dict[str, dict[str, dict]]:
+    """The joints of the set's joint axes (the neck girth's neck and head joints, weighted sets of
+    the source's vertices) on another mesh of the same body (``carry_points``), as
+    ``definitions.with_axis_joints`` takes them: measurement name → axis field → {"from", "to"}
+    inline points ``{"vertices": [...], "weights": [...]}``. Carried joints follow the template's
+    joint placement into every pose; joints placed on the mesh itself (``parts.axis_joints``)
+    depend on its body-part labels and put the neck girth's plane 8-12 cm wrong in a side bend or
+    with the head down (a 6,000-vertex body labelled with the template's parts)."""
+    found = {}
+    for m in mset.measurements:
+        for field_name in ("normal", "axis"):
+            a = m.get(field_name)
+            if isinstance(a, dict) and a.get("from") is not None and a.get("to") is not None:
+                for end in ("from", "to"):
+                    found[(m["name"], field_name, end)] = (np.asarray(a[end]["vertices"]),
+                                                           np.asarray(a[end]["weights"], dtype=float))
+    carried = carry_points(found, source_vertices, source_faces, vertices, faces)
+    out: dict[str, dict[str, dict]] = {}
+    for (name, field_name, end), (ids, w) in carried.items():
+        out.setdefault(name, {}).setdefault(field_name, {})[end] = {"vertices": [int(i) for i in ids],
+                                                                     "weights": [float(x) for x in w]}
     return out
 
 
