@@ -67,22 +67,26 @@ def weight_sets(template, rig, influences: int, heat: float, smoothing: float) -
     bones, no mask: what any mesh gets), and with the template's rules (``template_heat_rules``:
     hip helper bones out, jaw on the chin, no upper arm on the torso farther than 10 cm from the
     armpit loop (and the earlier 6 cm height line, ``armpit="height"``), arm twist bones heated
-    with the bone they twist; what
+    with the bone they twist, the rib cage's bones one group through the cut to four bones (and
+    the rules without it, ``chest_group=False``); what
     ``pose_bodies(weights="bone_heat")`` uses)."""
     v = template.vertices
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0
     args = (v, template.faces, rig.heads(v), rig.tails(v), influences)
     cut = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=0.0)
     plain = bone_heat_weights(*args, deform=deform, heat=heat, smoothing=smoothing)
-    height_line = bone_heat_weights(*args, **template_heat_rules(rig, v, template.faces, armpit="height"),
-                                    heat=heat, smoothing=smoothing)
+    height_line = bone_heat_weights(*args, **template_heat_rules(rig, v, template.faces, armpit="height",
+                                                                 chest_group=False), heat=heat, smoothing=smoothing)
+    no_group = bone_heat_weights(*args, **template_heat_rules(rig, v, template.faces, chest_group=False),
+                                 heat=heat, smoothing=smoothing)
     rules = template_heat_rules(rig, v, template.faces)
     t = time.perf_counter()
     heat_w = bone_heat_weights(*args, **rules, heat=heat, smoothing=smoothing)
     print(f"bone heat with the template's rules: {time.perf_counter() - t:.2f} s, {heat_w.nnz:,} weights "
           f"(MakeHuman's {rig.weights.nnz:,}, smoothed {smoothed_weights(rig).nnz:,})")
     return {"MakeHuman": rig.weights, "smoothed": smoothed_weights(rig), "bone heat, cut only": cut,
-            "bone heat, no rules": plain, "bone heat, armpit height line": height_line, "bone heat": heat_w}
+            "bone heat, no rules": plain, "bone heat, armpit height line": height_line,
+            "bone heat, no chest group": no_group, "bone heat": heat_w}
 
 
 def evaluate(template, rig, library, bodies, weights, skinning: str = "lbs", volume: bool = False) -> dict:

@@ -57,8 +57,8 @@ from bodyspace.mesh.solver import FactorizedSolver
 from bodyspace.mesh.topology import vertex_components
 from bodyspace.parallel import halves, run_both
 
-__all__ = ["DEFAULT_HEAT", "DEFAULT_SMOOTHING", "MIN_WEIGHT", "bone_heat_weights", "nearest_visible_bones",
-           "segments_blocked", "smooth_within_support", "twist_share"]
+__all__ = ["DEFAULT_HEAT", "DEFAULT_SMOOTHING", "GROUP_RAMP", "MIN_WEIGHT", "bone_heat_weights", "keep_group_totals",
+           "nearest_visible_bones", "segments_blocked", "smooth_within_support", "twist_share"]
 
 _kernel = numba.njit(cache=True, nogil=True)
 
@@ -71,6 +71,12 @@ DEFAULT_HEAT = 1.0
 # the 4-influence cut fall from 526 to about 240 for 3.5-8 cm (the uncut heat adds 233), to 287
 # at 3.2 cm and 411 at 1 cm; at 32 cm 288 again.
 DEFAULT_SMOOTHING = 0.05
+# Bone groups (``bone_heat_weights(groups=...)``): a group whose kept bones' share after the cut
+# falls below this fraction of its uncut share fades back to the plain cut (smoothstep), so a
+# group leaving a vertex's four does so continuously. Chosen on the six training bodies with the
+# template's chest group (docs/skinning.md): 1 / 0.5 / 0.25 / 0.1 gave 223 / 213 / 197 / 209
+# folds added (LBS, 39 poses).
+GROUP_RAMP = 0.25
 # The least threshold of the cut (the skinning kernels cost per influence; a 1e-3 weight moves a
 # vertex by at most 1e-3 of the bones' relative displacement).
 MIN_WEIGHT = 1e-3
@@ -458,6 +464,52 @@ def _top_weights(W: np.ndarray, k: int, min_weight: float) -> sp.csr_matrix:
     return M
 
 
+def keep_group_totals(uncut: np.ndarray, cut: sp.spmatrix, groups: np.ndarray,
+                      ramp: float = GROUP_RAMP) -> sp.csr_matrix:
+    """Cut weights with each bone group's share of a row moved back toward its share before the cut.
+
+    uncut: (n, K) dense, the weights before the cut (negatives count as zero; rows are
+        normalized here); cut: (n, K) sparse, the continuous cut of them (``_top_weights``),
+        rows summing to one; groups: (K,) int, each column's group (-1: in no group);
+        ramp: in (0, 1].
+    Returns (n, K) CSR with the cut's sparsity (no vertex gains a bone), rows summing to one.
+
+    The continuous cut subtracts the (k+1)-th weight from every kept bone and renormalizes, which
+    hands the dropped bones' weight to the *largest* kept bone: beside the armpit five bones of
+    the rib cage (spine01-03, breast, clavicle) share the four places with the upper arm, and an
+    uncut upper-arm weight of 0.51 becomes 0.70, which folds the skin there when the arm swings
+    forward. Here the kept bones of each group g are scaled to the group's uncut share ``G_g``
+    instead of their cut share ``C_g``, with a ramp ``s = smoothstep(C_g / (ramp G_g))`` so that
+    a group whose last kept bone leaves the vertex's four fades out continuously:
+    ``w_b <- c_b (1 - s) + c_b G_g / C_g s``; bones in no group keep their cut weight c_b; then
+    the row is renormalized (a group's share becomes ``G_g / (sum of groups' G + sum of the
+    lone bones' c)``, not exactly G_g).
+    """
+    n, K = uncut.shape
+    g = np.asarray(groups, dtype=np.int64)
+    if g.shape != (K,) or not (0.0 < ramp <= 1.0):
+        raise ParameterError(f"groups: shape {g.shape}, ramp {ramp!r}; expected ({K},) ints (one a column of the "
+                             f"weights) and a ramp in (0, 1]")
+    lone = g < 0
+    _, gid = np.unique(np.where(lone, -1, g), return_inverse=True)      # lone bones share one id, unused
+    onehot = sp.csr_matrix((np.ones(K), (np.arange(K), gid)), shape=(K, int(gid.max()) + 1))
+    u = np.maximum(uncut, 0.0)
+    u = u / np.maximum(u.sum(axis=1, keepdims=True), 1e-300)
+    G = np.asarray(u @ onehot)                                          # (n, groups) uncut shares
+    c = sp.csr_matrix(cut, dtype=float)
+    C = (c @ onehot).toarray()                                          # (n, groups) cut shares
+    row = np.repeat(np.arange(n), np.diff(c.indptr))
+    Gv, Cv = G[row, gid[c.indices]], C[row, gid[c.indices]]
+    x = np.clip(Cv / np.maximum(ramp * Gv, 1e-300), 0.0, 1.0)
+    s = np.where(lone[c.indices], 0.0, x * x * (3.0 - 2.0 * x))
+    data = c.data * ((1.0 - s) + s * Gv / np.maximum(Cv, 1e-300))
+    out = sp.csr_matrix((data, c.indices.copy(), c.indptr.copy()), shape=c.shape)
+    total = np.asarray(out.sum(axis=1)).ravel()
+    out = (sp.diags(1.0 / np.where(total > 0.0, total, 1.0)) @ out).tocsr()
+    out.sort_indices()
+    return out
+
+
 def smooth_within_support(weights: sp.spmatrix, stiffness: sp.spmatrix, mass: np.ndarray,
                           length: float) -> sp.csr_matrix:
     """Weights cut to a few bones a vertex, smoothed over the surface *within each bone's support*.
@@ -522,7 +574,7 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
                       max_influences: int = 4, *, deform: np.ndarray | None = None, heat: float = DEFAULT_HEAT,
                       min_weight: float = MIN_WEIGHT, smoothing: float = DEFAULT_SMOOTHING,
                       allowed: np.ndarray | None = None, twist_of: np.ndarray | None = None,
-                      lanes: int | None = None) -> sp.csr_matrix:
+                      groups: np.ndarray | None = None, lanes: int | None = None) -> sp.csr_matrix:
     """Bone-heat skin weights (Baran & Popović 2007 §4): (V, B) sparse, rows summing to one.
 
     vertices: (V, 3) any triangle mesh (any units and axes, holes and loose parts allowed).
@@ -551,6 +603,10 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
         rises linearly from 0 at their joint to 1 at its tail (``twist_share``). So a twist
         bone takes no place among a vertex's four where the pair meets the body (at the
         shoulder: one arm bone and three of the torso instead of two arm bones and two).
+    groups: (B,) int, bones that move together (e.g. the rib cage's), the same id >= 0 for the
+        bones of a group, -1 for the others (default none): through the cut to
+        ``max_influences`` each group keeps the share of the vertex it had before it, instead of
+        the largest bone taking the dropped bones' weight (``keep_group_totals``).
     lanes: 1 or 2 threads; None: two for large meshes.
     Returns a CSR (V, B) float64 matrix, at most ``max_influences`` entries a row, each row
     summing to one.
@@ -563,7 +619,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
        weights are zero), all columns against the one factor; with ``allowed``, each bone's
        weight set to zero where it is not allowed and the rows renormalized.
     4. Per vertex: negatives dropped, the largest ``max_influences`` kept minus the next
-       one's weight (continuous cut, ``_top_weights``), renormalized.
+       one's weight (continuous cut, ``_top_weights``), renormalized; with ``groups`` each
+       group's kept bones scaled back to the group's uncut share (``keep_group_totals``).
     5. Each bone's cut column smoothed within its own support (``smooth_within_support``), so
        the cut's kinks do not fold the skin; rows renormalized.
     6. With ``twist_of``: each pair's weight split between the bone and its twist bone
@@ -580,6 +637,11 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
     V, B = len(v), len(h)
     scale = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
     twist = _check_twist(twist_of, h, t, deform, scale)
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (B,) or not np.issubdtype(groups.dtype, np.integer) or groups.min(initial=-1) < -1:
+            raise ParameterError(f"groups: shape {groups.shape} dtype {groups.dtype}, expected ({B},) ints >= -1 "
+                                 f"(the same id for bones that move together, -1 for bones in no group)")
     bone_tails = t
     if twist is not None:              # each pair heated as one bone: parent's head to child's tail
         t = t.copy()
@@ -634,6 +696,8 @@ def bone_heat_weights(vertices: np.ndarray, faces: np.ndarray, heads: np.ndarray
         W = np.where(total > 0.0, kept / np.where(total > 0.0, total, 1.0), W)
     # 4. truncate and normalize; unused vertices take their nearest bone
     top = _top_weights(W, max_influences, min_weight)              # (len(active), K)
+    if groups is not None and (groups >= 0).any():
+        top = keep_group_totals(W, top, groups[columns])
     if smoothing > 0 and max_influences < len(columns):
         # 5. the cut smoothed within each bone's support
         length = smoothing * np.sqrt(mass.sum())          # mass sums to the surface area
