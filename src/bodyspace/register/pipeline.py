@@ -137,7 +137,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                   basis: ShapeBasis | None = None, steps: int = DEFAULT_STEPS, inner: int = DEFAULT_INNER,
                   pose_iterations: int = 12, align_iterations: int = SCORE_ITERATIONS, check: bool = True,
                   name: str = "the scan", detail_levels: int | None = None, mset: MeasurementSet | None = None,
-                  progress=None, trace=None, rng=0) -> Registration:
+                  standing: bool = True, progress=None, trace=None, rng=0) -> Registration:
     """Register the template to a raw scan (module docstring).
 
     points: (P, 3) in the file's frame; faces: (F, 3) if the scan is a mesh. units, up: the
@@ -149,6 +149,8 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     detail_levels: 1 or 2 to also take the scan's relief (``detail.detail_offsets`` on all the
     prepared scan's points), None not to. mset: the measurement set whose landmark names
     ``landmarks`` uses (default the shipped hm08 set; a user model's own: ``--model``).
+    standing: also bring the body back to standing for its measurements (``pose_refit``, about
+    a second of CPU; ``Registration.standing`` is None without it).
     progress: callback(message, fraction). trace: callback(stage, vertices (V, 3) in the scan
     file's frame) after each stage, to see where the error comes from (benchmarks/diag_register.py).
     """
@@ -268,11 +270,13 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     # prior splits pose and shape (the pose fit's split left 145 of 186 measurements within ISO
     # 20685-1 on the test scans, this one 159; docs/registration.md), the registered surface kept
     # as normal offsets on the model's rest body.
-    report("standing body", 0.96)
-    t = time.perf_counter()
-    standing_pose = refit_pose(q, qn, template, state, basis, scan_tree=tree, rng=rng)
-    standing = standing_body(nicp.vertices, template.faces, template, standing_pose)
-    seconds["standing"] = time.perf_counter() - t
+    standing_pose = stand = None
+    if standing:
+        report("standing body", 0.96)
+        t = time.perf_counter()
+        standing_pose = refit_pose(q, qn, template, state, basis, scan_tree=tree, rng=rng)
+        stand = standing_body(nicp.vertices, template.faces, template, standing_pose)
+        seconds["standing"] = time.perf_counter() - t
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
     detail = None
@@ -284,4 +288,4 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     seconds["total"] = time.perf_counter() - t0
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
-                        prep.units, prep.up, list(prep.assumed), seconds, detail, restarted, standing, standing_pose)
+                        prep.units, prep.up, list(prep.assumed), seconds, detail, restarted, stand, standing_pose)
