@@ -122,7 +122,8 @@ def main():
             print(f"  {stage}, loops (true pose): {loop_split(known, truth_rest, mset, template.faces)}")
         own = unpose_known(reg.internal[None], rig, reg.pose.rotations[None])[0][0]    # the fit's own frame
         refit = reg.standing_pose
-        print(f"  nicp, unposed with the pose fit's rotations: {describe(ratios(own, truth_rest, mset, template.faces))}")
+        print(f"  nicp, unposed with the pose fit's rotations: "
+              f"{describe(ratios(own, truth_rest, mset, template.faces))}")
         print(f"  model refitted, its rest body: "
               f"{describe(ratios(refit.scale * refit.rest, truth_rest, mset, template.faces))}")
         print(f"  standing (measured; {reg.seconds['standing']:.1f} s): "

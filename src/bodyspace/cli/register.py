@@ -160,9 +160,10 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
     console.print(f"{q.describe()}", markup=False, highlight=False)
     if reg.detail is not None:
         console.print(f"detail: {reg.detail.describe()}", markup=False, highlight=False)
+    standing = "standing.obj (the body standing, measured), " if reg.standing is not None else ""
     console.print(f"wrote {out}/ (registered.obj in the scan's frame, registered_standard.obj in metres +Y up, "
-                  f"{'standing.obj (the body standing, measured), ' if reg.standing is not None else ''}distance.csv, pose.json, "
-                  "measurements.json/csv, summary.json, quality.csv (per body part), distance.png"
+                  f"{standing}distance.csv, pose.json, measurements.json/csv, summary.json, quality.csv (per body part), "
+                  "distance.png"
                   f"{'; detail.npz, detailed.obj, detailed_standard.obj' if reg.detail is not None else ''})",
                   markup=False, highlight=False)
 
