@@ -10,7 +10,7 @@ Errors against the truth (``studies.registration.registration_errors``): mean co
 error, mean distance to the true surface, folded triangles; wall time and this process's CPU
 time (on a machine shared with other jobs the wall time says more about the load than the code). Also the mean distance
 of the measurement set's 25 landmarks on the fit from the true body's, and the measurements of
-the fit, unposed as ``bodyspace register`` does, against the true rest body's: how many are
+the fit standing (``Registration.standing``), as ``bodyspace register`` measures it, against the true rest body's: how many are
 within ISO 20685-1 (stature, heights and slice girths 4 mm, lengths and breadths 5 mm, chest,
 underbust, waist, hip 9 mm, volume, area, mass, BMI 1 %).
 
@@ -52,13 +52,15 @@ from bodyspace.synth.scans import raw_scan
 POSES = ("rest", "elbows_flexed", "step_forward_left", "hands_on_hips", "wide_stance", "t_pose")
 
 
-def landmarks_and_measurements(vertices, scan, template, mset, truth_rest):
-    """Mean landmark error (mm) of the fit (scan frame) and (within ISO, measured, worst)."""
+def landmarks_and_measurements(vertices, scan, template, mset, truth_rest, standing=None):
+    """Mean landmark error (mm) of the fit (scan frame) and (within ISO, measured, worst) of
+    ``standing`` (a ``Registration.standing``, as ``bodyspace register`` measures), else of the
+    fit unposed by ``rig.unpose``."""
     M = mset.landmark_matrix(template.n_vertices)
     fit = from_frame(vertices, **scan.frame)
     lm = 1000.0 * np.linalg.norm(M @ fit - M @ scan.body, axis=1).mean()
     try:
-        rest, _, _ = unpose(fit, template.rigs["default"], mesh_name="the fit")
+        rest = standing if standing is not None else unpose(fit, template.rigs["default"], mesh_name="the fit")[0]
     except MeshError:
         return lm, (0, 0, "not unposed")
     got = evaluate(mset, rest, template.faces)
@@ -119,18 +121,18 @@ def main():
             t, c = time.perf_counter(), time.process_time()
             v = run()
             sec, cpu = time.perf_counter() - t, time.process_time() - c
-            verdict = ""
+            verdict, standing = "", None
             if not isinstance(v, np.ndarray):       # a Registration: its quality verdict, per body part
                 q = v.quality
                 verdict = (f", quality {q.quality:.2f} {'accepted' if q.accepted else 'REFUSED'}"
                            f"{' (' + ', '.join(p.name for p in q.failed_parts) + ')' if q.failed_parts else ''}"
                            f"{', restarted ' + ', '.join(v.restarted) if v.restarted else ''}")
-                v = v.vertices
+                v, standing = v.vertices, v.standing
             e = registration_errors(v, template.faces, scan)
             e["seconds"], e["cpu_seconds"] = sec, cpu
             fit_folded = folded_faces(from_frame(v, **scan.frame), template.faces, neighbors)
             e["folds_added"] = int((fit_folded & ~truth_folded).sum())
-            e["landmarks_mm"], iso = landmarks_and_measurements(v, scan, template, mset, truth_rest)
+            e["landmarks_mm"], iso = landmarks_and_measurements(v, scan, template, mset, truth_rest, standing)
             rows[name].append(e)
             print(f"scan {i} ({scan.pose}, {len(scan.points)} points) {name}: correspondence {e['correspondence_mm']:.1f} mm "
                   f"(p95 {e['correspondence_p95_mm']:.1f}), surface {e['surface_mm']:.2f} mm, folded {e['folded']} "

@@ -8,11 +8,18 @@ For each test scan (``synth.scans.raw_scan``, bench_register's seeds, poses and 
   pose estimated from the fit), and unposed with the *true* pose (``unpose_known`` with the
   pose library's rotations): what the first misses and the second does not is the pose
   estimate's (shape and pose traded), not the surface's;
+- the registration's standing body (``Registration.standing``, what ``bodyspace register``
+  measures: the model refitted to the scan, its rest body with the fit's normal offsets,
+  ``register.pose_refit``), and the model's rest body alone;
 - for the vertex-ring loops (Rupprecht's shoulder, breast, waist, hip size), the error of the
   true-pose rest body split into the part its error along the true normals makes and the part
   its tangential error makes (each added alone to the true rest body).
 
+With ``--weights smoothed`` or ``--volume`` the scans are posed otherwise than the pipeline's
+forward model (LBS with MakeHuman's weights), as a real body is.
+
     python benchmarks/diag_iso.py [--only 0,1,3] [--landmarks] [--points 50000,100000,150000,200000]
+                                  [--weights smoothed] [--volume]
 """
 
 from __future__ import annotations
@@ -85,6 +92,8 @@ def main():
     ap.add_argument("--only", default="0,1,3", help="comma list of scan numbers (bench_register's)")
     ap.add_argument("--points", default="50000,100000,150000,200000")
     ap.add_argument("--landmarks", action="store_true", help="register with the 13 surface landmarks")
+    ap.add_argument("--weights", default="original", help="the scans' skin weights: original or smoothed")
+    ap.add_argument("--volume", action="store_true", help="pose the scans with the volume correction")
     args = ap.parse_args()
     template = load_template()
     rig = template.rigs["default"]
@@ -94,15 +103,16 @@ def main():
     phenotype_basis(template)
     points = [int(p) for p in args.points.split(",")]
     for i in (int(k) for k in args.only.split(",")):
-        scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=points[i % len(points)])
+        scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=points[i % len(points)],
+                        weights=args.weights, preserve_volume=args.volume)
         truth_rest = pm.vertices(scan.phenotype[None])[0]
         true_pose = np.asarray(library.rotations(scan.pose, rig))[None]
         stages = {}
         lms = {n: scan.landmarks[n] for n in SURFACE_LANDMARKS} if args.landmarks else None
-        register_scan(scan.points, template=template, landmarks=lms, check=False,
-                      trace=lambda stage, v: stages.__setitem__(stage, v))
-        print(f"scan {i} ({scan.pose}, {len(scan.points)} points, {'13' if lms else 'no'} landmarks, load "
-              f"{os.getloadavg()[0]:.1f})")
+        reg = register_scan(scan.points, template=template, landmarks=lms, check=False,
+                            trace=lambda stage, v: stages.__setitem__(stage, v))
+        print(f"scan {i} ({scan.pose}, {len(scan.points)} points, {'13' if lms else 'no'} landmarks, weights "
+              f"{args.weights}{', volume corrected' if args.volume else ''}, load {os.getloadavg()[0]:.1f})")
         for stage in ("pose 4", "nicp"):
             fit = from_frame(stages[stage], **scan.frame)
             estimated = unpose(fit, rig, mesh_name="the fit")[0]
@@ -110,6 +120,15 @@ def main():
             print(f"  {stage}, unposed: {describe(ratios(estimated, truth_rest, mset, template.faces))}")
             print(f"  {stage}, true pose: {describe(ratios(known, truth_rest, mset, template.faces))}")
             print(f"  {stage}, loops (true pose): {loop_split(known, truth_rest, mset, template.faces)}")
+        own = unpose_known(reg.internal[None], rig, reg.pose.rotations[None])[0][0]    # the fit's own frame
+        refit = reg.standing_pose
+        print(f"  nicp, unposed with the pose fit's rotations: "
+              f"{describe(ratios(own, truth_rest, mset, template.faces))}")
+        print(f"  model refitted, its rest body: "
+              f"{describe(ratios(refit.scale * refit.rest, truth_rest, mset, template.faces))}")
+        print(f"  standing (measured; {reg.seconds['standing']:.1f} s): "
+              f"{describe(ratios(reg.standing, truth_rest, mset, template.faces))}")
+        print(f"  standing, loops: {loop_split(reg.standing, truth_rest, mset, template.faces)}")
 
 
 if __name__ == "__main__":

@@ -150,14 +150,17 @@ def test_cli_register_writes_outputs(cli_fit, scan, template, phenotype_model, t
     result, path, out = cli_fit
     assert result.exit_code == 0, result.output
     names = {p.name for p in out.iterdir()}
-    assert {"registered.obj", "registered_standard.obj", "distance.csv", "pose.json", "measurements.json",
-            "measurements.csv", "summary.json", "quality.csv", "distance.png"} <= names
+    assert {"registered.obj", "registered_standard.obj", "standing.obj", "distance.csv", "pose.json",
+            "measurements.json", "measurements.csv", "summary.json", "quality.csv", "distance.png"} <= names
     rows = (out / "quality.csv").read_text().splitlines()
     assert rows[0].startswith("part,quality,accepted") and len(rows) == 15
     assert any(r.startswith("left hand,") for r in rows)
     m = json.loads((out / "measurements.json").read_text())["measurements"]
     truth = evaluate(load_measurement_set(), phenotype_model.vertices(scan.phenotype[None])[0], template.faces)
     assert abs(m["stature"]["value"] - 100 * truth["stature"].value) < 1.5      # cm
+    assert "shape model refitted" in m["unposed"]["note"]
+    sv, _ = load_mesh(out / "standing.obj")                                      # metres, on the ground
+    assert abs(sv[:, 1].min()) < 1e-6 and abs(np.ptp(sv[:, 1]) - truth["stature"].value) < 0.015
     again = runner.invoke(app, ["register", str(path), "--out", str(out)])
     assert again.exit_code == 2 and "--force" in again.output
     bad = runner.invoke(app, ["register", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")])

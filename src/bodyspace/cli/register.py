@@ -45,16 +45,24 @@ def _read_landmarks(path: Path) -> dict:
     return lms
 
 
-def _standing_measurements(vertices: np.ndarray, faces: np.ndarray, template, mset=None) -> dict:
-    """Measurements of the registered body (metres, +Y up) brought back to the rest pose, with
-    ``mset`` (default the shipped set)."""
+def _standing_measurements(reg, template, mset=None) -> dict:
+    """Measurements of the registered body standing (``Registration.standing``: the model refitted
+    to the scan splits pose and shape, the fit's surface kept as normal offsets), with ``mset``
+    (default the shipped set)."""
     mset = mset if mset is not None else load_measurement_set()
-    try:
-        rest, _, info = unpose(vertices, template.rigs["default"], mesh_name="the registered mesh")
-        note = f"measured standing: unposed first ({info.describe()})"
-    except MeshError as exc:
-        rest, note = vertices, f"measured as posed: the fit could not be unposed ({exc})"
-    rows = to_json(evaluate(mset, rest, faces, mesh_name="the registered mesh"))
+    if reg.standing is not None:
+        rest = reg.standing
+        nonroot = np.asarray(template.rigs["default"].parents) >= 0
+        turned = np.degrees(np.linalg.norm(matrix_to_rotvec(reg.standing_pose.rotations[nonroot]), axis=-1)).max()
+        note = ("measured standing: the shape model refitted to the scan, its rest body with the fit's surface as "
+                f"normal offsets (largest joint turn undone {turned:.0f} degrees)")
+    else:
+        try:
+            rest, _, info = unpose(reg.internal, template.rigs["default"], mesh_name="the registered mesh")
+            note = f"measured standing: unposed first ({info.describe()})"
+        except MeshError as exc:
+            rest, note = reg.internal, f"measured as posed: the fit could not be unposed ({exc})"
+    rows = to_json(evaluate(mset, rest, reg.faces, mesh_name="the registered mesh"))
     rows["unposed"] = {"value": None, "unit": "", "note": note}
     return rows
 
@@ -101,11 +109,13 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
             raise RegistrationError(f"{exc}{'' if no_check or 'refused' not in str(exc) else ' (--no-check writes it anyway)'}") from None
     for line in reg.assumed:
         console.print(f"[assumed] {line}", markup=False, highlight=False)
-    measurements = _standing_measurements(reg.internal, reg.faces, template, mset)
+    measurements = _standing_measurements(reg, template, mset)
     rig = template.rigs["default"]
     with output_folder(out, "--out", force, REGISTRATION_KIND) as tmp:
         save_mesh(tmp / "registered.obj", reg.vertices, reg.faces)
         save_mesh(tmp / "registered_standard.obj", reg.internal, reg.faces)
+        if reg.standing is not None:
+            save_mesh(tmp / "standing.obj", reg.standing, reg.faces)
         with open(tmp / "distance.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(["vertex", "distance_mm"])
@@ -150,8 +160,10 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
     console.print(f"{q.describe()}", markup=False, highlight=False)
     if reg.detail is not None:
         console.print(f"detail: {reg.detail.describe()}", markup=False, highlight=False)
+    standing = "standing.obj (the body standing, measured), " if reg.standing is not None else ""
     console.print(f"wrote {out}/ (registered.obj in the scan's frame, registered_standard.obj in metres +Y up, "
-                  "distance.csv, pose.json, measurements.json/csv, summary.json, quality.csv (per body part), distance.png"
+                  f"{standing}distance.csv, pose.json, measurements.json/csv, summary.json, quality.csv (per body part), "
+                  "distance.png"
                   f"{'; detail.npz, detailed.obj, detailed_standard.obj' if reg.detail is not None else ''})",
                   markup=False, highlight=False)
 

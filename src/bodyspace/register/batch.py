@@ -74,7 +74,8 @@ def register_files(paths: list[Path], *, template: Template, units: str | None =
                 report(f"{head}: {message}", (i + min(max(fraction, 0.0), 1.0)) / n)
 
             reg = register_scan(points, faces, template=template, units=units, up=up, landmarks=lms, basis=basis,
-                                mset=mset, steps=steps, check=True, name=path.name, progress=inner, rng=rng)
+                                mset=mset, steps=steps, check=True, name=path.name, progress=inner, rng=rng,
+                                standing=False)
         except (MeshError, RegistrationError) as exc:
             # A scan that cannot be read or fitted is refused with its reason; the batch goes on.
             out.append(ScanOutcome(path, False, str(exc), seconds=time.perf_counter() - start, landmarks=lm_path))

@@ -106,7 +106,7 @@ def mesh_landmarks(vertices: np.ndarray, faces: np.ndarray, *, template: Templat
     vertices = np.asarray(vertices, dtype=float)
     faces = np.asarray(faces, dtype=np.int64)
     reg = register_scan(vertices, faces, template=template, units=units, up=up, progress=progress,
-                        name="the mesh", **kw)
+                        name="the mesh", standing=False, **kw)
     return carry_landmarks(mset, reg.vertices, template.faces, vertices, faces), reg
 
 

@@ -94,7 +94,8 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng=None) ->
 
 def raw_scan(template: Template, phenotype_model, rng=None, *, n_points: int = 80_000, sigma: float = 0.002,
              outlier_share: float | None = None, phenotype: np.ndarray | None = None, pose: str | None = None,
-             frame: dict | None = None, holes: bool = True, mset: MeasurementSet | None = None) -> RawScan:
+             frame: dict | None = None, holes: bool = True, mset: MeasurementSet | None = None,
+             weights: str = "original", preserve_volume: bool = False) -> RawScan:
     """One raw scan of a body the model never saw (see the module docstring).
 
     template: the ``Template``; phenotype_model: its ``PhenotypeModel``.
@@ -104,6 +105,9 @@ def raw_scan(template: Template, phenotype_model, rng=None, *, n_points: int = 8
     phenotype: (11,) (default ``foreign_phenotype(rng)``); pose: a pose library name (default:
         drawn from the library's standing poses). frame: ``to_frame`` arguments (default
         ``SCAN_FRAME``, its yaw drawn in [0, 360) degrees unless given).
+    weights, preserve_volume: how the body is posed (``pose_bodies``'s): a scan posed otherwise than
+        the registration's own forward model (MakeHuman's weights, plain LBS) tests a fit that
+        does not share the scan's skinning, as a real body's does not.
     """
     rng = as_generator(rng)
     if not 100 <= int(n_points) <= 2_000_000:
@@ -119,7 +123,8 @@ def raw_scan(template: Template, phenotype_model, rng=None, *, n_points: int = 8
         pose = str(rng.choice(standing))
     frame = dict(SCAN_FRAME, yaw_degrees=float(rng.uniform(0.0, 360.0))) | (frame or {})
     rest = phenotype_model.vertices(phenotype[None])[0]
-    body = pose_bodies(rest, rig, library.rotations(pose, rig), on_ground=True)
+    body = pose_bodies(rest, rig, library.rotations(pose, rig), on_ground=True, weights=weights,
+                       preserve_volume=preserve_volume, faces=template.faces)
     faces = template.faces
     lm = dict(zip(mset.landmark_names, mset.landmark_matrix(template.n_vertices) @ body))
 

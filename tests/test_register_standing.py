@@ -1,0 +1,75 @@
+"""The registered body brought back to standing (register.pose_refit, issue 15's measurements).
+
+A small shape space (6 components of 12 phenotype bodies) keeps the fits cheap; the numbers on
+full test scans are in docs/registration.md (benchmarks/diag_iso.py).
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from bodyspace.mesh.geometry import vertex_normals
+from bodyspace.register.model_fit import ShapeBasis
+from bodyspace.register.pose_fit import PoseState, posed_vertices
+from bodyspace.register.pose_refit import refit_pose, standing_body
+from bodyspace.rig.kinematics import rotvec_to_matrix
+from bodyspace.synth.poses import load_pose_library
+
+
+@pytest.fixture(scope="module")
+def small_basis(template, phenotype_model):
+    rng = np.random.default_rng(5)
+    bodies = phenotype_model.vertices(rng.random((12, 11))).reshape(12, -1)
+    mean = bodies.mean(axis=0)
+    u, s, vt = np.linalg.svd(bodies - mean, full_matrices=False)
+    V = template.n_vertices
+    return ShapeBasis(mean.reshape(V, 3), vt[:6].reshape(6, V, 3), s[:6] / np.sqrt(11))
+
+
+@pytest.fixture(scope="module")
+def posed_truth(template, small_basis):
+    """A body of the basis (a few millimetres from its mean: the phenotypes span babies to
+    giants) in the elbows-flexed pose, placed and scaled: the state that made it, and its vertices."""
+    rig = template.rigs["default"]
+    coef = small_basis.sigma * np.array([0.012, -0.012, 0.01, -0.01, 0.012, 0.006])
+    R = np.asarray(load_pose_library().rotations("elbows_flexed", rig))
+    truth = PoseState(small_basis.body(coef), R, 1.04, np.array([0.02, 0.9, -0.01]), coef)
+    return truth, posed_vertices(rig, truth)[0]
+
+
+def test_refit_splits_pose_and_shape_again(template, small_basis, posed_truth):
+    """From a start whose shape was held at the mean and whose pose made up for it (elbows and a
+    hip 1° off), the refit to the body's points finds the body again: its
+    rest body a third as far from the true one as the start's (2 mm), its posed surface within 1 mm."""
+    rig = template.rigs["default"]
+    truth, x = posed_truth
+    names = list(rig.bone_names)
+    R = truth.rotations.copy()
+    for b in ("lowerarm01.L", "lowerarm01.R", "upperleg01.L"):
+        R[names.index(b)] = rotvec_to_matrix(np.array([0.015, 0.0, 0.01])) @ R[names.index(b)]
+    start = PoseState(small_basis.mean, R, truth.scale, truth.translation, np.zeros(6))
+    n = vertex_normals(x, template.faces)
+    refit = refit_pose(x, n, template, start, small_basis, scan_tree=cKDTree(x), iterations=6)
+
+    def error(state):    # mean vertex distance (m) of the scaled rest bodies, centred (scale and shift trade)
+        a, b = state.scale * state.rest, truth.scale * truth.rest
+        return np.linalg.norm(a - a.mean(axis=0) - b + b.mean(axis=0), axis=1).mean()
+
+    err_start, err = error(start), error(refit)
+    assert err_start > 0.0015 and err < err_start / 3, (err_start, err)
+    assert np.linalg.norm(posed_vertices(rig, refit)[0] - x, axis=1).mean() < 0.001
+
+
+def test_standing_body_is_the_rest_body_with_the_fit_s_normal_offsets(template, posed_truth):
+    """On the model's own posed surface the standing body is the scaled rest body on the ground;
+    a relief added along the posed normals comes back along the rest normals, the same size."""
+    truth, x = posed_truth
+    rest = truth.scale * truth.rest
+    stand = standing_body(x, template.faces, template, truth)
+    assert np.allclose(stand[:, 1].min(), 0.0)
+    shift = stand.mean(axis=0) - rest.mean(axis=0)
+    assert np.abs(stand - shift - rest).max() < 1e-9
+    relief = 0.003 * np.sin(40.0 * x[:, 1]) * (x[:, 1] > x[:, 1].min() + 0.5)      # (V,) m, feet kept
+    bumped = standing_body(x + relief[:, None] * vertex_normals(x, template.faces), template.faces, template, truth)
+    got = ((bumped - stand) * vertex_normals(stand, template.faces)).sum(axis=1)
+    assert np.abs(got - relief).mean() < 2e-4
