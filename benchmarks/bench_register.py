@@ -41,10 +41,9 @@ from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.rig.unpose import unpose
 from bodyspace.synth.foreign import from_frame
 from bodyspace.register.align import similarity_from_landmarks
-from bodyspace.mesh.topology import face_adjacency
 from bodyspace.register.model_fit import phenotype_basis
-from bodyspace.register.nicp import folded_faces
 from bodyspace.register.pipeline import register_scan
+from bodyspace.rig.posing import folded_triangles
 from bodyspace.studies.registration import SURFACE_LANDMARKS, registration_errors
 from bodyspace.synth.phenotype import PhenotypeModel
 from bodyspace.synth.scans import raw_scan
@@ -102,12 +101,11 @@ def main():
     rows = {"bodyspace, no landmarks": [], "bodyspace, 13 landmarks": [], "trimesh nricp_amberg, 13 landmarks": []}
     points = [int(p) for p in str(args.points).split(",")]
     only = None if args.only is None else {int(k) for k in args.only.split(",")}
-    neighbors = face_adjacency(template.faces).neighbors
     for i in range(args.first, args.first + args.scans):
         if only is not None and i not in only:
             continue
         scan = raw_scan(template, pm, 100 + i, pose=POSES[i % len(POSES)], n_points=points[i % len(points)])
-        truth_folded = folded_faces(scan.body, template.faces, neighbors)
+        truth_folded = folded_triangles(scan.body, template.faces)
         truth_rest = pm.vertices(scan.phenotype[None])[0]
         lms = {n: scan.landmarks[n] for n in SURFACE_LANDMARKS}
         for name, run in (("bodyspace, no landmarks", lambda: register_scan(scan.points, template=template, check=False)),
@@ -128,7 +126,7 @@ def main():
                 v = v.vertices
             e = registration_errors(v, template.faces, scan)
             e["seconds"], e["cpu_seconds"] = sec, cpu
-            fit_folded = folded_faces(from_frame(v, **scan.frame), template.faces, neighbors)
+            fit_folded = folded_triangles(from_frame(v, **scan.frame), template.faces)
             e["folds_added"] = int((fit_folded & ~truth_folded).sum())
             e["landmarks_mm"], iso = landmarks_and_measurements(v, scan, template, mset, truth_rest)
             rows[name].append(e)
