@@ -249,7 +249,8 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
             js = (y[rows_v] * n_d).sum(1, keepdims=True)
             blocks = [jw, n_d, js]
             if K:
-                blocks.insert(0, state.scale * (np.einsum("kvd,vd->vk", P_rows, n_d) if d == 0 else P_rows[:, :, d - 1].T))
+                shape_cols = np.einsum("kvd,vd->vk", P_rows, n_d) if d == 0 else P_rows[:, :, d - 1].T
+                blocks.insert(0, state.scale * shape_cols)
             jac.append(w_d[:, None] * np.concatenate(blocks, axis=1))
         if lm_matrix is not None:
             lx = lm_matrix @ x
