@@ -46,7 +46,7 @@ HEADING_TURN = 25.0
 # The limbs whose rotations are mixed between the start fits (each with its subtree).
 LIMB_ROOTS = ("clavicle.L", "clavicle.R", "upperleg01.L", "upperleg01.R")
 # Processes the independent short fits (headings, start poses, limb restarts) are spread over:
-# forked (``parallel.in_order``), so the scan and the template are inherited, only a start's
+# forked (``parallel.forked_pool``), so the scan and the template are inherited, only a start's
 # rotations and its fitted state cross; each fit is a pure function of its arguments, so the
 # result is the same with 1. One fit is 0.1-0.3 s of numpy and KD-tree work that holds the GIL
 # too often for threads to pay.
@@ -65,6 +65,23 @@ def _pool(job: dict):
             yield run
     finally:
         _JOB = None
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A rigid motion ``p' = rotation @ p + translation`` of the prepared scan into the template's
+    frame; ``scale``: the template's size against the scan (landmarks), 1 otherwise; ``state``:
+    the pose the scoring fit reached (a warm start), or None; ``scores``: each candidate's RMS
+    residual (metres)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    scale: float = 1.0
+    state: PoseState | None = None
+    scores: tuple = ()
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.rotation.T + self.translation
 
 
 def similarity_from_landmarks(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
