@@ -253,7 +253,8 @@ def test_quality_accepts_a_fold_the_fit_bridges(scan, template):
     heavy belly: a fold 13-62 mm from a good fit over 580 cm², refused at 0.85 by the old rule):
     the true body against its own scan plus a second layer of the lower belly's points 3 cm in
     front of it (640 cm², 22 % of the trunk: 0.78 by the old rule). Reported as bridged and accepted; with the
-    left forearm twisted 65° as well, the lost hand is still refused and named."""
+    left forearm twisted 65° as well, the lost hand is still refused and named. The check before
+    the limb restarts (``bridged_counts``) flags the trunk."""
     points = from_frame(scan.points, **scan.frame)
     F = template.faces
     trunk = body_parts(template) == list(PARTS).index("trunk")
@@ -269,6 +270,9 @@ def test_quality_accepts_a_fold_the_fit_bridges(scan, template):
     q = assess(scan.body, F, folded, everywhere, template=template)
     parts = {p.name: p for p in q.parts}
     assert q.accepted and parts["trunk"].bridged > 0.03 and parts["trunk"].unexplained == 0, q.describe()
+    # Before the limb restarts every patch counts (a restart is cheap): the trunk is flagged.
+    strict = assess(scan.body, F, folded, everywhere, template=template, bridged_counts=True)
+    assert [p.name for p in strict.failed_parts] == ["trunk"], strict.describe()
     rig = template.rigs["default"]
     head, tail = rig.heads(scan.body)[[rig.bone_index("lowerarm02.L"), rig.bone_index("wrist.L")]]
     R = np.repeat(np.eye(3)[None], rig.n_bones, axis=0)

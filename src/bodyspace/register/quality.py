@@ -212,11 +212,14 @@ def _patches(points: np.ndarray, link: float) -> np.ndarray:
 
 
 def assess_parts(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, scan_tree: cKDTree,
-                 sub_points: np.ndarray, sub_distance: np.ndarray, sub_face: np.ndarray) -> tuple[PartQuality, ...]:
+                 sub_points: np.ndarray, sub_distance: np.ndarray, sub_face: np.ndarray,
+                 bridged_counts: bool = False) -> tuple[PartQuality, ...]:
     """Per-part quality (module docstring). vertices (V, 3), faces (F, 3): the fit;
     labels (V,): part of each vertex (``body_parts``); scan_tree: the KD-tree of the scan's
     points (same frame, metres); sub_points (n, 3), sub_distance (n,), sub_face (n,): a random
-    subsample of the scan's points, their distance to the fit and their nearest face."""
+    subsample of the scan's points, their distance to the fit and their nearest face.
+    bridged_counts: count every unexplained patch against its part, also with no part off its
+    points near it (the check before the limb restarts: a restart is cheap, a refusal final)."""
     n_parts = len(PARTS)
     fa = face_areas(vertices, faces)
     face_part = labels[faces[:, 0]]
@@ -247,7 +250,9 @@ def assess_parts(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, sc
             near_lost[np.unique(labels[reach])] = True
             lost = np.zeros(len(far), dtype=bool)
             suspects = np.isin(labels, np.flatnonzero(under))
-            if suspects.any():
+            if bridged_counts:
+                lost[:] = big
+            elif suspects.any():
                 dist = cKDTree(vertices[suspects]).query(lost_points, distance_upper_bound=LOST_REACH)[0]
                 lost[np.flatnonzero(big)] = np.isin(lab[big], np.unique(lab[big][dist <= LOST_REACH]))
             np.add.at(unexplained, face_part[sub_face[far[lost]]], per_point)
@@ -264,11 +269,12 @@ def assess_parts(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, sc
 
 
 def assess(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, has_target: np.ndarray,
-           template: Template | None = None, scan_tree: cKDTree | None = None) -> Quality:
+           template: Template | None = None, scan_tree: cKDTree | None = None,
+           bridged_counts: bool = False) -> Quality:
     """Quality of a registered mesh (V, 3), (F, 3) against scan points (P, 3) (same frame,
     metres); has_target: (V,) the NICP's last correspondences. template: the registered
     template (its rig gives the body parts), or None for the whole-body figures only;
-    scan_tree: ``cKDTree(points)`` to reuse."""
+    scan_tree: ``cKDTree(points)`` to reuse; bridged_counts: see ``assess_parts``."""
     sub = np.sort(np.random.default_rng(0).choice(len(points), min(len(points), ASSESS_POINTS), replace=False))
     corr, dist = closest_points(points[sub], vertices, faces)
     explained = float(np.mean(dist <= EXPLAINED_DISTANCE))
@@ -277,6 +283,6 @@ def assess(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, has_targ
     parts = ()
     if template is not None:
         tree = scan_tree if scan_tree is not None else cKDTree(points)
-        parts = assess_parts(vertices, faces, body_parts(template), tree, points[sub], dist, corr.face)
+        parts = assess_parts(vertices, faces, body_parts(template), tree, points[sub], dist, corr.face, bridged_counts)
         q = min(q, min(p.quality for p in parts))
     return Quality(explained, coverage, q, dist, sub, parts)
