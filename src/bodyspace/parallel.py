@@ -162,10 +162,11 @@ def forked_pool(workers: int, died: str = "run the same command again"):
     depend on the last) where ``in_order``'s pool per call would fork each round. The processes
     are forked at the first tasks that need them, so what ``fn`` reads must be in place before the
     first ``run`` and unchanged until the block ends; each is one lane with one BLAS thread and
-    dies with the parent, as ``in_order``'s. ``workers`` <= 1 (or inside a daemon process): the
-    tasks run here, one at a time, with one BLAS thread (the same results).
+    dies with the parent, as ``in_order``'s. ``workers`` <= 1, inside a daemon process, or inside
+    one of ``in_order``'s workers (already one of several processes): the tasks run here, one at a
+    time, with one BLAS thread (the same results).
     """
-    if workers <= 1 or multiprocessing.current_process().daemon:
+    if workers <= 1 or _one_lane or multiprocessing.current_process().daemon:
         def here(fn: Callable, tasks: Iterable[tuple]) -> list:
             with threadpool_limits(1, user_api="blas"):
                 return [fn(*task) for task in tasks]
