@@ -91,8 +91,8 @@ UNEXPLAINED_SHARE = 1.0
 PATCH_MIN_AREA = 0.002
 PATCH_LINK = 0.03
 # A part's unseen share counts only with an unexplained patch this near it, and a patch only with
-# a part off its points this near it (metres): where a
-# lost limb's own points are (the step-forward scan's hand: 24 cm from the fitted one).
+# a part off its points this near it (metres): where a lost limb's own points are (the
+# step-forward scan's hand: 24 cm from the fitted one).
 LOST_REACH = 0.30
 
 
