@@ -49,8 +49,8 @@ LIMB_ROOTS = ("clavicle.L", "clavicle.R", "upperleg01.L", "upperleg01.R")
 # forked (``parallel.forked_pool``), so the scan and the template are inherited, only a start's
 # rotations and its fitted state cross; each fit is a pure function of its arguments, so the
 # result is the same with 1. One fit is 0.1-0.3 s of numpy and KD-tree work; on two threads six
-# of them took x0.8-0.9 the time of one after another (the GIL), on two processes a whole
-# registration x1.4 even at load 14 (docs/registration.md, fifth round).
+# of them took x0.8-0.9 the time of one after another (the GIL); two processes add no CPU
+# (docs/registration.md, fifth round).
 WORKERS = 2
 # What the forked fits read (set for the length of one ``_pool``).
 _JOB: dict | None = None
