@@ -35,3 +35,28 @@ def test_in_order_raises_a_workers_error_and_a_dead_worker():
         list(parallel.in_order(_square_or_fail, ((i,) for i in range(8)), workers=2))
     with pytest.raises(BodyspaceError, match="a worker process died.*run it again"):
         list(parallel.in_order(_die, ((i,) for i in range(6)), workers=2, died="run it again"))
+
+
+_SHARED = {}
+
+
+def _shared_times(i):
+    return _SHARED["factor"] * i, os.getpid()
+
+
+def test_forked_pool_keeps_its_workers_across_rounds_and_reads_what_was_set_before():
+    """parallel.forked_pool: several rounds on the same forked workers, results in task order,
+    the parent's module state as it was at the fork; a worker's error and death come back."""
+    _SHARED["factor"] = 3
+    with parallel.forked_pool(2) as run:
+        first = run(_shared_times, [(i,) for i in range(4)])
+        second = run(_shared_times, [(i,) for i in range(4, 6)])
+    assert [r[0] for r in first + second] == [0, 3, 6, 9, 12, 15]
+    pids = {r[1] for r in first + second}
+    assert os.getpid() not in pids and len(pids) <= 2
+    with parallel.forked_pool(1) as run:               # one worker: here
+        assert {r[1] for r in run(_shared_times, [(1,), (2,)])} == {os.getpid()}
+    with pytest.raises(ParameterError, match="task 5 is refused"), parallel.forked_pool(2) as run:
+        run(_square_or_fail, [(i,) for i in range(8)])
+    with pytest.raises(BodyspaceError, match="a worker process died.*again"), parallel.forked_pool(2, "again") as run:
+        run(_die, [(i,) for i in range(6)])

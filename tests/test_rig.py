@@ -26,7 +26,7 @@ from bodyspace.rig.kinematics import (
     rotvec_to_matrix,
     topological_order,
 )
-from bodyspace.rig.posing import count_folded_triangles, place_on_ground, pose_bodies
+from bodyspace.rig.posing import count_folded_triangles, folded_triangles, place_on_ground, pose_bodies
 from bodyspace.synth.poses import LIBRARY_PATH, load_pose_library
 
 FLIP_X = np.array([-1.0, 1.0, 1.0])
@@ -438,6 +438,8 @@ def test_count_folded_triangles_on_a_grid():
     bent[4] = [2.6, 2.6, 0.0]                                      # the centre crosses vertex 8
     assert count_folded_triangles(np.stack([xy, bent]), faces).tolist()[0] == 0
     assert count_folded_triangles(bent, faces) > 0
+    mask = folded_triangles(np.stack([xy, bent]), faces)           # the faces themselves, (N, F)
+    assert mask.shape == (2, 8) and not mask[0].any() and mask[1].sum() == count_folded_triangles(bent, faces)
 
 
 # Folded triangles a library pose may add to its rest mesh (docs/poses.md, "Folds"): with the

@@ -25,6 +25,7 @@ import os
 import signal
 import threading
 from collections import deque
+from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Callable, Iterable, Iterator
@@ -147,6 +148,46 @@ def in_order(fn: Callable, tasks: Iterable[tuple], workers: int, ahead: int = 2,
         if not finished:
             # Interrupted (Ctrl-C, an error, a generator closed early): the chunks in flight are
             # abandoned, not awaited; a resumed run computes them again.
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.kill()
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextmanager
+def forked_pool(workers: int, died: str = "run the same command again"):
+    """Up to ``workers`` forked processes kept for several rounds of independent tasks; yields
+    ``run(fn, tasks) -> list``: ``fn(*task)`` for each task, the results in the tasks' order.
+
+    For a few short tasks in a row (a registration's start fits: 0.1-0.3 s each, in rounds that
+    depend on the last) where ``in_order``'s pool per call would fork each round. The processes
+    are forked at the first tasks that need them, so what ``fn`` reads must be in place before the
+    first ``run`` and unchanged until the block ends; each is one lane with one BLAS thread and
+    dies with the parent, as ``in_order``'s. ``workers`` <= 1, inside a daemon process, or inside
+    one of ``in_order``'s workers (already one of several processes): the tasks run here, one at a
+    time, with one BLAS thread (the same results).
+    """
+    if workers <= 1 or _one_lane or multiprocessing.current_process().daemon:
+        def here(fn: Callable, tasks: Iterable[tuple]) -> list:
+            with threadpool_limits(1, user_api="blas"):
+                return [fn(*task) for task in tasks]
+        yield here
+        return
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_start_worker, initargs=(os.getpid(),))
+
+    def run(fn: Callable, tasks: Iterable[tuple]) -> list:
+        futures = [pool.submit(fn, *task) for task in tasks]
+        try:
+            return [f.result() for f in futures]
+        except BrokenProcessPool:
+            raise BodyspaceError(f"a worker process died (killed, or out of memory); {died}") from None
+
+    finished = False
+    try:
+        yield run
+        finished = True
+    finally:
+        if not finished:
             for process in list(getattr(pool, "_processes", {}).values()):
                 process.kill()
         pool.shutdown(wait=True, cancel_futures=True)

@@ -145,10 +145,11 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
             "seconds": {k: round(v, 2) for k, v in reg.seconds.items()}})
         with open(tmp / "quality.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
-            w.writerow(["part", "quality", "accepted", "seen_share", "mean_distance_mm", "unexplained_cm2", "area_cm2"])
+            w.writerow(["part", "quality", "accepted", "seen_share", "mean_distance_mm", "unexplained_cm2", "area_cm2",
+                        "bridged_cm2"])
             for part, e in q.to_dict()["parts"].items():
                 w.writerow([part, e["quality"], int(e["accepted"]), e["seen_share"], e["mean_distance_mm"],
-                            e["unexplained_cm2"], e["area_cm2"]])
+                            e["unexplained_cm2"], e["area_cm2"], e["bridged_cm2"]])
         if reg.detail is not None:
             save_detail(tmp / "detail.npz", reg.detail, written_by="bodyspace register", scan=str(scan),
                         base_mesh="registered_standard.obj")

@@ -11,6 +11,7 @@ apart by the body itself (feet, face, chest), not by a rule (``initial_alignment
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template
 from bodyspace.errors import ParameterError
+from bodyspace.parallel import cores, forked_pool
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices, rest_state
 from bodyspace.register.quality import MIN_QUALITY, PARTS, body_parts
 from bodyspace.rig.kinematics import rotvec_to_matrix
@@ -43,6 +45,27 @@ STRIDES = {"stride_left": (("upperleg01.L", (-20.0, 0.0, 0.0)), ("upperleg01.R",
 HEADING_TURN = 25.0
 # The limbs whose rotations are mixed between the start fits (each with its subtree).
 LIMB_ROOTS = ("clavicle.L", "clavicle.R", "upperleg01.L", "upperleg01.R")
+# Processes the independent short fits (headings, start poses, limb restarts) are spread over:
+# forked (``parallel.forked_pool``), so the scan and the template are inherited, only a start's
+# rotations and its fitted state cross; each fit is a pure function of its arguments, so the
+# result is the same with 1. One fit is 0.1-0.3 s of numpy and KD-tree work; on two threads six
+# of them took x0.8-0.9 the time of one after another (the GIL); two processes add no CPU
+# (docs/registration.md, fifth round).
+WORKERS = 2
+# What the forked fits read (set for the length of one ``_pool``).
+_JOB: dict | None = None
+
+
+@contextmanager
+def _pool(job: dict):
+    """``run(fn, tasks)`` on up to ``WORKERS`` processes forked with ``job`` in ``_JOB``."""
+    global _JOB
+    _JOB = job
+    try:
+        with forked_pool(min(WORKERS, cores()), died="register the scan again") as run:
+            yield run
+    finally:
+        _JOB = None
 
 
 @dataclass(frozen=True)
@@ -151,6 +174,27 @@ def _short_fit(points, normals, tree, template, state, iterations=SCORE_ITERATIO
     return state, _score(template, state, points, tree)
 
 
+def _start(template: Template, rest: np.ndarray, q: np.ndarray, rotations: np.ndarray | None = None) -> PoseState:
+    """The rest body (V, 3) posed by ``rotations`` (B, 3, 3) (None: unposed), scaled to the
+    height of the points q (P, 3) about the origin and stood on their floor."""
+    rig = template.rigs["default"]
+    state = rest_state(template, rig, rest)
+    height = np.percentile(q[:, 1], 99.5) - np.percentile(q[:, 1], 0.5)
+    R = state.rotations if rotations is None else rotations
+    state = PoseState(state.rest, R, 1.0, np.zeros(3))
+    x0, _, _ = posed_vertices(rig, state)
+    scale = float(height / np.ptp(x0[:, 1]))
+    return PoseState(state.rest, R, scale, np.array([0.0, q[:, 1].min() - scale * x0[:, 1].min(), 0.0]))
+
+
+def _candidate_fit(R: np.ndarray, t: np.ndarray, rotations, iterations: int) -> tuple[PoseState, float]:
+    """A short fit of the job's subsample turned by R (3, 3) and moved by t (3,), started from
+    ``rotations`` (B, 3, 3) or the rest pose (None): (state, score)."""
+    p, n, template, rest = _JOB["points"], _JOB["normals"], _JOB["template"], _JOB["rest"]
+    q = p @ R.T + t
+    return _short_fit(q, n @ R.T, cKDTree(q), template, _start(template, rest, q, rotations), iterations)
+
+
 def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Template, *,
                       up_known: bool = True, landmarks: tuple | None = None, rest: np.ndarray | None = None,
                       iterations: int = SCORE_ITERATIONS, rng=0) -> Alignment:
@@ -170,16 +214,6 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
     sub = rng.choice(len(points), size=min(SCORE_POINTS, len(points)), replace=False)
     p, n = points[sub], normals[sub]
 
-    def start(q, pose_rotations=None):
-        state = rest_state(template, rig, rest)
-        height = np.percentile(q[:, 1], 99.5) - np.percentile(q[:, 1], 0.5)
-        R = state.rotations if pose_rotations is None else pose_rotations
-        state = PoseState(state.rest, R, 1.0, np.zeros(3))
-        x0, _, _ = posed_vertices(rig, state)
-        scale = float(height / np.ptp(x0[:, 1]))
-        # scaled about the origin, then the feet put on the scan's floor
-        return PoseState(state.rest, R, scale, np.array([0.0, q[:, 1].min() - scale * x0[:, 1].min(), 0.0]))
-
     if landmarks is not None:
         tmpl, scan = landmarks
         s, R, _ = similarity_from_landmarks(scan, tmpl)
@@ -191,42 +225,38 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
         for R in heading_candidates(p, up_known):
             candidates.append((R, _place(p @ R.T, rest)))
         scale = 1.0
-    scores, best = [], None
-    for R, t in candidates:
+    job = {"points": p, "normals": n, "template": template, "rest": rest}
+    with _pool(job) as run:
+        fitted = run(_candidate_fit, [(R, t, None, iterations) for R, t in candidates])
+        scores = [sc for _, sc in fitted]
+        k = int(np.argmin(scores))
+        score, (R, t), state = scores[k], candidates[k], fitted[k][0]
+        if landmarks is None:
+            # The principal axes miss a stepping or twisting body's heading (by 29° on a
+            # step-forward scan, which the pose fit took up as a twist between pelvis and chest):
+            # the best candidate turned either way is scored too.
+            turned = []
+            for turn in (-HEADING_TURN, HEADING_TURN):
+                R2 = _yaw(np.radians(turn)) @ R
+                turned.append((R2, _place(p @ R2.T, rest)))
+            refits = run(_candidate_fit, [(R2, t2, None, iterations) for R2, t2 in turned])
+            for (R2, t2), (s2, sc2) in zip(turned, refits):
+                if sc2 < score:
+                    score, R, t, state = sc2, R2, t2, s2
         q = p @ R.T + t
         tree = cKDTree(q)
-        state, score = _short_fit(q, n @ R.T, tree, template, start(q), iterations)
-        scores.append(score)
-        if best is None or score < best[0]:
-            best = (score, R, t, state)
-    score, R, t, state = best
-    if landmarks is None:
-        # The principal axes miss a stepping or twisting body's heading (by 29° on a
-        # step-forward scan, which the pose fit took up as a twist between pelvis and chest):
-        # the best candidate turned either way is scored too.
-        for turn in (-HEADING_TURN, HEADING_TURN):
-            R2 = _yaw(np.radians(turn)) @ R
-            t2 = _place(p @ R2.T, rest)
-            q = p @ R2.T + t2
-            tree = cKDTree(q)
-            s2, sc2 = _short_fit(q, n @ R2.T, tree, template, start(q), iterations)
+        library = load_pose_library()
+        starts = [library.rotations(name, rig) for name in START_POSES]
+        for bones in STRIDES.values():
+            rv = np.zeros((rig.n_bones, 3))
+            for bone, degrees in bones:
+                rv[rig.bone_index(bone)] = np.radians(degrees)
+            starts.append(rotvec_to_matrix(rv))
+        fits = [state]
+        for s2, sc2 in run(_candidate_fit, [(R, t, rotations, iterations) for rotations in starts]):
+            fits.append(s2)
             if sc2 < score:
-                score, R, t, state = sc2, R2, t2, s2
-    q = p @ R.T + t
-    tree = cKDTree(q)
-    library = load_pose_library()
-    starts = [library.rotations(name, rig) for name in START_POSES]
-    for bones in STRIDES.values():
-        rv = np.zeros((rig.n_bones, 3))
-        for bone, degrees in bones:
-            rv[rig.bone_index(bone)] = np.radians(degrees)
-        starts.append(rotvec_to_matrix(rv))
-    fits = [state]
-    for rotations in starts:
-        s2, sc2 = _short_fit(q, n @ R.T, tree, template, start(q, rotations), iterations)
-        fits.append(s2)
-        if sc2 < score:
-            score, state = sc2, s2
+                score, state = sc2, s2
     # Limb by limb: the best start for the whole body may have lost one arm (a hand on the hip,
     # an arm swinging with a step) that another start placed; each limb's rotations are taken
     # from whichever fit makes the whole body score best, then the mix is fitted once more.
@@ -290,6 +320,17 @@ def limb_score(template: Template, state: PoseState, points: np.ndarray, tree: c
     return float(d1 + d2 / max(1.0, limb_share * len(points)))
 
 
+def _restart_fit(state: PoseState, iterations: int, start: float, end: float, seed: int, ids: np.ndarray,
+                 share: float) -> tuple[float, PoseState]:
+    """One restart's short fit of the whole pose on the job's scan (gate from ``start`` to ``end``
+    metres) and its ``limb_score`` for the limb's vertices ``ids`` (n,): (score, state)."""
+    template, tree = _JOB["template"], _JOB["tree"]
+    state, _ = fit_pose(_JOB["points"], _JOB["normals"], template, state, iterations=iterations, scan_tree=tree,
+                        start_distance=start, end_distance=end, template_samples=1500, scan_samples=2500,
+                        fit_scale=False, rng=seed)
+    return limb_score(template, state, _JOB["sub"], tree, ids, share), state
+
+
 def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, parts: dict,
                   tree: cKDTree, *, poses: dict | None = None, rng=0) -> tuple[PoseState, list[str]]:
     """Restart each limb with a part the quality check failed (a leg also when the trunk failed),
@@ -316,39 +357,39 @@ def restart_limbs(points: np.ndarray, normals: np.ndarray, template: Template, s
     tri = x[template.faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
-    def fit(s, iterations, start, end):
-        s, _ = fit_pose(points, normals, template, s, iterations=iterations, scan_tree=tree, start_distance=start,
-                        end_distance=end, template_samples=1500, scan_samples=2500, fit_scale=False, rng=rng)
-        return s
-
+    job = {"points": points, "normals": normals, "template": template, "tree": tree, "sub": sub}
     changed = []
-    for limb, (root, limb_parts) in LIMBS.items():
-        # A leg is restarted for its trunk too: the hips' skin is the trunk's (pelvis, belly).
-        if all(parts[p] >= MIN_QUALITY for p in limb_parts + (("trunk",) if "leg" in limb else ())):
-            continue
-        ids = np.flatnonzero(np.isin(labels, [names.index(p) for p in limb_parts]))
-        share = float(area[np.isin(labels[template.faces[:, 0]], [names.index(p) for p in limb_parts])].sum()
-                      / area.sum())
-        bones = _subtree(rig.parents, rig.bone_index(root))
-        starts = [library.rotations(pose, rig)[bones] for pose in poses["arm" if "arm" in limb else "leg"]]
-        # The other side's limb mirrored (x → -x): a symmetric pose (hands on the hips) whose
-        # one side the fit placed gives the other side's start, whatever the library holds.
-        other = [rig.bone_index(_other_side(rig.bone_names[b])) for b in bones]
-        starts.append(_MIRROR @ state.rotations[other] @ _MIRROR)
-        trials = []
-        for start in starts:
-            rot = state.rotations.copy()
-            rot[bones] = start
-            trial = fit(PoseState(state.rest, rot, state.scale, state.translation, state.coefficients),
-                        RESTART_ITERATIONS[0], 0.15, 0.06)
-            trials.append((limb_score(template, trial, sub, tree, ids, share), len(trials), trial))
-        best_score, best = limb_score(template, state, sub, tree, ids, share), state
-        for _, _, trial in sorted(trials, key=lambda t: t[:2])[:RESTART_KEEP]:
-            trial = fit(trial, RESTART_ITERATIONS[1], 0.06, 0.03)
-            score = limb_score(template, trial, sub, tree, ids, share)
-            if score < best_score:
-                best, best_score = trial, score
-        if best is not state:
-            state = best
-            changed.append(limb)
+    with _pool(job) as run:
+        for limb, (root, limb_parts) in LIMBS.items():
+            # A leg is restarted for its trunk too: the hips' skin is the trunk's (pelvis, belly).
+            if all(parts[p] >= MIN_QUALITY for p in limb_parts + (("trunk",) if "leg" in limb else ())):
+                continue
+            ids = np.flatnonzero(np.isin(labels, [names.index(p) for p in limb_parts]))
+            share = float(area[np.isin(labels[template.faces[:, 0]], [names.index(p) for p in limb_parts])].sum()
+                          / area.sum())
+            bones = _subtree(rig.parents, rig.bone_index(root))
+            starts = [library.rotations(pose, rig)[bones] for pose in poses["arm" if "arm" in limb else "leg"]]
+            # The other side's limb mirrored (x → -x): a symmetric pose (hands on the hips) whose
+            # one side the fit placed gives the other side's start, whatever the library holds.
+            other = [rig.bone_index(_other_side(rig.bone_names[b])) for b in bones]
+            starts.append(_MIRROR @ state.rotations[other] @ _MIRROR)
+            # One seed per fit, drawn here: each fit is the same whichever process runs it.
+            seeds = rng.integers(1 << 31, size=len(starts) + RESTART_KEEP)
+            tasks = []
+            for start, seed in zip(starts, seeds):
+                rot = state.rotations.copy()
+                rot[bones] = start
+                tasks.append((PoseState(state.rest, rot, state.scale, state.translation, state.coefficients),
+                              RESTART_ITERATIONS[0], 0.15, 0.06, int(seed), ids, share))
+            trials = [(score, k, trial) for k, (score, trial) in enumerate(run(_restart_fit, tasks))]
+            best_score, best = limb_score(template, state, sub, tree, ids, share), state
+            best_starts = sorted(trials, key=lambda t: t[:2])[:RESTART_KEEP]
+            kept = [(trial, RESTART_ITERATIONS[1], 0.06, 0.03, int(seed), ids, share)
+                    for (_, _, trial), seed in zip(best_starts, seeds[len(starts):])]
+            for score, trial in run(_restart_fit, kept):
+                if score < best_score:
+                    best, best_score = trial, score
+            if best is not state:
+                state = best
+                changed.append(limb)
     return state, changed

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bodyspace.parallel import cores
+
 __all__ = ["Pairs", "closest_pairs", "tangent_plane_targets", "orient_normals", "cell_sagitta", "point_spacing",
            "MAX_ANGLE_DEG", "MAX_DISTANCE_M", "MIN_SUPPORT"]
 
@@ -47,11 +49,12 @@ class Pairs:
 
 
 def closest_pairs(query: np.ndarray, query_normals: np.ndarray, tree: cKDTree, normals: np.ndarray,
-                  max_distance: float, min_cos: float, oriented: bool = True) -> Pairs:
+                  max_distance: float, min_cos: float, oriented: bool = True, workers: int = 1) -> Pairs:
     """Each query point (Q, 3) paired with its nearest point of ``tree`` when the pair is within
     ``max_distance`` and the normals' cosine is at least ``min_cos`` (``oriented=False``: the
-    absolute cosine, for normals of unknown sign). normals: (N, 3) of the tree's points."""
-    dist, idx = tree.query(query, distance_upper_bound=max_distance)
+    absolute cosine, for normals of unknown sign). normals: (N, 3) of the tree's points.
+    workers: threads of the KD-tree query (worth it for tens of thousands of queries)."""
+    dist, idx = tree.query(query, distance_upper_bound=max_distance, workers=workers)
     ok = np.isfinite(dist)
     q = np.flatnonzero(ok)
     m = idx[ok]
@@ -65,7 +68,7 @@ def orient_normals(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray
     """Scan normals (P, 3) flipped to agree with the nearest vertex's normal of a fitted mesh
     (the pose and model fits place the template close enough that its normals are a reliable
     outside)."""
-    _, idx = cKDTree(vertices).query(points)
+    _, idx = cKDTree(vertices).query(points, workers=cores())
     sign = np.sign((normals * vertex_normal[idx]).sum(axis=1))
     sign[sign == 0] = 1.0
     return normals * sign[:, None]
@@ -124,7 +127,8 @@ def tangent_plane_targets(vertices: np.ndarray, vertex_normal: np.ndarray, point
     V = len(vertices)
     min_cos = np.cos(np.radians(max_angle_deg))
     # Every scan point to its closest vertex, gated.
-    pairs = closest_pairs(points, point_normals, cKDTree(vertices), vertex_normal, max_distance, min_cos)
+    pairs = closest_pairs(points, point_normals, cKDTree(vertices), vertex_normal, max_distance, min_cos,
+                          workers=cores())
     v_of = pairs.match
     p = points[pairs.query]
     count = np.bincount(v_of, minlength=V).astype(float)

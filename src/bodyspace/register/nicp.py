@@ -46,13 +46,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from bodyspace.mesh.geometry import face_normals, vertex_normals
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.mesh.operators import cotangent_laplacian
-from bodyspace.mesh.topology import face_adjacency
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.register.correspondences import point_spacing, tangent_plane_targets
+from bodyspace.rig.posing import folded_triangles
 
-__all__ = ["NicpResult", "nonrigid_icp", "folded_faces", "unfold", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
+__all__ = ["NicpResult", "nonrigid_icp", "unfold", "stiffness_schedule", "STIFFNESS_START", "STIFFNESS_END"]
 
 STIFFNESS_START = 3000.0
 STIFFNESS_END = 1.0
@@ -243,16 +243,6 @@ def _pcg(indptr, indices, data, beta, a, w, er, ec, ev, pre, b, x, iterations): 
             rz[c] = rz_new[c]
 
 
-def folded_faces(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
-    """(F,) bool: faces whose normal points against the area-weighted normal of their edge
-    neighbours (the definition of ``rig.posing.count_folded_triangles``); neighbors: (F, 3)
-    from ``mesh.topology.face_adjacency`` (-1: boundary)."""
-    n = face_normals(vertices, faces, normalize=False)
-    ok = neighbors >= 0
-    acc = (np.where(ok[..., None], n[np.where(ok, neighbors, 0)], 0.0)).sum(axis=1)
-    return (n * acc).sum(axis=1) < 0
-
-
 def _ring(faces: np.ndarray, V: int) -> sp.csr_matrix:
     """(V, V) 0/1 adjacency of the mesh's edges."""
     ring = sp.csr_matrix((np.ones(6 * len(faces)), (faces[:, [0, 1, 2, 1, 2, 0]].ravel(),
@@ -273,11 +263,10 @@ def unfold(vertices: np.ndarray, faces: np.ndarray, rounds: int = UNFOLD_ROUNDS)
     faces still folded after ``rounds`` rounds.
     """
     v = np.asarray(vertices, dtype=float).copy()
-    neighbors = face_adjacency(faces).neighbors
     V = len(v)
     ring = _ring(faces, V)
     degree = np.asarray(ring.sum(axis=1)).ravel()
-    bad = folded_faces(v, faces, neighbors)
+    bad = folded_triangles(v, faces)
     for r in range(int(rounds)):
         if not bad.any():
             break
@@ -287,7 +276,7 @@ def unfold(vertices: np.ndarray, faces: np.ndarray, rounds: int = UNFOLD_ROUNDS)
             region |= (ring @ region.astype(float)) > 0
         move = np.flatnonzero(region)
         v[move] = (ring[move] @ v) / degree[move, None]
-        bad = folded_faces(v, faces, neighbors)
+        bad = folded_triangles(v, faces)
     return v, int(bad.sum())
 
 
@@ -324,7 +313,6 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
     has = np.zeros(V, dtype=bool)
     total = len(betas) * inner
     done = 0
-    neighbors = face_adjacency(faces).neighbors
     ring = _ring(faces, V)
     released = np.zeros(V, dtype=bool)
     spacing = point_spacing(tree)
@@ -335,7 +323,7 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
                 targets, has = tangent_plane_targets(xm, vertex_normals(xm, faces), points, point_normals, tree,
                                                      faces=faces, spacing=spacing)
                 u = (targets - centre) * MM
-                before = folded_faces(x, faces, neighbors)
+                before = folded_triangles(x, faces)
                 for attempt in range(2):
                     w = np.where(released, 0.0, has.astype(float))
                     system = _System(LL, a, w, beta, None if DL is None else (DL, 2 * beta))
@@ -344,7 +332,7 @@ def nonrigid_icp(vertices: np.ndarray, faces: np.ndarray, rest: np.ndarray, poin
                         b = b + 2 * beta * (DL.T @ lq).reshape(V, 4, 3)
                     X_new = system.solve(b, X, cg_iterations)
                     x_new = (a[:, :, None] * X_new).sum(axis=1)
-                    bad = folded_faces(x_new, faces, neighbors) & ~before
+                    bad = folded_triangles(x_new, faces) & ~before
                     if attempt or not bad.any():
                         break
                     # Local stiffening: the corners of the faces this step folded, and their

@@ -233,7 +233,10 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     report("checking the limbs", 0.48)
     t = time.perf_counter()
     x, _, _ = posed_vertices(rig, state)
-    check_pose = assess(x, template.faces, q, np.ones(len(x), dtype=bool), template=template, scan_tree=tree)
+    # Every patch of unexplained scan flags its part here, also beside parts on their points (a
+    # belly the pose fit placed 4 cm off is mended by the legs' restart; docs/registration.md).
+    check_pose = assess(x, template.faces, q, np.ones(len(x), dtype=bool), template=template, scan_tree=tree,
+                        bridged_counts=True)
     restarted = []
     if check_pose.explained >= RESTART_MIN_EXPLAINED:
         state, restarted = restart_limbs(q, qn, template, state, {p.name: p.quality for p in check_pose.parts},

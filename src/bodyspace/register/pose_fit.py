@@ -36,7 +36,7 @@ from bodyspace.data.template import Rig, Template
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.register.correspondences import closest_pairs
-from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
+from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.rig.skinning import linear_blend_skinning
 from bodyspace.rig.unpose import solved_bones
@@ -140,9 +140,29 @@ def _lever_arms(rig: Rig, state: PoseState, G: np.ndarray, A: sp.csr_matrix, row
 
 
 def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation (3, 3) nearest to M (3, 3): products of many small steps drift off SO(3)."""
+    """The rotations (..., 3, 3) nearest to M (..., 3, 3): products of many small steps drift off
+    SO(3)."""
     u, _, vt = np.linalg.svd(M)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    u = u.copy()
+    u[..., :, 2] *= np.sign(np.linalg.det(u @ vt))[..., None]
+    return u @ vt
+
+
+def _cross_rows(a: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """``a × n`` for lever arms a (R, S, 3) and one direction per row n (R, 3) → (R, S, 3),
+    written out (np.cross's broadcasting copies cost more than the fit's solve)."""
+    nx, ny, nz = (n[:, None, k] for k in range(3))
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    return np.stack([ay * nz - az * ny, az * nx - ax * nz, ax * ny - ay * nx], axis=-1)
+
+
+def _cross_axis(a: np.ndarray, d: int) -> np.ndarray:
+    """``a × e_d`` for lever arms a (R, S, 3) and the unit axis e_d → (R, S, 3)."""
+    out = np.zeros_like(a)
+    i, j = (d + 1) % 3, (d + 2) % 3
+    out[..., i] = a[..., j]       # e.g. a × e_x = (0, a_z, -a_y)
+    out[..., j] = -a[..., i]
+    return out
 
 
 def fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, **kw
@@ -182,9 +202,6 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
     solved, A = _structure(rig, template.vertices)
     Sn = len(solved)
     parents = np.asarray(rig.parents)
-    order = topological_order(parents)
-    solved_order = [int(j) for j in order if j in set(solved.tolist())]
-    col = {int(j): k for k, j in enumerate(solved)}
     tree = scan_tree if scan_tree is not None else cKDTree(points)
     rng = np.random.default_rng(rng)
     tsample = sample_vertices(state.rest, faces, template_samples, rng)
@@ -223,13 +240,17 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
         dw = [wrow] + [wrow * POINT_WEIGHT] * 3
         res, jac = [], []
         diff = x[rows_v] - rows_p
-        for n_d, w_d in zip(dirs, dw):
+        a_rows = a[inv]
+        P_rows = Pk[:, rows_v] if K else None                                                   # (K, R, 3)
+        for d, (n_d, w_d) in enumerate(zip(dirs, dw)):
             res.append(w_d * (diff * n_d).sum(1))
-            jw = state.scale * np.cross(a[inv], n_d[:, None, :]).reshape(len(rows_v), 3 * Sn)
+            cross = _cross_rows(a_rows, n_d) if d == 0 else _cross_axis(a_rows, d - 1)
+            jw = state.scale * cross.reshape(len(rows_v), 3 * Sn)
             js = (y[rows_v] * n_d).sum(1, keepdims=True)
             blocks = [jw, n_d, js]
             if K:
-                blocks.insert(0, state.scale * np.einsum("kvd,vd->vk", Pk[:, rows_v], n_d))
+                shape_cols = np.einsum("kvd,vd->vk", P_rows, n_d) if d == 0 else P_rows[:, :, d - 1].T
+                blocks.insert(0, state.scale * shape_cols)
             jac.append(w_d[:, None] * np.concatenate(blocks, axis=1))
         if lm_matrix is not None:
             lx = lm_matrix @ x
@@ -244,7 +265,7 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
             for d in range(3):
                 e = np.broadcast_to(np.eye(3)[d], (len(lx), 3))
                 res.append(wl * (lx - lm_points)[:, d])
-                jw = state.scale * np.cross(al, e[:, None, :]).reshape(len(lx), 3 * Sn)
+                jw = state.scale * _cross_axis(al, d).reshape(len(lx), 3 * Sn)
                 blocks = [jw, e, ly[:, d:d + 1]]
                 if K:
                     blocks.insert(0, state.scale * (lm_matrix @ Pk[:, :, d].T))
@@ -289,11 +310,11 @@ def _fit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state
             coef = coef + step[:K]
             state = replace(state, rest=basis.body(coef), coefficients=coef)
         step = step[K:]
+        # Each solved bone's update uses only its own rotation and its parent's frame before the
+        # step (Qp), so all are applied at once.
         R = state.rotations.copy()
-        for j in solved_order:
-            k = col[j]
-            Q = Qp[k]
-            R[j] = _nearest_rotation(Q.T @ rotvec_to_matrix(w[k]) @ Q @ R[j])
+        QpT = Qp.transpose(0, 2, 1)
+        R[solved] = _nearest_rotation(QpT @ rotvec_to_matrix(w) @ Qp @ R[solved])
         state = replace(state, rotations=R, translation=state.translation + step[3 * Sn:3 * Sn + 3],
                         scale=float(state.scale * (1.0 + step[-1] / max(state.scale, 1e-9)) if fit_scale else state.scale))
     return state, rms

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, to_internal
+from bodyspace.parallel import cores, halves, run_both
 
 __all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "MIN_POINTS", "SCAN_SUFFIXES"]
 
@@ -107,7 +108,7 @@ def isolated_points(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> np.nda
     k = min(int(k), len(points) - 1)
     if k < 1:
         return np.zeros(len(points), dtype=bool)
-    d = cKDTree(points).query(points, k=k + 1)[0][:, -1]
+    d = cKDTree(points).query(points, k=k + 1, workers=cores())[0][:, -1]
     return d > ISOLATION_FACTOR * np.median(d)
 
 
@@ -116,11 +117,18 @@ def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarr
     ``k`` nearest neighbours (a plane fitted to the local patch)."""
     points = np.asarray(points, dtype=float)
     k = min(int(k), len(points))
-    _, nb = cKDTree(points).query(points, k=k)
-    local = points[nb] - points[nb].mean(axis=1, keepdims=True)          # (P, k, 3)
-    cov = np.einsum("pki,pkj->pij", local, local)
-    _, vecs = np.linalg.eigh(cov)
-    return vecs[:, :, 0]
+    # The KD-tree's queries on every core; the patches' planes in two halves (the second on
+    # parallel's lane thread): 1.6 + 0.7 s of CPU on a 147 k-point scan.
+    _, nb = cKDTree(points).query(points, k=k, workers=cores())
+
+    def plane_normals(lo: int, hi: int) -> np.ndarray:
+        patch = points[nb[lo:hi]]                                          # (n, k, 3)
+        local = patch - patch.mean(axis=1, keepdims=True)
+        return np.linalg.eigh(local.transpose(0, 2, 1) @ local)[1][:, :, 0]
+
+    (a, b), (c, d) = halves(len(points))
+    first, second = run_both(lambda: plane_normals(a, b), lambda: plane_normals(c, d))
+    return np.concatenate([first, second])
 
 
 def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:

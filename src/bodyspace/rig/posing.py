@@ -399,12 +399,14 @@ def _face_adjacency(faces_bytes: bytes, n_faces: int) -> sp.csr_matrix:
     return face_adjacency_matrix(np.frombuffer(faces_bytes, dtype=np.int64).reshape(n_faces, 3))
 
 
-def count_folded_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Folded triangles per body: (N, V, 3) or (V, 3) vertices, (F, 3) faces → (N,) int (or int).
+def folded_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which triangles are folded: (N, V, 3) or (V, 3) vertices, (F, 3) faces → (N, F) or (F,) bool.
 
-    A face is *folded* when its unit normal has a negative dot product with the area-weighted
+    A face is *folded* when its normal has a negative dot product with the area-weighted
     mean normal of its edge neighbours (the sum of their unnormalized cross products): the
-    skin has flipped over onto itself there, as in the LBS collapse at armpit and groin.
+    skin has flipped over onto itself there, as in the LBS collapse at armpit and groin. The
+    one definition of a fold: ``count_folded_triangles`` counts these, the NICP's local
+    stiffening and ``register.nicp.unfold`` act on them.
     """
     v = np.asarray(vertices, dtype=float)
     single = v.ndim == 2
@@ -417,5 +419,12 @@ def count_folded_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarra
     n = np.cross(v[:, f[:, 1]] - v[:, f[:, 0]], v[:, f[:, 2]] - v[:, f[:, 0]])   # (N, F, 3), |n| = 2 area
     N, F = n.shape[:2]
     acc = np.asarray(A @ n.transpose(1, 0, 2).reshape(F, 3 * N)).reshape(F, N, 3).transpose(1, 0, 2)
-    folded = (np.einsum("nfc,nfc->nf", n, acc) < 0).sum(axis=1)
-    return int(folded[0]) if single else folded
+    folded = np.einsum("nfc,nfc->nf", n, acc) < 0
+    return folded[0] if single else folded
+
+
+def count_folded_triangles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Folded triangles per body (``folded_triangles``): (N, V, 3) or (V, 3) vertices, (F, 3)
+    faces → (N,) int (or int)."""
+    folded = folded_triangles(vertices, faces).sum(axis=-1)
+    return int(folded) if np.ndim(folded) == 0 else folded
