@@ -129,10 +129,7 @@ def in_order(fn: Callable, tasks: Iterable[tuple], workers: int, ahead: int = 2,
                 result = fn(*task)
             yield result
         return
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_start_worker, initargs=(os.getpid(),))
-    finished = False
-    try:
+    with _forked_executor(workers) as pool:
         queue = deque(pool.submit(fn, *task) for _, task in zip(range(workers * ahead), tasks))
         while queue:
             try:
@@ -143,11 +140,21 @@ def in_order(fn: Callable, tasks: Iterable[tuple], workers: int, ahead: int = 2,
             if following is not None:
                 queue.append(pool.submit(fn, *following))
             yield result
+
+
+@contextmanager
+def _forked_executor(workers: int):
+    """A pool of ``workers`` forked one-lane processes (``_start_worker``) for the block. Ended by
+    an exception (Ctrl-C, an error, a generator closed early), its processes are killed: the tasks
+    in flight are abandoned, not awaited (a resumed run computes them again)."""
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_start_worker, initargs=(os.getpid(),))
+    finished = False
+    try:
+        yield pool
         finished = True
     finally:
         if not finished:
-            # Interrupted (Ctrl-C, an error, a generator closed early): the chunks in flight are
-            # abandoned, not awaited; a resumed run computes them again.
             for process in list(getattr(pool, "_processes", {}).values()):
                 process.kill()
         pool.shutdown(wait=True, cancel_futures=True)
@@ -172,22 +179,12 @@ def forked_pool(workers: int, died: str = "run the same command again"):
                 return [fn(*task) for task in tasks]
         yield here
         return
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_start_worker, initargs=(os.getpid(),))
+    with _forked_executor(workers) as pool:
+        def run(fn: Callable, tasks: Iterable[tuple]) -> list:
+            futures = [pool.submit(fn, *task) for task in tasks]
+            try:
+                return [f.result() for f in futures]
+            except BrokenProcessPool:
+                raise BodyspaceError(f"a worker process died (killed, or out of memory); {died}") from None
 
-    def run(fn: Callable, tasks: Iterable[tuple]) -> list:
-        futures = [pool.submit(fn, *task) for task in tasks]
-        try:
-            return [f.result() for f in futures]
-        except BrokenProcessPool:
-            raise BodyspaceError(f"a worker process died (killed, or out of memory); {died}") from None
-
-    finished = False
-    try:
         yield run
-        finished = True
-    finally:
-        if not finished:
-            for process in list(getattr(pool, "_processes", {}).values()):
-                process.kill()
-        pool.shutdown(wait=True, cancel_futures=True)
