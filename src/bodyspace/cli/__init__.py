@@ -5,7 +5,8 @@ semantics, mapping, demo, export (rig), motion, animate, register (register, lan
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 
-Commands are loaded lazily (click's "lazily loading subcommands"): ``COMMANDS`` names each
+Commands are loaded lazily (click's "lazily loading subcommands"; typer's groups are click's,
+vendored): ``COMMANDS`` names each
 command, its one-line help and the module that implements it, and only the module of the command
 being run is imported. ``bodyspace --help`` reads the table alone; importing every command module
 would import the whole library (scipy, matplotlib, numba, trimesh: ~2.5 s before anything runs).
@@ -16,11 +17,10 @@ from __future__ import annotations
 import importlib
 from typing import NamedTuple
 
-import click
 import typer
 import typer.main
 import typer.models
-from typer.core import TyperGroup
+from typer.core import TyperCommand, TyperGroup
 
 from bodyspace import __version__
 from bodyspace.cli.common import guarded, out_console
@@ -104,8 +104,8 @@ COMMANDS: dict[str, CommandEntry] = {
 
 
 def load_command(name: str, entry: CommandEntry, *, pretty_exceptions_short: bool = True,
-                 rich_markup_mode=typer.core.DEFAULT_MARKUP_MODE) -> click.Command:
-    """The click command ``name`` of ``entry``, built exactly as ``app.command(name)(guarded(fn))``
+                 rich_markup_mode=typer.core.DEFAULT_MARKUP_MODE) -> TyperCommand | TyperGroup:
+    """The command ``name`` of ``entry``, built exactly as ``app.command(name)(guarded(fn))``
     (or ``app.add_typer(group)``) would build it. The module is resolved by name here, the one
     place that does so: importing it at the top is what lazy loading avoids."""
     target = getattr(importlib.import_module(entry.module), entry.attribute)
@@ -126,14 +126,14 @@ class LazyGroup(TyperGroup):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.commands = {name: click.Command(name, help=entry.help) for name, entry in COMMANDS.items()}
+        self.commands = {name: TyperCommand(name, help=entry.help) for name, entry in COMMANDS.items()}
         self._loaded: set[str] = set()
         self._listing = False
 
-    def list_commands(self, ctx: click.Context) -> list[str]:
+    def list_commands(self, ctx) -> list[str]:
         return list(COMMANDS)
 
-    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+    def get_command(self, ctx, cmd_name: str) -> TyperCommand | TyperGroup | None:
         if cmd_name not in COMMANDS:
             return None
         if not self._listing and cmd_name not in self._loaded:
@@ -143,7 +143,7 @@ class LazyGroup(TyperGroup):
             self._loaded.add(cmd_name)
         return self.commands[cmd_name]
 
-    def format_help(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+    def format_help(self, ctx, formatter) -> None:
         # The listing asks get_command for every command: answer it from the table (stand-ins
         # not yet loaded), not by importing every module.
         self._listing = True
