@@ -10,6 +10,8 @@ vendored): ``COMMANDS`` names each
 command, its one-line help and the module that implements it, and only the module of the command
 being run is imported. ``bodyspace --help`` reads the table alone; importing every command module
 would import the whole library (scipy, matplotlib, numba, trimesh: ~2.5 s before anything runs).
+A new command is a function in its module plus one entry in ``COMMANDS`` (tests/test_cli.py fails
+until the entry's help is the first paragraph of the function's docstring).
 """
 
 from __future__ import annotations
