@@ -1,7 +1,8 @@
 """The ``bodyspace`` command: a thin layer over the API (no algorithm lives here).
 
-One module per command group (assets, population, examples (example-scans), data (import), model, measure,
-semantics, mapping, demo, export (rig), motion, animate, register (register, landmarks));
+One module per command group (assets, population, examples (example-scans), data (import), build,
+model (sample), measure, semantics, mapping, demo, export (rig), motion, animate, register (register,
+landmarks));
 ``common`` holds what they share: the one error exit (``guarded``, wrapped around every command
 here), the progress helper and the output policy.
 
@@ -58,7 +59,7 @@ COMMANDS: dict[str, CommandEntry] = {
         "Import a folder of your own registered meshes (or, with --register, raw scans) and a labels CSV as a scan\n"
         "database."),
     "build": CommandEntry(
-        "bodyspace.cli.model", "build",
+        "bodyspace.cli.build", "build",
         "Build a BodyModel (template, encoder statistics, PCA shape space, measurement set) from a scan database."),
     "sample": CommandEntry(
         "bodyspace.cli.model", "sample",
