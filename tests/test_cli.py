@@ -1,9 +1,17 @@
+import inspect
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
+import pytest
+import typer.main
+from typer.core import TyperGroup
 from typer.testing import CliRunner
 
-from bodyspace.cli import app
+from bodyspace.cli import COMMANDS, app, load_command
 from bodyspace.data.database import ScanDatabase
 
 runner = CliRunner()
@@ -79,3 +87,44 @@ def test_measure_command_rejects_wrong_topology(tmp_path):
     result = runner.invoke(app, ["measure", str(path)])
     assert result.exit_code == 2
     assert "vertices" in result.output
+
+
+# ----------------------------------------------------------------------------- lazy command loading
+def test_help_lists_every_command_of_the_table():
+    result = runner.invoke(app, ["--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    panel = result.output.split("─ Commands ")[1].splitlines()[1:]
+    listed = [ln.split()[1] for ln in panel if ln.startswith("│ ") and ln[2] != " "]
+    assert listed == list(COMMANDS)
+    assert typer.main.get_command(app).list_commands(None) == list(COMMANDS)
+
+
+@pytest.mark.parametrize("name", list(COMMANDS))
+def test_table_entry_is_the_command_its_module_defines(name):
+    """The table cannot drift from the code: the module defines the attribute, it builds a command
+    of that name, and the one-line help the listing shows is the command's own (the first
+    paragraph of its docstring, as typer lists it)."""
+    entry = COMMANDS[name]
+    command = load_command(name, entry)
+    assert command.name == name
+    assert command.short_help is None and not command.hidden and not command.deprecated
+    assert getattr(command, "rich_help_panel", None) is None
+    assert inspect.cleandoc(command.help).split("\n\n")[0] == entry.help
+    if isinstance(command, TyperGroup):
+        assert command.list_commands(None), f"{name}: a group without commands"
+    else:
+        assert inspect.unwrap(command.callback).__module__ == entry.module, "the function lives in its module"
+
+
+def test_help_imports_no_command_module():
+    """`bodyspace --help` reads the table: no command module, no heavy library is imported."""
+    code = ("import sys\nfrom bodyspace.cli import main\nsys.argv = ['bodyspace', '--help']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "heavy = ('bodyspace.cli.measure', 'bodyspace.model', 'bodyspace.mesh', 'scipy', 'matplotlib', "
+            "'numba', 'trimesh', 'numpy')\n"
+            "print('IMPORTED', sorted(m for m in sys.modules if m.startswith(heavy)))")
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": src})
+    assert r.returncode == 0, r.stderr
+    assert "IMPORTED []" in r.stdout, r.stdout[-500:]

@@ -74,10 +74,13 @@ def test_version():
 
 
 def _commands(group, path=()):
-    """(path, command) of a Typer app's click command tree (typer vendors click: no import)."""
+    """(path, command) of a Typer app's click command tree (typer vendors click: no import).
+    ``get_command`` loads a lazily loaded command (bodyspace.cli.LazyGroup); ``commands`` would
+    hold its stand-in."""
     yield path, group
-    for name, sub in getattr(group, "commands", {}).items():
-        yield from _commands(sub, path + (name,))
+    if hasattr(group, "list_commands"):
+        for name in group.list_commands(None):
+            yield from _commands(group.get_command(None, name), path + (name,))
 
 
 def test_every_option_of_every_command_has_help():

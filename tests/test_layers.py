@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "bodyspace"
 # import each other (semantics and mapping are siblings); within layer 13, cli sits on report,
 # which sits on studies.
 LAYERS = {
-    "errors": 1, "atomic": 1, "parallel": 1, "units": 1, "validation": 1, "rowfile": 1,
+    "errors": 1, "atomic": 1, "parallel": 1, "units": 1, "validation": 1, "rowfile": 1, "distributions": 1,
     "mesh": 2,
     "encoding": 3,
     "shape": 4,
@@ -31,7 +31,7 @@ LAYERS = {
     "model": 12,
     "studies": 13.0, "report": 13.1, "cli": 13.2,
 }
-BASE = {"errors", "atomic", "parallel", "units", "validation", "rowfile"}
+BASE = {"errors", "atomic", "parallel", "units", "validation", "rowfile", "distributions"}
 # Entry points sit above everything.
 EXEMPT = {"__init__", "__main__"}
 

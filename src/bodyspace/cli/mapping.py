@@ -18,6 +18,7 @@ from bodyspace.cli.common import (
     check_folder_output,
     console,
     fail,
+    guarded,
     out_console,
     output_folder,
     progress,
@@ -214,3 +215,10 @@ def _duration(seconds: float) -> str:
     if seconds < 7200:
         return f"{seconds / 60:.0f} min"
     return f"{seconds / 3600:.1f} h"
+
+
+# The ``bodyspace mapping`` group; the dispatcher (bodyspace.cli) loads it when ``mapping`` is run.
+app = typer.Typer(name="mapping", add_completion=False, no_args_is_help=True,
+                  help="Measurements → shape: forest with linear leaves, exact refinement.")
+for _name, _command in (("fit", mapping_fit), ("shape", mapping_shape), ("evaluate", mapping_evaluate)):
+    app.command(_name)(guarded(_command))

@@ -12,7 +12,7 @@ import numpy as np
 import typer
 
 from bodyspace.atomic import WRITTEN_BY, write_json
-from bodyspace.cli.common import ForceOption, check_file_output, console, out_console
+from bodyspace.cli.common import ForceOption, check_file_output, console, guarded, out_console
 from bodyspace.data.template import RIG_NAMES
 from bodyspace.errors import MotionError
 from bodyspace.motion.bvh import UNITS, read_bvh
@@ -72,3 +72,10 @@ def motion_match(clip: Path = typer.Argument(..., help="The source BVH clip."),
     if json_out is not None:
         write_json(json_out, {"written_by": WRITTEN_BY, **result.to_dict()})
         console.print(f"wrote {json_out}", highlight=False)
+
+
+# The ``bodyspace motion`` group; the dispatcher (bodyspace.cli) loads it when ``motion`` is run.
+app = typer.Typer(name="motion", add_completion=False, no_args_is_help=True,
+                  help="Motion capture (BVH): inspect a clip, match its skeleton to a rig.")
+for _name, _command in (("info", motion_info), ("match", motion_match)):
+    app.command(_name)(guarded(_command))

@@ -21,8 +21,8 @@ from __future__ import annotations
 import numbers
 
 import numpy as np
-from scipy.stats import truncnorm
 
+from bodyspace.distributions import truncnorm_rvs
 from bodyspace.errors import ParameterError
 from bodyspace.encoding.vertex import VertexEncoder
 from bodyspace.mesh.solver import single_threaded_blas
@@ -459,7 +459,7 @@ class ShapeSpace:
             lo, hi = (float(v) for v in sigma_range)
         if not lo < hi:
             raise ParameterError(f"sigma_range={sigma_range!r}, expected lo < hi")
-        t = truncnorm.rvs(lo, hi, size=(int(n), k), random_state=as_generator(rng))
+        t = truncnorm_rvs(lo, hi, (int(n), k), rng=as_generator(rng))
         z = np.zeros((int(n), self.n_components_))
         z[:, :k] = t * np.sqrt(self.explained_variance_[:k])
         return z

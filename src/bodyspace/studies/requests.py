@@ -21,8 +21,8 @@ import time
 import warnings
 
 import numpy as np
-from scipy.stats import chi2
 
+from bodyspace.distributions import chi2_cdf
 from bodyspace.errors import BodyspaceError
 from bodyspace.semantics.model import tolerance
 from bodyspace.units import kind_of
@@ -135,7 +135,7 @@ def population_quantile(semantic_model, labels=REQUEST_LABELS):
 
     def quantile(asked: dict) -> float:
         d = np.array([asked[name] for name in labels]) - mu
-        return float(chi2.cdf(float(d @ icov @ d), len(labels)))
+        return chi2_cdf(float(d @ icov @ d), len(labels))
     return quantile
 
 

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import scipy.stats
 
 from bodyspace import parallel
 from bodyspace.atomic import MARKER, WRITTEN_BY, atomic_path, check_replaceable_folder, install_folder, read_marker, write_json
@@ -36,6 +35,7 @@ from bodyspace.data.database import (
 )
 from bodyspace.rowfile import create_rows, write_rows
 from bodyspace.data.template import Template
+from bodyspace.distributions import norm_ppf
 from bodyspace.errors import DatabaseError, ParameterError
 from bodyspace.measure.composition import mass_from_volume
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
@@ -223,7 +223,7 @@ def _standard_scores(n: int, rng: np.random.Generator) -> np.ndarray:
     if n < 2:
         return rng.standard_normal(n)
     u = (rng.permutation(n) + rng.random(n)) / n
-    z = scipy.stats.norm.ppf(u)
+    z = norm_ppf(u)
     return (z - z.mean()) / z.std()
 
 
