@@ -26,7 +26,8 @@ from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.model import BodyModel
 from bodyspace.register.caesar import CAESAR_TO_BODYSPACE, caesar_to_bodyspace, read_lnd
 from bodyspace.register.landmark_files import read_scan_landmarks, sidecar_landmarks
-from bodyspace.register.landmarks import carry_vertex_data, landmark_document, load_carried_weights
+from bodyspace.register.landmarks import carry_vertex_data, landmark_document
+from bodyspace.rig.carried_weights import load_carried_weights
 from bodyspace.register.user_model import basis_from_model, check_model_topology
 from bodyspace.shape import ShapeSpace
 from bodyspace.synth.foreign import foreign_body, to_frame

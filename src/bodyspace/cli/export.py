@@ -26,7 +26,7 @@ from bodyspace.measure.conventions import MESH_UNITS
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
-from bodyspace.register.landmarks import load_carried_weights
+from bodyspace.rig.carried_weights import load_carried_weights
 from bodyspace.rig.embed import embed_skeleton, embedded_skeleton
 from bodyspace.rig.skeleton import body_skeleton
 from bodyspace.rig.weights import bone_heat_weights
