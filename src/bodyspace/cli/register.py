@@ -191,8 +191,8 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     doc = landmark_document(lms, len(vertices), carried, mesh_joints(reg, template, vertices, faces),
                             written_by="bodyspace",
                             note=f"carried from the template registered to {mesh.name}: {reg.quality.describe()}; "
-                                 "vertex_parts and skin_weights are the template's body parts and skin weights "
-                                 "carried to this mesh")
+                                 "vertex_parts, skin_weights and joints are the template's body parts, skin weights "
+                                 "and neck joints carried to this mesh")
     write_json(out, doc)
     if png is not None:
         to_internal = np.linalg.inv(reg.to_scan)
@@ -208,8 +208,8 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     # The up axis the registration found (signed), so the suggested command runs as printed:
     # measure does not guess the up axis, it refuses a body that is not +Y up.
     up_found = up or scan_up_axis(reg.to_scan)
-    console.print(f"wrote {out} ({len(lms)} landmarks, the body part and skin weights of each of the "
-                  f"{len(vertices)} vertices; bodyspace measure {mesh} "
+    console.print(f"wrote {out} ({len(lms)} landmarks, the neck joints, the body part and skin weights of each of "
+                  f"the {len(vertices)} vertices; bodyspace measure {mesh} "
                   f"--landmarks {out} --units {units or reg.units}{'' if up_found == 'y' else f' --up {up_found}'})",
                   markup=False, highlight=False)
 
