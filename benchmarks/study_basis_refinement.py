@@ -55,7 +55,7 @@ def errors_mm(bodies, scans, parts):
 
 def summary(folds: dict) -> None:
     """Mean over folds and held-out scans, per model and k, and the folds where RRE loses."""
-    first = next(iter(folds.values()))
+    first = max(folds.values(), key=lambda f: len(f["errors_mm"]))
     ks = list(first["errors_mm"])
     names = list(dict.fromkeys(n for k in ks for n in first["errors_mm"][k] if not n.endswith("cpu s")))
     print(f"{len(folds)} folds ({', '.join(folds)}), {sum(len(f['poses']) for f in folds.values())} held-out scans")
@@ -64,21 +64,22 @@ def summary(folds: dict) -> None:
     for n in names:
         cells = []
         for k in ks:
-            v = [np.mean(f["errors_mm"][k][n]) for f in folds.values() if n in f["errors_mm"][k]]
+            v = [np.mean(f["errors_mm"][k][n]) for f in folds.values() if n in f["errors_mm"].get(k, {})]
             cells.append(f"{np.mean(v):.1f}" if v else "")
-        print(f"| {n} | " + " | ".join(cells) + " |")
+        n_folds = sum(any(n in f["errors_mm"].get(k, {}) for k in ks) for f in folds.values())
+        print(f"| {n} ({n_folds} folds) | " + " | ".join(cells) + " |")
     cpu = {}
     for k in ks:
         for n in first["errors_mm"][k]:
             if n.endswith("cpu s"):
                 cpu.setdefault(n, {})[k] = np.mean([f["errors_mm"][k][n] for f in folds.values()
-                                                    if n in f["errors_mm"][k]])
+                                                    if n in f["errors_mm"].get(k, {})])
     for n, row in cpu.items():
         print(f"| {n} a mesh | " + " | ".join(f"{row[k]:.2f}" if k in row else "" for k in ks) + " |")
     for k in ks:
         for n in names:
             if n.startswith("refined vertex fit") or n.startswith("vertex order vertex fit"):
-                lost = [fo for fo, f in folds.items() if n in f["errors_mm"][k]
+                lost = [fo for fo, f in folds.items() if n in f["errors_mm"].get(k, {})
                         and np.mean(f["errors_mm"][k][n]) > np.mean(f["errors_mm"][k]["vertex PCA"])]
                 if lost:
                     print(f"k = {k}, {n}: above vertex PCA on folds {', '.join(lost)}")
