@@ -15,10 +15,13 @@ an RRE pose+shape model fitted on the other subjects' scans, every scan):
    package's Levenberg-Marquardt with exact Jacobians and Broyden updates) and the baseline
    ``scipy.optimize.least_squares`` (trust-region reflective, finite-difference Jacobian, the
    same residual, start and vertex alignment), each with its seconds per mesh and the mean
-   vertex error it reaches (mm, after rigid alignment).
+   vertex error it reaches (mm, after rigid alignment);
+3. the Jacobian budget: 2 exact Jacobians a mesh against the default ``MAX_JACOBIANS`` (4), the
+   same meshes and starts (the code projection), CPU seconds a mesh, the ratio and the mean error.
 
 Usage: ``python benchmarks/bench_vertex_fit.py [--subjects 12] [--poses 3] [--meshes 2]
-[--components 8,16,32] [--baseline-components 8,16]``.
+[--components 8,16,32] [--baseline-components 8,16] [--db DB] [--only 3]``; ``--db`` a scan
+database to use instead of a new population (e.g. ``population --subjects 8 --pose-set standard``).
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ from scipy.optimize import least_squares
 from bodyspace.data.template import load_template
 from bodyspace.encoding import RelativeRotationEncoder
 from bodyspace.shape import ShapeSpace, fit_coefficients
-from bodyspace.shape.vertex_fit import rigid_basis, align_parts
+from bodyspace.data.database import ScanDatabase
+from bodyspace.shape.vertex_fit import MAX_JACOBIANS, rigid_basis, align_parts
 from bodyspace.synth.population import build_population
 
 
@@ -109,14 +113,21 @@ def main() -> None:
     ap.add_argument("--meshes", type=int, default=2, help="held-out posed scans fitted")
     ap.add_argument("--components", default="8,16,32")
     ap.add_argument("--baseline-components", default="8,16")
+    ap.add_argument("--db", default=None, help="scan database (default: a new population)")
+    ap.add_argument("--only", default="0,1,2,3", help="3: section 3 alone (any of 0-2: all sections)")
     args = ap.parse_args()
+    only = {int(x) for x in args.only.split(",")}
     ks = [int(k) for k in args.components.split(",")]
     base_ks = {int(k) for k in args.baseline_components.split(",") if k}
 
     template = load_template()
-    with tempfile.TemporaryDirectory() as tmp:
-        db = build_population(template, Path(tmp) / "db", args.subjects, args.poses, rng=0)
+    if args.db:
+        db = ScanDatabase.load(args.db)
         scans = np.asarray(db.read(np.arange(db.n_scans)), dtype=float)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            db = build_population(template, Path(tmp) / "db", args.subjects, args.poses, rng=0)
+            scans = np.asarray(db.read(np.arange(db.n_scans)), dtype=float)
     subjects = np.asarray(db.scans["subject"])
     test = subjects == subjects[0]
     held = np.flatnonzero(test & (np.asarray(db.scans["pose"]) != "rest"))[:args.meshes]
@@ -128,6 +139,10 @@ def main() -> None:
     print(f"{db.n_scans} scans, {len(held)} held-out posed scans ({', '.join(db.scans['pose'][held])}), "
           f"PCA of {int((~test).sum())} scans, up to {space.n_components_} components")
 
+    if 3 in only:
+        jacobian_budget(space, scans[held], ks)
+    if not only & {0, 1, 2}:
+        return
     print("\n0. Per-step pieces, median of 7: seconds wall (cpu)")
     print("| piece | this | previous (baseline) | ratio (cpu) | max difference |")
     print("|---|---|---|---|---|")
@@ -208,6 +223,23 @@ def main() -> None:
         ratio = (f"x{np.mean([r[0] for r in rows['base']]) / np.mean([r[0] for r in rows['fit']]):.1f} faster"
                  if rows["base"] else "-")
         print(f"| {k} | {cell(rows['code'])} | {cell(rows['fit'])} | {cell(rows['base'])} | {ratio} |", flush=True)
+
+
+def jacobian_budget(space, meshes, ks, smaller=2):
+    """Section 3: a smaller Jacobian budget against the default, one after the other, the same starts."""
+    print(f"\n3. Jacobian budget: {smaller} against the default {MAX_JACOBIANS}, {len(meshes)} meshes, "
+          "CPU s a mesh and mean error (mm)")
+    print(f"| k | {smaller} | {MAX_JACOBIANS} (default) | ratio (cpu) |")
+    print("|---|---|---|---|")
+    start = space.transform(space.encoder.encode(meshes))
+    for k in ks:
+        cells = {}
+        for name, budget in (("now", smaller), ("before", MAX_JACOBIANS)):
+            c = time.process_time()
+            fit = fit_coefficients(space, meshes, k, start=start, max_jacobians=budget)
+            cells[name] = ((time.process_time() - c) / len(meshes), 1000 * float(fit.error_m.mean()))
+        print(f"| {k} | {cells['now'][0]:.2f} s, {cells['now'][1]:.2f} mm | {cells['before'][0]:.2f} s, "
+              f"{cells['before'][1]:.2f} mm | x{cells['before'][0] / max(cells['now'][0], 1e-9):.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -128,3 +128,25 @@ def test_help_imports_no_command_module():
                        env={**os.environ, "PYTHONPATH": src})
     assert r.returncode == 0, r.stderr
     assert "IMPORTED []" in r.stdout, r.stdout[-500:]
+
+
+def test_population_pose_set_gives_every_subject_the_same_poses(template, tmp_path):
+    out = tmp_path / "db"
+    result = runner.invoke(app, ["population", "--subjects", "2", "--pose-set", "squat, arms_crossed", "--seed", "3",
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(out)
+    assert db.n_scans == 6
+    for s in db.subjects["subject"]:
+        assert list(db.scans["pose"][db.scans["subject"] == s]) == ["rest", "squat", "arms_crossed"]
+    assert json.loads((out / "meta.json").read_text())["provenance"]["pose_set"] == ["squat", "arms_crossed"]
+    # Posed scans differ from the subject's rest scan; the two subjects' squats differ.
+    v = np.asarray(db.read(np.arange(6)))
+    assert np.abs(v[1] - v[0]).max() > 0.05 and np.abs(v[4] - v[1]).max() > 0.005
+    for args, words in ((["--pose-set", "squat,no_such_pose"], ["--pose-set", "no_such_pose", "lunge_left"]),
+                        (["--pose-set", "squat,squat"], ["named twice"]),
+                        (["--pose-set", "rest"], ["'rest'", "rest pose first"]),
+                        (["--pose-set", "standard", "--poses", "3"], ["--poses 3", "8 poses", "no --poses"])):
+        bad = runner.invoke(app, ["population", "--subjects", "1", *args, "--out", str(tmp_path / "bad")])
+        assert bad.exit_code == 2 and all(w in bad.output for w in words), bad.output
+        assert "Traceback" not in bad.output and not (tmp_path / "bad").exists()

@@ -19,7 +19,7 @@ from bodyspace.cli.resources import check_disk, check_memory
 from bodyspace.data.database import DATABASE_KIND
 from bodyspace.data.template import load_template
 from bodyspace.errors import ParameterError
-from bodyspace.synth.population import REST_POSE, build_population
+from bodyspace.synth.population import REST_POSE, build_population, resolve_pose_set
 from bodyspace.synth.poses import load_pose_library
 
 
@@ -47,20 +47,37 @@ def check_population_size(subjects: int, poses: int, n_vertices: int, out: Path)
 
 def population(out: Path = typer.Option(..., "--out", help="Database folder to write (must not exist, see --force)."),
                subjects: int = typer.Option(20, "--subjects", min=1, help="Number of subjects."),
-               poses: int = typer.Option(5, "--poses", min=0, help="Poses per subject besides the rest pose "
-                                                                   "(at most the library's 38)."),
+               poses: Optional[int] = typer.Option(None, "--poses", min=0,
+                                                   help="Poses per subject besides the rest pose, drawn at random "
+                                                        "per subject (at most the library's 38; default 5)."),
+               pose_set: Optional[str] = typer.Option(None, "--pose-set",
+                                                      help="Every subject in the same poses instead of random ones: "
+                                                           "'standard' (8 poses spanning the library: arms up, "
+                                                           "forward, crossed, behind the head, squat, step, bend, "
+                                                           "twist) or pose names separated by commas (after the "
+                                                           "rest pose, in that order)."),
                seed: int = SeedOption(),
                workers: Optional[int] = typer.Option(None, "--workers", min=1,
                                                      help="Processes making subjects side by side (default: one "
                                                           "per core). The database is the same for any number."),
                force: bool = ForceOption,
                assets: Optional[Path] = AssetsOption):
-    """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."""
+    """Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each
+    (or the poses of --pose-set, the same for every subject)."""
     check_folder_output(out, "--out", force, DATABASE_KIND)
+    if pose_set is not None:
+        names = resolve_pose_set(pose_set, load_pose_library().names, flag="--pose-set")
+        if poses is not None and poses != len(names):
+            raise ParameterError(f"--poses {poses} with --pose-set {pose_set!r} ({len(names)} poses: "
+                                 f"{', '.join(names)}); expected --poses {len(names)} or no --poses")
+        pose_set, poses = names, len(names)
+    elif poses is None:
+        poses = 5
     check_poses(poses)
     template = load_template(assets)
     check_population_size(subjects, poses, len(template.vertices), out)
     with progress("population", eta=True) as cb:
         db = build_population(template, out, subjects, poses, rng=seed, overwrite=force, progress=cb, workers=workers,
+                              pose_set=pose_set,
                               log=lambda line: console.print(line, highlight=False, soft_wrap=True))
     console.print(f"wrote {db!r} to {out}")

@@ -50,6 +50,11 @@ __all__ = ["VertexFit", "align_parts", "fit_coefficients", "mesh_parts", "residu
 MAX_ITER = 10
 TOL = 1e-2
 # Exact Jacobians per mesh at most (each costs k tangent directions; Broyden updates in between).
+# 2 instead of 4 was measured and not kept: on 4 held-out posed scans (every subject in the same
+# poses, vertex-ordered basis, one process) 0.85 / 1.43 / 1.90 CPU s a mesh at k = 8 / 16 / 32
+# against 1.08 / 1.70 / 2.82 for 0-3 % more mean error, but the fits this budget leaves short
+# are the ones far from their minimum (a bent-forward scan at k = 4: 199 mm with 4 Jacobians,
+# 68 mm with 30 steps and 8), and a smaller budget leaves more of them (docs/encoding.md).
 MAX_JACOBIANS = 4
 # Levenberg-Marquardt damping at the start, relative to the diagonal of J^T J (Marquardt's
 # scaling): a pure Gauss-Newton step from the code projection overshoots where limbs turn.

@@ -5,7 +5,8 @@ target stature ~ Normal(mean, SD) and target BMI ~ log-normal with the survey's 
 For each subject we solve for MakeHuman's ``height`` and ``weight`` parameters so that the
 body *measured on the mesh* has that stature and BMI (mass = capped volume × a density that
 depends on body fat, see ``composition.py``). Each subject is then posed in the rest pose plus
-``poses`` poses from the shipped pose library, by linear blend skinning with the CC0 rig.
+``poses`` poses from the shipped pose library (drawn per subject, or one ``pose_set`` for every
+subject), by linear blend skinning with the CC0 rig.
 Details and the checks against the survey are in docs/population.md.
 """
 
@@ -45,6 +46,12 @@ from bodyspace.synth.poses import load_pose_library
 from bodyspace.validation import as_generator
 
 REST_POSE = "rest"
+# ``pose_set="standard"``: every subject in the same poses spanning the library (arms up,
+# forward, crossed and behind the head, squat, step, bend, twist), so a held-out subject's poses
+# are in every training subject too: a leave-one-subject-out study then measures shape and pose
+# generalization, not whether a random draw happened to show a pose (docs/encoding.md).
+STANDARD_POSE_SET = ("arms_overhead", "arms_forward", "arms_crossed", "hands_behind_head", "squat",
+                     "step_forward_left", "bend_forward", "torso_twist_left")
 CHUNK = 128  # bodies per batch: bounds memory at ~100 MB per batch of float64 meshes
 POSE_BATCH = 128  # scans posed at once (float64 temporaries of ~100 MB)
 SUBJECT_CHUNK = 64  # subjects per chunk of build_population: solved, posed, written, recorded
@@ -420,12 +427,35 @@ def sample_subjects(model: PhenotypeModel, n: int, rng=None, survey: str = "ansu
 
 
 def _request(template: Template, n_subjects: int, n_poses: int, rng: np.random.Generator, rig: str,
-             chunk: int) -> dict:
+             chunk: int, pose_set: list[str] | None = None) -> dict:
     """What a run makes, compared with an unfinished run's before resuming it (the generator's
     starting state stands for the seed)."""
-    return {"format": UNFINISHED_FORMAT, "template": template.template_id, "subjects": int(n_subjects),
-            "poses": int(n_poses), "rig": rig, "chunk_subjects": int(chunk),
-            "rng": json.loads(json.dumps(rng.bit_generator.state, default=int))}
+    out = {"format": UNFINISHED_FORMAT, "template": template.template_id, "subjects": int(n_subjects),
+           "poses": int(n_poses), "rig": rig, "chunk_subjects": int(chunk),
+           "rng": json.loads(json.dumps(rng.bit_generator.state, default=int))}
+    if pose_set is not None:
+        out["pose_set"] = list(pose_set)
+    return out
+
+
+def resolve_pose_set(pose_set, names, flag: str = "pose_set") -> list[str]:
+    """The pose names of a ``pose_set`` argument: ``"standard"`` (``STANDARD_POSE_SET``), a
+    comma-separated string or a sequence of names from the library ``names`` (the rest pose
+    excluded, no repeats, at least one); raises ParameterError naming ``flag`` otherwise."""
+    if isinstance(pose_set, str):
+        chosen = list(STANDARD_POSE_SET) if pose_set.strip() == "standard" else \
+            [p.strip() for p in pose_set.split(",") if p.strip()]
+    else:
+        chosen = [str(p) for p in pose_set]
+    unknown = [p for p in chosen if p not in names or p == REST_POSE]
+    if not chosen or unknown or len(set(chosen)) != len(chosen):
+        others = [n for n in names if n != REST_POSE]
+        found = (f"unknown pose(s) {', '.join(unknown)}" if unknown else
+                 "no pose" if not chosen else "a pose named twice")
+        raise ParameterError(f"{flag} {pose_set!r}: {found}; expected 'standard' or distinct pose names of the "
+                             f"library besides {REST_POSE!r} (every subject gets the rest pose first), separated by "
+                             f"commas: {', '.join(others)}")
+    return chosen
 
 
 def unfinished_folder(out: str | os.PathLike) -> Path:
@@ -496,11 +526,14 @@ def _population_chunk(start: int, stop: int, chosen: list[list[str]]) -> dict:
 def build_population(template: Template, out, n_subjects: int, n_poses: int, rng=None, rig: str = "default",
                      overwrite: bool = False, progress: Callable[[str, float], None] | None = None,
                      chunk: int = SUBJECT_CHUNK, log: Callable[[str], None] | None = None,
-                     workers: int | None = None):
+                     workers: int | None = None, pose_set=None):
     """Write a synthetic scan database folder: ``n_subjects`` adults × (rest + ``n_poses`` poses).
 
     Each subject gets ``n_poses`` distinct poses drawn at random from the pose library (more
-    than it holds is refused, not cut). ``progress(message, fraction)`` is called as work completes;
+    than it holds is refused, not cut), or, with ``pose_set`` (``"standard"``, comma-separated
+    names or a list, ``resolve_pose_set``), every subject the rest pose then exactly those poses
+    in that order (``n_poses`` must then be their number or None; no poses are drawn, so the
+    subjects are the same as a run with the same seed and ``n_poses=0``). ``progress(message, fraction)`` is called as work completes;
     ``log(line)`` gets what the user should read (started cleanly or resumed; redrawn subjects).
     Returns the written folder as a ``ScanDatabase``.
 
@@ -516,14 +549,20 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     chunk order, each chunk is computed from the seed's draw alone (``_population_chunk``), and
     chunks are recorded as done in order.
     """
-    if n_subjects < 1 or n_poses < 0:
+    library = load_pose_library()
+    if pose_set is not None:
+        pose_set = resolve_pose_set(pose_set, library.names)
+        if n_poses is not None and n_poses != len(pose_set):
+            raise ParameterError(f"poses = {n_poses} with a pose set of {len(pose_set)} poses "
+                                 f"({', '.join(pose_set)}); expected the same number or none (CLI: leave out --poses)")
+        n_poses = len(pose_set)
+    if n_subjects < 1 or n_poses is None or n_poses < 0:
         raise ParameterError(f"subjects = {n_subjects}, poses = {n_poses}; expected subjects >= 1 and poses >= 0")
     out = Path(out)
     if out.exists():
         if not overwrite:
             raise DatabaseError(f"{out}: already exists; pass overwrite=True (CLI: --force) to replace it")
         check_replaceable_folder(out, DATABASE_KIND)  # before the work, not after
-    library = load_pose_library()
     others = [name for name in library.names if name != REST_POSE]
     if n_poses > len(others):
         raise ParameterError(f"poses = {n_poses}, but the pose library has {len(others)} poses besides the rest "
@@ -538,7 +577,7 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     chunk = max(1, int(chunk))
     per_subject = 1 + n_poses
     n_scans = n_subjects * per_subject
-    request = _request(template, n_subjects, n_poses, rng, rig, chunk)
+    request = _request(template, n_subjects, n_poses, rng, rig, chunk, pose_set)
     work = unfinished_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)
 
@@ -574,7 +613,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
     def tasks():
         for start in range(done, n_subjects, chunk):
             stop = min(n_subjects, start + chunk)
-            chosen = [[REST_POSE] + list(rng.choice(others, n_poses, replace=False)) for _ in range(start, stop)]
+            chosen = [[REST_POSE] + (list(pose_set) if pose_set is not None else
+                                     list(rng.choice(others, n_poses, replace=False))) for _ in range(start, stop)]
             drawn_poses[start] = ([name for names in chosen for name in names],
                                   json.loads(json.dumps(rng.bit_generator.state, default=int)))
             yield start, stop, chosen
@@ -619,6 +659,8 @@ def build_population(template: Template, out, n_subjects: int, n_poses: int, rng
             },
             "licence": "CC0 1.0 (generated from CC0 MakeHuman assets)",
         }
+        if pose_set is not None:
+            meta["provenance"]["pose_set"] = list(pose_set)
         if redraws["redrawn"]:
             meta["provenance"]["redraw_target_moments"] = redraws["moments"]
         report("writing the tables", CHUNKS_SHARE)
