@@ -46,7 +46,8 @@ COMMANDS: dict[str, CommandEntry] = {
         "Show where the CC0 MakeHuman assets are and whether they verify."),
     "population": CommandEntry(
         "bodyspace.cli.population", "population",
-        "Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each."),
+        "Build a synthetic scan database: survey-drawn adults in a rest pose plus POSES poses each\n"
+        "(or the poses of --pose-set, the same for every subject)."),
     "example-scans": CommandEntry(
         "bodyspace.cli.examples", "example_scans",
         "Write example scans of another topology: OBJ meshes (posed, off the origin, floor not at zero),\n"
