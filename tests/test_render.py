@@ -19,7 +19,9 @@ except ModuleNotFoundError:  # not installed: run from the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from bodyspace.errors import MeshError, ParameterError
+from bodyspace.mesh.geometry import vertex_normals as mesh_normals
 from bodyspace.report import render as R
+from bodyspace.report.rig_figure import weight_view
 
 # ------------------------------------------------------------------------------------ helpers
 
@@ -227,6 +229,14 @@ def test_contact_sheet_wraps_a_long_title_inside_the_picture(tmp_path):
     assert not ink[:2].any()
     text_rows = rows[rows < np.flatnonzero(skin_mask(img).any(axis=1)).min()]
     assert np.ptp(text_rows) > 2 * 9 * 60 / 72
+
+
+def test_a_weight_map_is_drawn_from_the_side_the_weight_is_on():
+    # A spine bone's weight lies on the back: drawn from the front its map was blank.
+    v, f = ellipsoid()
+    facing = mesh_normals(v, f)[:, 2]
+    back, front = (v[:, 2] < -0.05).astype(float), (v[:, 2] > 0.05).astype(float)
+    assert weight_view(back, facing) == "back" and weight_view(front, facing) == "front"
 
 
 def test_contact_sheet_uses_one_vertical_scale(tmp_path):

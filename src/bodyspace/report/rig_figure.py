@@ -2,8 +2,9 @@
 
 ``rig_figure`` draws, left to right: the body front and side with every bone as a line from
 head to tail over it (drawn on top: an X-ray view, the bones are inside the body) and a dot at
-each head; then one front view per chosen bone with its skin weights as colour (white 0 to
-dark red 1) on the shaded body. The drawing (projection, shading, atomic PNG write) is
+each head; then one view per chosen bone with its skin weights as colour (white 0 to dark red
+1) on the shaded body: from the front, or from the back for a bone whose weight lies mostly on
+the back (a spine bone's: from the front its map was blank). The drawing (projection, shading, atomic PNG write) is
 ``report.render``'s.
 """
 
@@ -19,10 +20,11 @@ from matplotlib import colormaps
 from matplotlib.collections import LineCollection, PolyCollection
 
 from bodyspace.errors import ParameterError
+from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.report.render import draw_mesh, new_figure, project, save_png, shade
 from bodyspace.rig.skeleton import Skeleton
 
-__all__ = ["rig_figure", "default_weight_bones"]
+__all__ = ["rig_figure", "default_weight_bones", "weight_view"]
 
 BONE_COLOR = "#1f5fa8"
 PALE_SKIN = (0.93, 0.86, 0.80)
@@ -64,6 +66,14 @@ def _draw_weights(ax, vertices, faces, values, view="front"):
     ax.autoscale_view()
 
 
+def weight_view(weights: np.ndarray, facing: np.ndarray) -> str:
+    """"front" or "back": the view that shows more of a bone's weight. weights (V,) of one bone;
+    facing (V,) each vertex normal's component towards the front camera (+Z)."""
+    front = float(weights @ np.maximum(facing, 0.0))
+    back = float(weights @ np.maximum(-facing, 0.0))
+    return "back" if back > front else "front"
+
+
 def rig_figure(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, skeleton: Skeleton,
                weights: sp.spmatrix, bones: Sequence[str] | None = None, title: str | None = None,
                dpi: float = 110) -> Path:
@@ -84,6 +94,7 @@ def rig_figure(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
     # one scale for every panel: each is as wide as the widest view of the body, centred on it
     width = 1.06 * max(float(np.ptp(project(v, view)[0][:, 0])) for view in ("front", "side"))
     fig = new_figure(5.0 * panels * width / (1.04 * height) + 0.2, 5.6, dpi)
+    facing = vertex_normals(v, f)[:, 2]                  # +1 towards the front camera, -1 the back
     for k in range(panels):
         ax = fig.add_subplot(1, panels, k + 1)
         ax.set_axis_off()
@@ -97,10 +108,11 @@ def rig_figure(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
             ax.scatter(h[:, 0], h[:, 1], s=5, color=BONE_COLOR, zorder=5, linewidths=0)
             ax.set_title(f"{skeleton.name}: {skeleton.n_bones} bones, {view}", fontsize=8)
         else:
-            b = index[k - 2]
-            _draw_weights(ax, v, f, W[:, b].toarray().ravel())
-            ax.set_title(f"weights of {bones[k - 2]}", fontsize=8)
-        xs = project(v, "side" if k == 1 else "front")[0][:, 0]
+            w = W[:, index[k - 2]].toarray().ravel()
+            view = weight_view(w, facing)
+            _draw_weights(ax, v, f, w, view)
+            ax.set_title(f"weights of {bones[k - 2]}{'' if view == 'front' else f' ({view})'}", fontsize=8)
+        xs = project(v, view)[0][:, 0]
         mid = 0.5 * (xs.min() + xs.max())
         ax.set_xlim(mid - width / 2, mid + width / 2)
         lo = v[:, 1].min() - 0.02 * height
