@@ -528,11 +528,11 @@ def condition_notes(conditions: dict[str, dict], lm: dict, n: int) -> dict[str, 
     return out
 
 
-def standing_note(mset: MeasurementSet, lm: dict) -> str | None:
-    """None if the one body whose landmark points are ``lm`` (name → (1, 3)) stands by the set's
-    ``STANDING_CONDITION`` (or the set has none), else the reason it does not."""
+def standing_notes(mset: MeasurementSet, lm: dict, n: int) -> list:
+    """Per body of ``n`` whose landmark points are ``lm`` (name → (n, 3)): None if it stands by the
+    set's ``STANDING_CONDITION`` (or the set has none), else the reason it does not."""
     c = mset.conditions.get(STANDING_CONDITION)
-    return None if c is None else condition_notes({STANDING_CONDITION: c}, lm, 1)[STANDING_CONDITION][0]
+    return [None] * n if c is None else condition_notes({STANDING_CONDITION: c}, lm, n)[STANDING_CONDITION]
 
 
 def parts_unknown_note(why: str) -> str:
@@ -566,7 +566,7 @@ def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.nda
     lm = {name: points[i] for i, name in enumerate(mset.landmarks)}
     labels, unknown = mset.vertex_parts, mset.parts_unknown
     if needs_parts:
-        why = standing_note(mset, {name: p[None] for name, p in lm.items()})
+        why = standing_notes(mset, {name: p[None] for name, p in lm.items()}, 1)[0]
         if why is None:
             labels, unknown = parts_from_landmarks(v, lm, faces), None
         else:

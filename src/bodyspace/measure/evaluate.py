@@ -23,7 +23,7 @@ import scipy.sparse as sp
 
 from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import (MeasurementError, MeasurementSet, condition_notes, parts_unknown_note,
-                                           standing_note)
+                                           standing_notes)
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
 from bodyspace.measure.parts import parts_from_landmarks
 from bodyspace.measure.points import inline_key, inline_points
@@ -259,7 +259,7 @@ def vertex_parts(mset: MeasurementSet, v: np.ndarray, L, faces: np.ndarray | Non
     if mset.parts_unknown is not None:
         return None, mset.parts_unknown
     P = _landmarks(L, v)
-    notes = [standing_note(mset, {name: P[i:i + 1, k] for k, name in enumerate(mset.landmarks)}) for i in range(len(v))]
+    notes = standing_notes(mset, {name: P[:, k] for k, name in enumerate(mset.landmarks)}, len(v))
     standing = [i for i, note in enumerate(notes) if note is None]
     if not standing:
         return None, parts_unknown_note(notes[0])
