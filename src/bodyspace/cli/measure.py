@@ -22,7 +22,7 @@ from bodyspace.data.database import META_FILE, VERTICES_FILE, ScanDatabase
 from bodyspace.data.template import load_template
 from bodyspace.errors import BodyspaceError, MeasurementError, MeshError
 from bodyspace.measure import check_compatible, conventions, evaluate, load_measurement_set, to_json
-from bodyspace.measure.definitions import with_standing_body
+from bodyspace.measure.definitions import standing_note, with_standing_body
 from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
@@ -99,13 +99,11 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         # A landmark file without body parts or joints for its topology: the first mesh that stands
         # places them for all (a seated body cannot: its arms lie against its torso); else each
         # mesh places its own joints, and its girths are NaN with the reason if it does not stand.
-        for v, f in bodies:
-            placed = with_standing_body(mset, v, f)
-            if placed.parts_unknown is None:
-                mset = placed
-                break
+        standing = next(((v, f) for v, f in bodies if standing_note(mset, v) is None), None)
+        if standing is not None:
+            mset = with_standing_body(mset, *standing)
         for (path, label), (v, f) in zip(zip(meshes, labels), bodies):
-            own = with_standing_body(mset, v, f)
+            own = with_standing_body(mset, v, f)     # the set itself once a standing mesh placed all
             results[label] = evaluate(own, v, f, keep_polylines=png is not None, mesh_name=str(path))
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]

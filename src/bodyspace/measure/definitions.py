@@ -535,11 +535,26 @@ def standing_notes(mset: MeasurementSet, lm: dict, n: int) -> list:
     return [None] * n if c is None else condition_notes({STANDING_CONDITION: c}, lm, n)[STANDING_CONDITION]
 
 
-def parts_unknown_note(why: str) -> str:
-    """The note of a measurement that goes round a body part when the parts are unknown."""
-    return (f"body parts unknown: the landmark file has none for this topology and they are assigned only "
-            f"on a standing body ({why}); give a landmark file with them (bodyspace landmarks MESH writes "
-            "one), or measure a standing body of this topology in the same call")
+def standing_note(mset: MeasurementSet, vertices: np.ndarray) -> str | None:
+    """None if the body (V, 3) of the set's topology stands (``standing_notes``), else the reason."""
+    points = mset.landmark_matrix(len(vertices)) @ np.asarray(vertices, dtype=float)
+    return standing_notes(mset, {name: points[i][None] for i, name in enumerate(mset.landmarks)}, 1)[0]
+
+
+def parts_on_standing_body(mset: MeasurementSet, vertices: np.ndarray, points: np.ndarray,
+                           faces: np.ndarray | None = None) -> tuple[np.ndarray | None, str | None]:
+    """Body parts (V,) assigned from the landmarks of the first of the bodies ``vertices``
+    (N, V, 3) that stands (``points``: their landmark points (N, L, 3) in the set's order;
+    ``parts.parts_from_landmarks``) and None; or None and the note of the measurements that go
+    round a part when none stands (a seated or bent body's limbs lie nearer to the torso's lines
+    than to their own bones)."""
+    notes = standing_notes(mset, {name: points[:, k] for k, name in enumerate(mset.landmarks)}, len(vertices))
+    i = next((i for i, note in enumerate(notes) if note is None), None)
+    if i is None:
+        return None, (f"body parts unknown: the landmark file has none for this topology and they are assigned "
+                      f"only on a standing body ({notes[0]}); give a landmark file with them (bodyspace landmarks "
+                      "MESH writes one), or measure a standing body of this topology in the same call")
+    return parts_from_landmarks(vertices[i], {name: points[i, k] for k, name in enumerate(mset.landmarks)}, faces), None
 
 
 def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray | None = None) -> MeasurementSet:
@@ -566,11 +581,7 @@ def with_standing_body(mset: MeasurementSet, vertices: np.ndarray, faces: np.nda
     lm = {name: points[i] for i, name in enumerate(mset.landmarks)}
     labels, unknown = mset.vertex_parts, mset.parts_unknown
     if needs_parts:
-        why = standing_notes(mset, {name: p[None] for name, p in lm.items()}, 1)[0]
-        if why is None:
-            labels, unknown = parts_from_landmarks(v, lm, faces), None
-        else:
-            unknown = parts_unknown_note(why)
+        labels, unknown = parts_on_standing_body(mset, v[None], points[None], faces)
     measurements = []
     for m in mset.measurements:
         for k in ("normal", "axis"):

@@ -22,10 +22,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from bodyspace.measure.conventions import check_body_scale, check_winding
-from bodyspace.measure.definitions import (MeasurementError, MeasurementSet, condition_notes, parts_unknown_note,
-                                           standing_notes)
+from bodyspace.measure.definitions import MeasurementError, MeasurementSet, condition_notes, parts_on_standing_body
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
-from bodyspace.measure.parts import parts_from_landmarks
 from bodyspace.measure.points import inline_key, inline_points
 from bodyspace.mesh.geometry import check_mesh
 
@@ -258,13 +256,7 @@ def vertex_parts(mset: MeasurementSet, v: np.ndarray, L, faces: np.ndarray | Non
         return mset.vertex_parts, None
     if mset.parts_unknown is not None:
         return None, mset.parts_unknown
-    P = _landmarks(L, v)
-    notes = standing_notes(mset, {name: P[:, k] for k, name in enumerate(mset.landmarks)}, len(v))
-    standing = [i for i, note in enumerate(notes) if note is None]
-    if not standing:
-        return None, parts_unknown_note(notes[0])
-    i = standing[0]
-    return parts_from_landmarks(v[i], {name: P[i, k] for k, name in enumerate(mset.landmarks)}, faces), None
+    return parts_on_standing_body(mset, v, _landmarks(L, v), faces)
 
 
 def _run_job(job):
