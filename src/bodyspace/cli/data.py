@@ -23,7 +23,6 @@ from bodyspace.data.database import (
     REST_POSE_FIRST,
     SEX_COLUMN,
     SUBJECT_ID_COLUMN,
-    UP_ROTATIONS,
     ScanDatabase,
     check_label_columns,
     choose_rest_pose,
@@ -32,7 +31,7 @@ from bodyspace.data.database import (
 )
 from bodyspace.data.template import load_template
 from bodyspace.errors import DatabaseError
-from bodyspace.measure.conventions import MESH_UNITS
+from bodyspace.measure.conventions import MESH_UNITS, UP_ROTATIONS
 from bodyspace.model import check_landmark_file
 from bodyspace.register.batch import register_files
 from bodyspace.register.pipeline import DEFAULT_STEPS

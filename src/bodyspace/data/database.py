@@ -34,7 +34,7 @@ import numpy as np
 from bodyspace.atomic import atomic_dir, atomic_path, check_replaceable_folder
 from bodyspace.rowfile import create_rows, npy_layout, read_rows, write_rows
 from bodyspace.errors import BodyspaceError, DatabaseError
-from bodyspace.measure.conventions import BODY_EXTENT_M
+from bodyspace.measure.conventions import BODY_EXTENT_M, UP_ROTATIONS
 from bodyspace.mesh.io import load_mesh
 
 FORMAT_VERSION = 1
@@ -587,17 +587,6 @@ def load_database_arrays(folder: Path, check_values: bool = True) -> dict:
 # ----------------------------------------------------------------------------------------------
 
 _LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
-# The user's up axis -> the rotation R (internal = R @ user) that turns it to +Y. Proper
-# rotations (no mirror image), each about one axis: "z" turns about X, so a Z-up mesh that faces
-# -Y (Blender's convention, synth.foreign.to_frame(up="z")) ends up facing +Z, our front.
-UP_ROTATIONS = {
-    "y": np.eye(3),
-    "-y": np.diag([1.0, -1.0, -1.0]),
-    "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-    "-z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
-    "x": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-    "-x": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-}
 # A folder whose Y extent is below this share of its tallest extent (median over the meshes) does
 # not stand along Y. A T-pose is about as wide as tall, so only a clearly shorter Y counts.
 UP_EXTENT_SHARE = 0.6

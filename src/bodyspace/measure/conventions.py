@@ -69,7 +69,7 @@ UP_AXES = ("y", "-y", "x", "-x", "z", "-z")
 _AXIS_VECTORS = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z": (0, 0, 1), "-z": (0, 0, -1)}
 # Rotations taking each up axis to +Y (proper rotations: no mirror). "z" is Blender's convention,
 # the person facing -Y, which becomes +Z (our front); "-y" (upside down) turns about X.
-_TO_Y_UP = {
+UP_ROTATIONS = {
     "y": np.eye(3),
     "-y": np.diag([1.0, -1.0, -1.0]),
     "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
@@ -457,9 +457,9 @@ def to_internal(vertices: np.ndarray, faces: np.ndarray, units: str = "m", up: s
     and with ``flip_winding`` every face reversed. Returns new (vertices (V, 3), faces (F, 3))."""
     if units not in MESH_UNITS:
         raise MeasurementError(f"units={units!r}; expected one of {', '.join(MESH_UNITS)}")
-    if up not in _TO_Y_UP:
+    if up not in UP_ROTATIONS:
         raise MeasurementError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
-    v = (np.asarray(vertices, dtype=float) * MESH_UNITS[units]) @ _TO_Y_UP[up].T
+    v = (np.asarray(vertices, dtype=float) * MESH_UNITS[units]) @ UP_ROTATIONS[up].T
     f = np.asarray(faces)
     return v, (f[:, ::-1].copy() if flip_winding else f)
 
