@@ -51,8 +51,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from bodyspace.data.template import RIG_NAMES, load_template
-from bodyspace.errors import MotionError
+from bodyspace.errors import MotionError, ParameterError
 from bodyspace.motion.bvh import Motion
+from bodyspace.rig.kinematics import bone_depths
 from bodyspace.rig.skeleton import Skeleton, body_skeleton
 
 __all__ = ["Anatomy", "JointGraph", "JointPair", "Segment", "SkeletonMatch", "body_anatomy", "graph_from_motion",
@@ -115,22 +116,12 @@ class JointGraph:
 
 
 def _depths(parents: np.ndarray, label: str) -> np.ndarray:
-    J = len(parents)
-    if ((parents < -1) | (parents >= J)).any():
-        raise MotionError(f"skeleton {label!r}: parent indices {parents.tolist()} out of range; expected -1 or a joint")
-    depth = np.full(J, -1)
-    for j in range(J):
-        chain, p = [], j
-        while p >= 0 and depth[p] < 0:
-            chain.append(p)
-            p = parents[p]
-            if len(chain) > J:
-                raise MotionError(f"skeleton {label!r}: joint {j} is on a cycle of parents; expected a tree")
-        d = depth[p] if p >= 0 else -1
-        for c in reversed(chain):
-            d += 1
-            depth[c] = d
-    return depth
+    """(J,) depth of each joint of the skeleton ``label``; ``MotionError`` naming it for a parent
+    index out of range or a cycle."""
+    try:
+        return bone_depths(parents)
+    except ParameterError as exc:
+        raise MotionError(f"skeleton {label!r}: {exc}") from None
 
 
 def graph_from_motion(motion: Motion) -> JointGraph:

@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.rig.skinning import dual_quaternion_skinning, linear_blend_skinning
 
-__all__ = ["bone_rest_frames", "dual_quaternion_skinning", "dual_quaternion_skinning_numpy", "forward_kinematics",
+__all__ = ["bone_depths", "bone_rest_frames", "dual_quaternion_skinning", "dual_quaternion_skinning_numpy", "forward_kinematics",
            "forward_kinematics_numpy", "linear_blend_skinning", "linear_blend_skinning_numpy",
            "matrix_to_quaternion", "matrix_to_rotvec", "rotvec_to_matrix", "topological_order"]
 
@@ -120,16 +120,13 @@ def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------ forward kinematics
 
-def topological_order(parents: np.ndarray) -> np.ndarray:
-    """Bone indices (B,) ordered so that every parent comes before its children.
-
-    parents: (B,) int, -1 for a root. MakeHuman rigs list bones alphabetically, not
-    parent-first, so forward kinematics cannot simply run in index order.
-    """
+def bone_depths(parents) -> np.ndarray:
+    """(B,) int depth of every bone in its tree (0 for a root), for parents (B,) int with -1 for
+    a root; ``ParameterError`` for an index out of range or a cycle."""
     parents = np.asarray(parents, dtype=np.int64)
     B = len(parents)
     if parents.ndim != 1 or ((parents < -1) | (parents >= B)).any():
-        raise ParameterError(f"parents: expected (B,) indices in [-1, B), got {parents!r}")
+        raise ParameterError(f"parents: expected (B,) indices in [-1, B), got {parents.tolist()}")
     depth = np.full(B, -1)
     for b in range(B):
         chain, p = [], b
@@ -142,7 +139,16 @@ def topological_order(parents: np.ndarray) -> np.ndarray:
         for c in reversed(chain):
             d += 1
             depth[c] = d
-    return np.argsort(depth, kind="stable")
+    return depth
+
+
+def topological_order(parents: np.ndarray) -> np.ndarray:
+    """Bone indices (B,) ordered so that every parent comes before its children.
+
+    parents: (B,) int, -1 for a root. MakeHuman rigs list bones alphabetically, not
+    parent-first, so forward kinematics cannot simply run in index order.
+    """
+    return np.argsort(bone_depths(parents), kind="stable")
 
 
 def _fk_inputs(rotations, heads, parents) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
