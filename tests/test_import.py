@@ -261,6 +261,9 @@ def test_one_foreign_mesh_in_metres_among_mm_is_refused(foreign, tmp_path):
 @pytest.mark.parametrize("header, value, words", [
     ("stature", "170", ["'stature'", "did you mean stature_cm?"]),
     ("waist_girth", "80", ["did you mean waist_girth_cm?"]),
+    ("age_yrs", "40", ["'age_yrs'", "did you mean age_years?"]),
+    ("Stature (cm)", "170", ["did you mean stature_cm?"]),
+    ("stature_mm", "1700", ["did you mean stature_cm?", "convert them from mm"]),
     ("stature_cm", "1700", ["1700 cm", "40 to 280 cm"]),
     ("stature_cm", "1.70", ["1.7 cm", "40 to 280 cm"]),
     ("mass_kg", "-60", ["-60 kg", "2 to 650 kg"]),

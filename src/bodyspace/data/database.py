@@ -79,6 +79,18 @@ UNIT_RANGES = {"cm": (0.0, 300.0), "kg": (0.0, 650.0), "kg/m^2": (8.0, 120.0), "
 LABEL_SUGGESTIONS = {"stature": "stature_cm", "height": "stature_cm", "mass": "mass_kg", "weight": "mass_kg",
                      "bmi": "bmi_kg_m2", "age": "age_years", "body_fat": "body_fat_percent", "volume": "volume_m3",
                      "gender": "gender_1"}
+# A unit written another way, or in a unit labels are not read in -> (the suffix we read, the
+# unit its values must be converted from, or "" when only the name is wrong).
+UNIT_SPELLINGS = {
+    "yrs": ("_years", ""), "yr": ("_years", ""), "year": ("_years", ""), "y": ("_years", ""), "a": ("_years", ""),
+    "kgs": ("_kg", ""), "kilo": ("_kg", ""), "kilos": ("_kg", ""), "kilograms": ("_kg", ""),
+    "kilogram": ("_kg", ""), "cms": ("_cm", ""), "centimeters": ("_cm", ""), "centimetres": ("_cm", ""),
+    "centimeter": ("_cm", ""), "centimetre": ("_cm", ""), "pct": ("_percent", ""), "perc": ("_percent", ""),
+    "%": ("_percent", ""), "mm": ("_cm", "mm"), "m": ("_cm", "m"), "in": ("_cm", "inches"),
+    "inch": ("_cm", "inches"), "inches": ("_cm", "inches"), "ft": ("_cm", "feet"), "g": ("_kg", "g"),
+    "lb": ("_kg", "pounds"), "lbs": ("_kg", "pounds"), "pounds": ("_kg", "pounds"),
+    "kgm2": ("_kg_m2", ""), "kg/m2": ("_kg_m2", ""), "kg/m^2": ("_kg_m2", ""), "l": ("_m3", "litres"),
+}
 SEXES = ("female", "male")
 SUBJECT_ID_COLUMN = "subject"
 SEX_COLUMN = "sex"
@@ -130,10 +142,31 @@ def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None
 
 
 def _suggestion(column: str) -> str:
-    """' (did you mean stature_cm?)' for a unit-less name we can guess, else ''."""
-    key = column.strip().lower().replace(" ", "_").replace("-", "_")
+    """' (did you mean stature_cm?)' for a name we can guess, else ''.
+
+    A unit-less name (``stature``), or a name whose unit is misspelt or not one we read
+    (``age_yrs``, ``mass_kgs``, ``stature (cm)``, ``stature_mm``: then the values must be converted
+    too, which the suggestion says).
+    """
+    key = column.strip().lower()
+    for ch in "()[]":
+        key = key.replace(ch, "_" if ch in "([" else "")
+    key = "_".join(part for part in key.replace(" ", "_").replace("-", "_").split("_") if part)
     if key in LABEL_SUGGESTIONS:
         return f" (did you mean {LABEL_SUGGESTIONS[key]}?)"
+    if key != column and unit_of_label(key) is not None:         # 'Stature (cm)' -> stature_cm
+        return f" (did you mean {key}?)"
+    base, _, unit = key.rpartition("_")
+    if base and unit in UNIT_SPELLINGS:
+        suffix, convert_from = UNIT_SPELLINGS[unit]
+        name = LABEL_SUGGESTIONS.get(base, "")
+        name = name if name.endswith(suffix) else base + suffix
+        if name == column:
+            return ""
+        if convert_from:
+            return (f" (did you mean {name}? its values are read in {LABEL_UNITS[suffix]}: "
+                    f"convert them from {convert_from} and rename the column)")
+        return f" (did you mean {name}?)"
     if any(word in key for word in ("girth", "circumference", "length", "width", "depth", "size")):
         return f" (did you mean {key}_cm?)"
     return ""
