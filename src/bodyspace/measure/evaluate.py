@@ -142,7 +142,8 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
 
 def _implausible(m: dict, val: np.ndarray, notes: list, earlier: dict) -> None:
     """Set to NaN (with the reason) the values outside the definition's ``plausible`` bounds: the
-    ``range`` [lo, hi] a human's value lies in (SI), and the ``ratio_to`` bounds against
+    ``range`` [lo, hi] a human's value lies in (SI; with ``adult_stature`` the low end shrinks in
+    proportion on a body shorter than that), and the ``ratio_to`` bounds against
     measurements made earlier ({name: [lo, hi]}: chest, waist and hip keep an order that holds
     for people). A tape that caught an arm or a chin, or a plane that missed the body, gives
     values these bounds catch; nonsense is never printed as a number (issue 12 §3)."""
@@ -153,10 +154,18 @@ def _implausible(m: dict, val: np.ndarray, notes: list, earlier: dict) -> None:
     label = m["name"].replace("_", " ")
     if "range" in rule:
         lo, hi = rule["range"]
+        lo = np.full(len(val), float(lo))
+        if "adult_stature" in rule and earlier.get("stature") is not None:
+            # A child's girths are an adult's scaled down: the low end follows the measured
+            # stature below an adult's (a 1 m child's wrist of 9 cm is no tape error).
+            with np.errstate(invalid="ignore"):
+                shrink = np.clip(earlier["stature"] / rule["adult_stature"], 0.3, 1.0)
+            lo = np.where(np.isfinite(shrink), lo * shrink, lo)
         for i in np.flatnonzero((val < lo) | (val > hi)):
             notes[i] = notes[i] or (f"implausible: {label} {val[i] * scale:.1f} {unit} is outside the "
-                                    f"{lo * scale:g}-{hi * scale:g} {unit} of a human (the tape caught another "
-                                    "body part or missed this one)")
+                                    f"{lo[i] * scale:.3g}-{hi * scale:g} {unit} of a human"
+                                    f"{' of this stature' if lo[i] < rule['range'][0] else ''} (the tape caught "
+                                    "another body part or missed this one)")
             val[i] = np.nan
     for other, (lo, hi) in rule.get("ratio_to", {}).items():
         ref = earlier.get(other)
