@@ -143,6 +143,23 @@ def test_child_girths_are_not_implausible(mset, mean_body, template):
                 stature, dict(chest, plausible={"adult_stature": bad, "range": [0.5, 2.0]})]))
 
 
+def test_landmark_in_a_hole_is_measured_with_a_note(mset, mean_body, template):
+    """A scan's hole that takes a landmark vertex (the vertices stay, as in registered scans) is
+    measured from the vertex's position, and the measurements using it say so; a face list cut
+    short (a quarter of the faces gone) is still refused."""
+    from bodyspace.synth.foreign import punch_holes
+    bust = int(mset.landmarks["bust_l"][0][0])
+    holed = punch_holes(mean_body, template.faces, mean_body[[bust]], radius=0.03)
+    whole = evaluate(mset, mean_body, template.faces)
+    r = evaluate(mset, mean_body, holed)
+    assert abs(r["chest_girth"].value - whole["chest_girth"].value) < 0.012
+    assert "'bust_l' lies in a hole" in r["chest_girth"].note
+    assert r["waist_girth"].note is None and r["stature"].note is None
+    assert "lies in a hole" in to_json(r)["chest_girth"]["note"]
+    with pytest.raises(MeasurementError, match="on none of them"):
+        evaluate(mset, mean_body, template.faces[: 3 * len(template.faces) // 4])
+
+
 def test_parts_round_trip_and_older_files(mset, mean_body, template):
     d = mset.to_dict()
     back = measurement_set_from_dict(json.loads(json.dumps(d)))

@@ -240,7 +240,8 @@ def _column_names(meshes: list[Path]) -> list[str]:
 
 
 def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
-    """One column per mesh; an undefined value is 'n/a [k]', its reason printed under the table."""
+    """One column per mesh; an undefined value is 'n/a [k]', its reason printed under the table, and
+    a value with a note 'VALUE [k]' (the note under the table too)."""
     table = Table(title="measurements")
     table.add_column("name")
     for h in headers:
@@ -254,6 +255,10 @@ def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
             if e["value"] is None:
                 k = reasons.setdefault(e.get("note") or "undefined for this body", len(reasons) + 1)
                 cells.append(escape(f"n/a [{k}]"))
+            elif e.get("note") and name != "unposed":    # a caveat (a landmark in a hole); the
+                # unposed row's note is printed under the table on its own line
+                k = reasons.setdefault(e["note"], len(reasons) + 1)
+                cells.append(escape(f"{e['value']:.4g} [{k}]"))
             else:
                 cells.append(f"{e['value']:.4g}")
         table.add_row(escape(name), *cells, escape(first["unit"]))
