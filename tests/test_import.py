@@ -347,3 +347,29 @@ def test_bad_npy_files_are_refused(foreign, tmp_path, array, faces, words):
         np.save(faces_file, faces)
     refused(run("import", npy, "--labels", npy / "labels.csv", "--out", tmp_path / "db", "--units", "mm", "--up", "z",
                 "--faces", faces_file), *words)
+
+
+def test_landmarks_stand_the_folder_in_our_frame(foreign, tmp_path):
+    """A scanner's folder (turned 25°, off the origin, the floor not at zero) imported with its
+    landmarks faces +Z on the floor over the origin: one rigid move for all scans (each equals
+    the true body moved by one shift); --keep-placement keeps the scanner's frame."""
+    folder, truth, topology = foreign
+    lm = tmp_path / "landmarks.json"
+    lm.write_text(json.dumps(topology.landmark_file()))
+    result = run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "db", "--units", "mm",
+                 "--up", "z", "--landmarks", lm)
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "placed: the bodies faced +25° from +Z" in said and "floor at y = 0.93 m" in said, said
+    db = ScanDatabase.load(tmp_path / "db")
+    names = [f"{s}_{p}.obj" for s in FOREIGN_SUBJECTS for p in FOREIGN_POSES]
+    shift = np.stack([np.asarray(db.vertices[i], float) - truth[n] for i, n in enumerate(names)])   # (N, V, 3)
+    assert np.abs(shift - shift.mean(axis=(0, 1))).max() < 0.004          # one rigid move, the same turn
+    assert abs(shift[..., 1].mean()) < 0.003          # truth stands on y = 0 (the remeshed sole 1.5 mm higher)
+    assert np.abs(shift.mean(axis=(0, 1))[[0, 2]]).max() < 0.05             # over the origin
+    assert db.meta["provenance"]["placement"]["faced_degrees"] == pytest.approx(25.0, abs=1.0)
+    kept = run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "kept", "--units", "mm",
+               "--up", "z", "--landmarks", lm, "--keep-placement")
+    assert kept.exit_code == 0 and "placed:" not in kept.output, kept.output
+    raw = np.asarray(ScanDatabase.load(tmp_path / "kept").vertices[0], float)
+    assert raw[:, 1].min() == pytest.approx(0.93, abs=0.002)               # the scanner's floor
