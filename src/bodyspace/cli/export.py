@@ -22,7 +22,7 @@ from bodyspace.data.template import RIG_NAMES, load_template
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.export.gltf import write_gltf
 from bodyspace.export.morphs import parse_morph_specs, semantic_morph_targets
-from bodyspace.measure.conventions import MESH_UNITS
+from bodyspace.measure.conventions import MESH_UNITS, winding_inwards
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
@@ -78,6 +78,13 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
     if rig is None:
         raise ParameterError(f"--rig {rig_name!r}: the asset folder has no such rig; it has "
                              f"{', '.join(template.rigs)}")
+    inwards, ratio = winding_inwards(v, f)
+    if inwards:
+        # A glTF viewer culls back faces: a body wound inwards would be drawn inside out (a rig
+        # of one was written without a word).
+        raise ParameterError(f"{where}: its faces are wound inwards (signed volume / area^1.5 = {ratio:.3f}, expected "
+                             "positive): a viewer would draw the body inside out; reverse them (bodyspace rig "
+                             "--flip-winding, or save the mesh with its faces reversed)")
     if v.shape == template.vertices.shape and np.array_equal(f, template.faces) and up is None and units is None:
         if weights_file is not None:
             raise ParameterError(f"--weights {weights_file}: {where} has the template's topology, whose own skin "
@@ -144,6 +151,9 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
         weights: Optional[Path] = typer.Option(None, "--weights", help="Another topology: the landmark file of "
                                                "bodyspace landmarks MESH, whose carried MakeHuman skin weights are "
                                                "used instead of bone heat."),
+        flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for a mesh whose "
+                                          "faces are wound inwards (refused otherwise: viewers would draw it inside "
+                                          "out)."),
         force: bool = ForceOption):
     """A rigged glTF 2.0 of a body, bind pose = the mesh as given. Template topology: skeleton regressed from its
     vertices, MakeHuman's CC0 skin weights, optional morph targets of a model's semantic variables. Any other
@@ -159,6 +169,11 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
         if model is not None and morphs is None:
             raise ParameterError("--model is read for --morphs only; pass --morphs NAMES or leave --model out")
         v, f = load_mesh(mesh)
+        if flip_winding:
+            if not winding_inwards(v, f)[0]:
+                raise ParameterError(f"--flip-winding: the faces of {mesh} are wound outwards already; leave "
+                                     "--flip-winding out")
+            f = np.ascontiguousarray(f[:, ::-1])
         body_model = BodyModel.load(model) if model is not None else None
         if body_model is not None and body_model.semantics is None:
             raise ParameterError(f"--model {model}: holds no semantic regressors; fit them once with bodyspace generate "
