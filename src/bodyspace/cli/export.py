@@ -11,6 +11,7 @@ standing on y = 0. Both branches meet in ``skeleton_and_weights``.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -104,6 +105,13 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
     return body, skeleton, weights, how
 
 
+def _linear_part(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(3, 3) M with ``after - mean = (before - mean) @ M`` for a similarity (scale, rotation)
+    between two (V, 3) copies of one mesh: how displacements of ``before`` map onto ``after``."""
+    a, b = before - before.mean(axis=0), after - after.mean(axis=0)
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
 def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: str, *, body_model=None,
                  morphs: Optional[str] = None, png: Optional[Path] = None, bones: Optional[str] = None,
                  where: str = "the body", up: Optional[str] = None, units: Optional[str] = None,
@@ -112,6 +120,7 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
     names = [b.strip() for b in bones.split(",")] if bones else None
     if morphs is not None and body_model is None:
         raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
+    given = np.asarray(vertices, dtype=float)
     vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units,
                                                             weights_file=weights_file)
     for b in names or []:
@@ -120,10 +129,15 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
                                  f"{', '.join(skeleton.bone_names[:8])}, ... ({skeleton.n_bones} bones)")
     targets = []
     if morphs is not None:
+        if given.shape != np.shape(body_model.template_vertices) or not np.array_equal(faces, body_model.faces):
+            raise ParameterError(f"--morphs: {where} has {len(given)} vertices and other faces than the model "
+                                 f"({len(body_model.template_vertices)} vertices); morph targets are made for bodies "
+                                 "of the model's own topology (leave --morphs out, or give the model of this mesh)")
+        targets = semantic_morph_targets(body_model, given, parse_morph_specs(morphs))
         if how != "template topology":
-            raise ParameterError(f"--morphs: {where} is not of the model's topology; morph targets are made for bodies "
-                                 "of the template topology (leave --morphs out)")
-        targets = semantic_morph_targets(body_model, vertices, parse_morph_specs(morphs))
+            # A body of the model's own (not the template's) topology is rigged by embedding, which
+            # writes it in metres, +Y up, facing +Z: the same rigid move and scale carries the keys.
+            targets = [replace(t, deltas=t.deltas @ _linear_part(given, vertices)) for t in targets]
     write_gltf(out, vertices, faces, skeleton, weights, targets,
                extras={"rig": rig_name, "template": load_template().template_id})
     said = f"wrote {out}: rig {rig_name} ({skeleton.n_bones} bones), {len(vertices)} vertices, {how}"
