@@ -108,8 +108,17 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]
+            # Drawn facing the camera: a scanner's mesh turned about the vertical showed its back in
+            # the "front" view (the values do not depend on it).
+            shown = []
+            for (v, f), lines in zip(bodies, polys):
+                found = conventions.standing_placement(mset.landmarks, v[None])
+                if found is not None:
+                    R, t, _ = found
+                    v, lines[:] = v @ R.T + t, [np.asarray(q) @ R.T + t for q in lines]
+                shown.append(v)
             try:
-                contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=_column_names(meshes),
+                contact_sheet(shown, [b[1] for b in bodies], png, labels=_column_names(meshes),
                               views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
             except OSError as exc:   # a folder in the way, no permission, disk full
                 raise MeasurementError(f"--png {png}: could not write the picture ({exc.strerror or exc}); "
