@@ -139,7 +139,12 @@ def _place(db: ScanDatabase, landmarks: Path) -> str | None:
         return (f"placement kept: {landmarks} has no shoulder and hip joints (shoulder_joint_l/r, hip_joint_l/r) to "
                 "tell which way the bodies face")
     R, t, yaw = found
-    db.vertices = (np.asarray(db.vertices, dtype=float) @ R.T + t).astype(db.vertices.dtype)
+    vertices = np.asarray(db.vertices)
+    if not vertices.flags.writeable:
+        vertices = vertices.copy()
+    for s in range(0, len(vertices), 256):       # in place, a chunk at a time: no float64 copy of all
+        vertices[s:s + 256] = vertices[s:s + 256].astype(float) @ R.T + t
+    db.vertices = vertices
     db.meta["provenance"]["placement"] = {"faced_degrees": round(yaw, 3), "moved_m": [round(float(x), 6) for x in t],
                                           "rule": "facing +Z, floor y = 0, hip joints over the origin"}
     return (f"placed: the bodies faced {yaw:+.0f}° from +Z about the vertical, stood {np.hypot(t[0], t[2]):.2f} m from "
