@@ -373,3 +373,22 @@ def test_landmarks_stand_the_folder_in_our_frame(foreign, tmp_path):
     assert kept.exit_code == 0 and "placed:" not in kept.output, kept.output
     raw = np.asarray(ScanDatabase.load(tmp_path / "kept").vertices[0], float)
     assert raw[:, 1].min() == pytest.approx(0.93, abs=0.002)               # the scanner's floor
+
+
+def test_labels_written_on_the_rest_rows_only(foreign, tmp_path):
+    """A CSV filled in on each subject's rest-pose row only (sex too, as a clinic writes it): the
+    subject's other scans take its values (the sex was refused as '' on the first empty row); a
+    subject with no sex on any row is refused saying so."""
+    folder, _, _ = foreign
+    rows = [f"{s}_{p}.obj,{s},{p}," + (f"{'female' if i % 2 else 'male'},{160 + i}" if p == "rest" else ",")
+            for i, s in enumerate(FOREIGN_SUBJECTS) for p in FOREIGN_POSES]
+    csv = tmp_path / "labels.csv"
+    csv.write_text("\n".join(["mesh,subject,pose,sex,stature_cm", *rows]) + "\n")
+    result = run("import", folder, "--labels", csv, "--out", tmp_path / "db", "--units", "mm", "--up", "z")
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(tmp_path / "db")
+    assert list(db.subjects["sex"]) == ["male", "female", "male", "female"]
+    assert list(db.subjects["stature_cm"]) == [160.0, 161.0, 162.0, 163.0]
+    csv.write_text("\n".join(["mesh,subject,pose,sex,stature_cm", *[r.replace(",male,", ",,") for r in rows]]) + "\n")
+    refused(run("import", folder, "--labels", csv, "--out", tmp_path / "db2", "--units", "mm", "--up", "z"),
+            "column 'sex': ''", "at least one of the subject's rows")

@@ -211,8 +211,9 @@ def label_values(column: str, values, source: str, lines: list[int] | None = Non
         sexes = np.char.lower(np.char.strip(values.astype(str)))
         for i, sex in enumerate(sexes.tolist()):
             if sex not in SEXES:
+                empty = " (empty: give it on at least one of the subject's rows, or leave the column out)" if not sex else ""
                 raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': '{sex}', "
-                                    f"expected one of {', '.join(SEXES)}")
+                                    f"expected one of {', '.join(SEXES)}{empty}")
         return sexes
     if unit_of_label(column) is None:
         return values.astype(str)
@@ -731,7 +732,8 @@ def _subject_labels(cells: Mapping[str, list[str]], lines: list[int], subject_id
                     source: str) -> tuple[Table, list[str]]:
     """Per-scan CSV cells -> one row per subject (in order of first appearance) and notes.
 
-    Text columns (sex) must agree within a subject. A numeric label's value of a subject is its
+    Text columns (sex) must agree within a subject (a sex given on some of its scans only is the
+    subject's). A numeric label's value of a subject is its
     rest-pose scan's (``rest_rows``, when given there), else the mean of its given values; values
     more than ``LABEL_SPREAD`` of their median apart are refused as two people or a typo.
     """
@@ -749,14 +751,23 @@ def _subject_labels(cells: Mapping[str, list[str]], lines: list[int], subject_id
     for column in cells:
         if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
             continue
-        per_scan = label_values(column, cells[column], source, lines)
+        column_cells = list(cells[column])
+        if column == SEX_COLUMN:
+            # Written on some scans only (the rest-pose row, as a clinic fills it in): the
+            # subject's other scans take it; agreement is checked below as for any text.
+            for rows in members.values():
+                given = next((column_cells[r] for r in rows if str(column_cells[r]).strip()), None)
+                for r in rows:
+                    if given is not None and not str(column_cells[r]).strip():
+                        column_cells[r] = given
+        per_scan = label_values(column, column_cells, source, lines)
         check_label_ranges({column: per_scan}, source, lines)
         if per_scan.dtype.kind != "f":
             for sid, rows in members.items():
                 other = next((r for r in rows if per_scan[r] != per_scan[rows[0]]), None)
                 if other is not None:
                     raise DatabaseError(f"{source}, line {lines[other]}, column '{column}': subject '{sid}' has "
-                                        f"'{cells[column][other]}' here but '{cells[column][rows[0]]}' on line "
+                                        f"'{column_cells[other]}' here but '{column_cells[rows[0]]}' on line "
                                         f"{lines[rows[0]]}; expected one value per subject")
             subjects[column] = per_scan[[rows[0] for rows in members.values()]]
             continue
