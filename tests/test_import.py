@@ -392,3 +392,17 @@ def test_labels_written_on_the_rest_rows_only(foreign, tmp_path):
     csv.write_text("\n".join(["mesh,subject,pose,sex,stature_cm", *[r.replace(",male,", ",,") for r in rows]]) + "\n")
     refused(run("import", folder, "--labels", csv, "--out", tmp_path / "db2", "--units", "mm", "--up", "z"),
             "column 'sex': ''", "at least one of the subject's rows")
+
+
+def test_a_semicolon_csv_with_decimal_commas(foreign, tmp_path):
+    """A spreadsheet's export in a decimal-comma locale (fields separated by ';', '171,5') reads as
+    the comma CSV it stands for (it was refused: "no 'mesh' column ... found ['mesh;subject;...']")."""
+    folder, _, _ = foreign
+    rows = [f"{s}_{p}.obj;{s};{p};{160 + i},5;{55 + i},25" for i, s in enumerate(FOREIGN_SUBJECTS) for p in FOREIGN_POSES]
+    csv = tmp_path / "labels.csv"
+    csv.write_text("\n".join(["mesh;subject;pose;stature_cm;mass_kg", *rows]) + "\n")
+    result = run("import", folder, "--labels", csv, "--out", tmp_path / "db", "--units", "mm", "--up", "z")
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(tmp_path / "db")
+    assert list(db.subjects["stature_cm"]) == [160.5, 161.5, 162.5, 163.5]
+    assert list(db.subjects["mass_kg"]) == [55.25, 56.25, 57.25, 58.25]

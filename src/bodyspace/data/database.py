@@ -24,6 +24,7 @@ import csv
 import json
 import math
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -282,13 +283,25 @@ def scan_table(columns: Mapping, n_scans: int, source: str, lines: list[int] | N
     return table
 
 
+# A number written with a decimal comma (a semicolon- or tab-separated spreadsheet export).
+_DECIMAL_COMMA = re.compile(r"[-+]?\d+,\d+")
+
+
 def read_csv_columns(path: Path) -> tuple[dict[str, list[str]], list[int]]:
-    """A CSV file -> ({column: stripped cells}, file line of each row). Blank lines are skipped."""
+    """A CSV file -> ({column: stripped cells}, file line of each row). Blank lines are skipped.
+
+    Commas separate the fields; a header with none but semicolons or tabs is a spreadsheet's
+    export in a locale that writes decimal commas (``mesh;stature_cm`` / ``a.obj;171,5``): read
+    with that separator, a cell that is a number with a decimal comma as that number.
+    """
     if not path.is_file():
         raise DatabaseError(f"{path}: file not found")
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
-            reader = csv.reader(handle)
+            first = handle.readline()
+            handle.seek(0)
+            delimiter = next((d for d in (";", "\t") if "," not in first and d in first), ",")
+            reader = csv.reader(handle, delimiter=delimiter)
             header = [name.strip() for name in next(reader, [])]
             rows, lines = [], []
             for row in reader:
@@ -297,7 +310,10 @@ def read_csv_columns(path: Path) -> tuple[dict[str, list[str]], list[int]]:
                 if len(row) != len(header):
                     raise DatabaseError(f"{path}, line {reader.line_num}: {len(row)} fields, "
                                         f"expected {len(header)} (one per header column)")
-                rows.append([cell.strip() for cell in row])
+                cells = [cell.strip() for cell in row]
+                if delimiter != ",":
+                    cells = [c.replace(",", ".") if _DECIMAL_COMMA.fullmatch(c) else c for c in cells]
+                rows.append(cells)
                 lines.append(reader.line_num)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise DatabaseError(f"{path}: could not read as CSV: {exc}") from exc
