@@ -689,6 +689,15 @@ def test_cli_measure_png_is_not_written_over_a_file(body_files, tmp_path):
     assert (body_files / "a.obj").stat().st_size > 100_000
 
 
+def test_cli_measure_an_stl_says_why_its_vertices_cannot_be_named(mean_body, template, tmp_path):
+    """STL keeps each triangle's corners, no vertex ids: refused saying so and to export OBJ/PLY
+    (it asked for another landmark file)."""
+    trimesh.Trimesh(mean_body, template.faces, process=False).export(tmp_path / "body.stl")
+    result = runner.invoke(app, ["measure", str(tmp_path / "body.stl")])
+    assert result.exit_code == 2 and "an STL file stores each triangle's corners" in result.output, result.output
+    assert "export the mesh as OBJ or PLY" in result.output
+
+
 def test_cli_measure_png_draws_a_turned_body_facing_the_camera(mean_body, template, tmp_path, monkeypatch):
     """A scanner's mesh turned 140° about the vertical is drawn facing the camera, its lines with
     it (its "front" view showed its back)."""

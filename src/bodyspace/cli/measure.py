@@ -198,6 +198,13 @@ def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | Non
     """The mesh's vertex count must be the set's, said in the flags that fix it."""
     if mset.n_vertices is None or n_vertices == mset.n_vertices:
         return
+    if Path(path).suffix.lower() == ".stl":
+        # STL keeps no vertex ids: every triangle lists its own corners (a 7,002-vertex body came
+        # back with 42,000, and the refusal asked for another landmark file).
+        raise MeasurementError(f"{path}: an STL file stores each triangle's corners ({n_vertices} here), not the mesh's "
+                               f"shared, numbered vertices, so no landmark file or model (made for meshes of "
+                               f"{mset.n_vertices} vertices) can name its points; export the mesh as OBJ or PLY "
+                               "keeping its vertex order, and measure that")
     if model is not None:
         raise MeasurementError(f"{path}: {n_vertices} vertices, but the model --model {model} is of meshes of "
                                f"{mset.n_vertices} vertices (its measurement set, from {mset.source}); measure meshes "
