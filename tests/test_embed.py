@@ -182,6 +182,23 @@ def test_rig_command_rigs_a_foreign_mesh(bodies, tmp_path):
     assert not (tmp_path / "two.glb").exists()
 
 
+def test_rig_refuses_faces_wound_inwards(bodies, template, tmp_path):
+    """Faces wound inwards would be drawn inside out by every glTF viewer (a rig was written
+    without a word): refused naming --flip-winding, which rigs it (here the template's own
+    faces come back, so the template's rig is used); --flip-winding on a good mesh is refused."""
+    fb = bodies["t_pose_cm_y_up"]
+    save_mesh(tmp_path / "inside_out.obj", fb.vertices, fb.faces[:, ::-1])
+    r = CliRunner().invoke(app, ["rig", str(tmp_path / "inside_out.obj"), "--out", str(tmp_path / "a.glb")])
+    assert r.exit_code == 2 and "wound inwards" in r.output and "--flip-winding" in r.output, r.output
+    assert not (tmp_path / "a.glb").exists()
+    save_mesh(tmp_path / "t.obj", template.vertices, template.faces[:, ::-1])
+    r = CliRunner().invoke(app, ["rig", str(tmp_path / "t.obj"), "--out", str(tmp_path / "t.glb"), "--flip-winding"])
+    assert r.exit_code == 0 and "template topology" in r.output, r.output
+    save_mesh(tmp_path / "good.obj", template.vertices, template.faces)
+    r = CliRunner().invoke(app, ["rig", str(tmp_path / "good.obj"), "--out", str(tmp_path / "g.glb"), "--flip-winding"])
+    assert r.exit_code == 2 and "wound outwards already" in r.output, r.output
+
+
 def test_threejs_skins_an_embedded_rig_as_we_do(bodies, template, tmp_path):
     """The rigged file of a foreign mesh (embedded skeleton, bone-heat weights): three.js binds it
     at the mesh as given and skins a posed frame as our LBS does, within 0.1 mm."""

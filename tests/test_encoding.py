@@ -300,9 +300,14 @@ def test_decode_rejects_bad_codes(fitted, codes, message):
 def test_template_rejects_degenerate_faces(sphere):
     v, f = sphere
     v = v.copy()
-    v[f[3, 0]] = v[f[3, 1]]
-    with pytest.raises(MeshError):
+    a, b = sorted((int(f[3, 0]), int(f[3, 1])))
+    v[a] = v[b]                                  # two vertices at one point, as a remesher leaves them
+    with pytest.raises(MeshError) as info:
         RelativeRotationEncoder(v, f)
+    message = str(info.value)
+    assert "zero-area face(s)" in message and "3" in message
+    assert f"vertices {a} and {b}" in message, message
+    assert "weld coincident vertices" in message and "--encoding vertex" in message
 
 
 # ---------------------------------------------------------------------------- real template

@@ -261,6 +261,9 @@ def test_one_foreign_mesh_in_metres_among_mm_is_refused(foreign, tmp_path):
 @pytest.mark.parametrize("header, value, words", [
     ("stature", "170", ["'stature'", "did you mean stature_cm?"]),
     ("waist_girth", "80", ["did you mean waist_girth_cm?"]),
+    ("age_yrs", "40", ["'age_yrs'", "did you mean age_years?"]),
+    ("Stature (cm)", "170", ["did you mean stature_cm?"]),
+    ("stature_mm", "1700", ["did you mean stature_cm?", "convert them from mm"]),
     ("stature_cm", "1700", ["1700 cm", "40 to 280 cm"]),
     ("stature_cm", "1.70", ["1.7 cm", "40 to 280 cm"]),
     ("mass_kg", "-60", ["-60 kg", "2 to 650 kg"]),
@@ -344,3 +347,62 @@ def test_bad_npy_files_are_refused(foreign, tmp_path, array, faces, words):
         np.save(faces_file, faces)
     refused(run("import", npy, "--labels", npy / "labels.csv", "--out", tmp_path / "db", "--units", "mm", "--up", "z",
                 "--faces", faces_file), *words)
+
+
+def test_landmarks_stand_the_folder_in_our_frame(foreign, tmp_path):
+    """A scanner's folder (turned 25°, off the origin, the floor not at zero) imported with its
+    landmarks faces +Z on the floor over the origin: one rigid move for all scans (each equals
+    the true body moved by one shift); --keep-placement keeps the scanner's frame."""
+    folder, truth, topology = foreign
+    lm = tmp_path / "landmarks.json"
+    lm.write_text(json.dumps(topology.landmark_file()))
+    result = run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "db", "--units", "mm",
+                 "--up", "z", "--landmarks", lm)
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert "placed: the bodies faced +25° from +Z" in said and "floor at y = 0.93 m" in said, said
+    db = ScanDatabase.load(tmp_path / "db")
+    names = [f"{s}_{p}.obj" for s in FOREIGN_SUBJECTS for p in FOREIGN_POSES]
+    shift = np.stack([np.asarray(db.vertices[i], float) - truth[n] for i, n in enumerate(names)])   # (N, V, 3)
+    assert np.abs(shift - shift.mean(axis=(0, 1))).max() < 0.004          # one rigid move, the same turn
+    assert abs(shift[..., 1].mean()) < 0.003          # truth stands on y = 0 (the remeshed sole 1.5 mm higher)
+    assert np.abs(shift.mean(axis=(0, 1))[[0, 2]]).max() < 0.05             # over the origin
+    assert db.meta["provenance"]["placement"]["faced_degrees"] == pytest.approx(25.0, abs=1.0)
+    kept = run("import", folder, "--labels", folder / "labels.csv", "--out", tmp_path / "kept", "--units", "mm",
+               "--up", "z", "--landmarks", lm, "--keep-placement")
+    assert kept.exit_code == 0 and "placed:" not in kept.output, kept.output
+    raw = np.asarray(ScanDatabase.load(tmp_path / "kept").vertices[0], float)
+    assert raw[:, 1].min() == pytest.approx(0.93, abs=0.002)               # the scanner's floor
+
+
+def test_labels_written_on_the_rest_rows_only(foreign, tmp_path):
+    """A CSV filled in on each subject's rest-pose row only (sex too, as a clinic writes it): the
+    subject's other scans take its values (the sex was refused as '' on the first empty row); a
+    subject with no sex on any row is refused saying so."""
+    folder, _, _ = foreign
+    rows = [f"{s}_{p}.obj,{s},{p}," + (f"{'female' if i % 2 else 'male'},{160 + i}" if p == "rest" else ",")
+            for i, s in enumerate(FOREIGN_SUBJECTS) for p in FOREIGN_POSES]
+    csv = tmp_path / "labels.csv"
+    csv.write_text("\n".join(["mesh,subject,pose,sex,stature_cm", *rows]) + "\n")
+    result = run("import", folder, "--labels", csv, "--out", tmp_path / "db", "--units", "mm", "--up", "z")
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(tmp_path / "db")
+    assert list(db.subjects["sex"]) == ["male", "female", "male", "female"]
+    assert list(db.subjects["stature_cm"]) == [160.0, 161.0, 162.0, 163.0]
+    csv.write_text("\n".join(["mesh,subject,pose,sex,stature_cm", *[r.replace(",male,", ",,") for r in rows]]) + "\n")
+    refused(run("import", folder, "--labels", csv, "--out", tmp_path / "db2", "--units", "mm", "--up", "z"),
+            "column 'sex': ''", "at least one of the subject's rows")
+
+
+def test_a_semicolon_csv_with_decimal_commas(foreign, tmp_path):
+    """A spreadsheet's export in a decimal-comma locale (fields separated by ';', '171,5') reads as
+    the comma CSV it stands for (it was refused: "no 'mesh' column ... found ['mesh;subject;...']")."""
+    folder, _, _ = foreign
+    rows = [f"{s}_{p}.obj;{s};{p};{160 + i},5;{55 + i},25" for i, s in enumerate(FOREIGN_SUBJECTS) for p in FOREIGN_POSES]
+    csv = tmp_path / "labels.csv"
+    csv.write_text("\n".join(["mesh;subject;pose;stature_cm;mass_kg", *rows]) + "\n")
+    result = run("import", folder, "--labels", csv, "--out", tmp_path / "db", "--units", "mm", "--up", "z")
+    assert result.exit_code == 0, result.output
+    db = ScanDatabase.load(tmp_path / "db")
+    assert list(db.subjects["stature_cm"]) == [160.5, 161.5, 162.5, 163.5]
+    assert list(db.subjects["mass_kg"]) == [55.25, 56.25, 57.25, 58.25]

@@ -316,6 +316,15 @@ def test_mapping_is_stored_in_the_model_file_and_makes_bodies(tmp_path, model):
     v, _ = load_mesh(tmp_path / "b.obj")
     got = LinearBodyMeasures.from_model(model, names=back.mapping.names, k=8).measure_bodies(v[None])[0] * 100.0
     assert np.abs(got - goal).max() < 0.1, (got, goal)
+    # stature is the quantity of the input height: asking it fixes that input, not a draw
+    names = list(back.mapping.names)
+    x = back.mapping.inputs(back, {"stature": 175.0, "waist_size": 80.0}, rng=0)
+    assert x[0, names.index("height")] == 175.0 and x[0, names.index("waist_size")] == 80.0
+    r = CliRunner().invoke(app, ["mapping", "shape", str(path), "--out", str(tmp_path / "s.obj"),
+                                 "--set", "stature=175cm", "--set", "waist_size=80cm"])
+    assert r.exit_code == 0, r.output
+    drawn = next(line for line in r.output.splitlines() if "drawn from the population" in line)
+    assert "height" not in drawn and "breast_size" in drawn, drawn
     bare = BodyModel.load(path)
     bare.mapping = None
     bare.save(tmp_path / "bare.npz")

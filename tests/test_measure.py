@@ -689,6 +689,35 @@ def test_cli_measure_png_is_not_written_over_a_file(body_files, tmp_path):
     assert (body_files / "a.obj").stat().st_size > 100_000
 
 
+def test_cli_measure_an_stl_says_why_its_vertices_cannot_be_named(mean_body, template, tmp_path):
+    """STL keeps each triangle's corners, no vertex ids: refused saying so and to export OBJ/PLY
+    (it asked for another landmark file)."""
+    trimesh.Trimesh(mean_body, template.faces, process=False).export(tmp_path / "body.stl")
+    result = runner.invoke(app, ["measure", str(tmp_path / "body.stl")])
+    assert result.exit_code == 2 and "an STL file stores each triangle's corners" in result.output, result.output
+    assert "export the mesh as OBJ or PLY" in result.output
+
+
+def test_cli_measure_png_draws_a_turned_body_facing_the_camera(mean_body, template, tmp_path, monkeypatch):
+    """A scanner's mesh turned 140° about the vertical is drawn facing the camera, its lines with
+    it (its "front" view showed its back)."""
+    import bodyspace.cli.measure as cli_measure
+    from bodyspace.measure.conventions import standing_placement
+    from bodyspace.synth.foreign import to_frame
+    turned = to_frame(mean_body, up="y", scale=1.0, translation=(1.2, 0.0, -0.7), yaw_degrees=140.0)
+    save_mesh(tmp_path / "turned.obj", turned, template.faces)
+    drawn = {}
+    monkeypatch.setattr(cli_measure, "contact_sheet",
+                        lambda bodies, faces, out, polylines=None, **kw: drawn.update(bodies=bodies, lines=polylines))
+    result = runner.invoke(app, ["measure", str(tmp_path / "turned.obj"), "--as-posed", "--png", str(tmp_path / "l.png")])
+    assert result.exit_code == 0, result.output
+    mset = load_measurement_set()
+    (v,), (lines,) = drawn["bodies"], drawn["lines"]
+    assert abs(standing_placement(mset.landmarks, v[None])[2]) < 0.5          # faces +Z
+    assert np.abs(v - (mean_body - [0.0, mean_body[:, 1].min(), 0.0])).max() < 0.02
+    assert min(q[:, 1].min() for q in lines) >= -1e-6 and len(lines) > 10     # the lines moved with it
+
+
 @pytest.mark.parametrize("content, match", [
     (b'{"landmarks": {"head_top": 5}, "n_vertices": "many"}', "field 'n_vertices': got 'many', expected a positive"),
     (b'{"landmarks": {"head_top": 5}, "n_vertices": 13380.5}', "field 'n_vertices': got 13380.5"),

@@ -119,6 +119,47 @@ def test_implausible_girth_is_nan_with_reason(mset, mean_body, template):
             dict(mset.to_dict()["measurements"][1], plausible={"ratio_to": {"hip_girth": [0.5, 2]}})]))
 
 
+def test_child_girths_are_not_implausible(mset, mean_body, template):
+    """A child's girths are an adult's scaled down: a 1 m body's wrist of ~9.6 cm is measured,
+    not NaN'd as a tape error (the low end of the range follows the stature); the adult's own
+    range still holds, and a bad 'adult_stature' is refused naming the field."""
+    adult = evaluate(mset, mean_body, template.faces)
+    child = evaluate(mset, 0.6 * mean_body, template.faces)
+    assert child["stature"].value < 1.1
+    for k in ("wrist_girth_l", "wrist_girth_r", "neck_girth", "chest_girth", "waist_girth"):
+        assert child[k].value == pytest.approx(0.6 * adult[k].value, rel=0.02), (k, child[k].note)
+    wrist = next(m for m in mset.measurements if m["name"] == "wrist_girth_l")
+    assert child["wrist_girth_l"].value < wrist["plausible"]["range"][0]      # NaN before
+    d = mset.to_dict()
+    stature, chest = (next(m for m in d["measurements"] if m["name"] == k) for k in ("stature", "chest_girth"))
+    tight = measurement_set_from_dict(dict(d, measurements=[
+        dict(stature, requires=[]), dict(chest, plausible={"adult_stature": 1.5, "range": [1.2, 2.0]})]))
+    r = evaluate(tight, np.stack([mean_body, 0.6 * mean_body]), template.faces)
+    assert np.isnan(r["chest_girth"].value).all()
+    assert "of this stature" in r["chest_girth"].note[1] and "of this stature" not in r["chest_girth"].note[0]
+    for bad in (170, "1.5"):
+        with pytest.raises(MeasurementError, match="adult_stature"):
+            measurement_set_from_dict(dict(d, measurements=[
+                stature, dict(chest, plausible={"adult_stature": bad, "range": [0.5, 2.0]})]))
+
+
+def test_landmark_in_a_hole_is_measured_with_a_note(mset, mean_body, template):
+    """A scan's hole that takes a landmark vertex (the vertices stay, as in registered scans) is
+    measured from the vertex's position, and the measurements using it say so; a face list cut
+    short (a quarter of the faces gone) is still refused."""
+    from bodyspace.synth.foreign import punch_holes
+    bust = int(mset.landmarks["bust_l"][0][0])
+    holed = punch_holes(mean_body, template.faces, mean_body[[bust]], radius=0.03)
+    whole = evaluate(mset, mean_body, template.faces)
+    r = evaluate(mset, mean_body, holed)
+    assert abs(r["chest_girth"].value - whole["chest_girth"].value) < 0.012
+    assert "'bust_l' lies in a hole" in r["chest_girth"].note
+    assert r["waist_girth"].note is None and r["stature"].note is None
+    assert "lies in a hole" in to_json(r)["chest_girth"]["note"]
+    with pytest.raises(MeasurementError, match="on none of them"):
+        evaluate(mset, mean_body, template.faces[: 3 * len(template.faces) // 4])
+
+
 def test_parts_round_trip_and_older_files(mset, mean_body, template):
     d = mset.to_dict()
     back = measurement_set_from_dict(json.loads(json.dumps(d)))

@@ -62,7 +62,8 @@ def test_generate_measures_what_was_asked(setup, targets):
 def test_infeasible_refused_with_range_or_clamped(setup):
     _, _, model, sm = setup
     lo, hi = sm.reachable_range("stature")
-    with pytest.raises(TargetError, match=r"outside what the model can reach \(\d+\.\d cm to \d+\.\d cm"):
+    with pytest.raises(TargetError, match=r"outside what the model can reach \(\d+\.\d cm to \d+\.\d cm"
+                                          r".*--clamp on the command line, on_infeasible='clamp' in Python"):
         sm.generate({"stature": 2.6})
     clamping = BodyModel.load(setup[0] / "model.npz").semantics.set_params(on_infeasible="clamp")
     with pytest.warns(RuntimeWarning, match="clamped to"):

@@ -31,7 +31,8 @@ from bodyspace.data.database import (
 )
 from bodyspace.data.template import load_template
 from bodyspace.errors import DatabaseError
-from bodyspace.measure.conventions import MESH_UNITS, UP_ROTATIONS
+from bodyspace.measure import load_landmarks
+from bodyspace.measure.conventions import MESH_UNITS, UP_ROTATIONS, standing_placement
 from bodyspace.model import check_landmark_file
 from bodyspace.register.batch import register_files
 from bodyspace.register.pipeline import DEFAULT_STEPS
@@ -75,6 +76,11 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
                                                        "the template's topology whose shape space the fits use."),
                   steps: int = typer.Option(DEFAULT_STEPS, "--steps", min=1, max=40, help="With --register: stiffness "
                                             "levels of the non-rigid refinement."),
+                  keep_placement: bool = typer.Option(
+                      False, "--keep-placement", help="With --landmarks: keep the meshes where they stand and the "
+                                                      "way they face. Default: turned about the vertical to face +Z "
+                                                      "and moved onto the floor over the origin (one move for the "
+                                                      "folder, from the rest scans' shoulder and hip joints)."),
                   force: bool = ForceOption):
     """Import a folder of your own registered meshes (or, with --register, raw scans) and a labels CSV as a scan
     database."""
@@ -96,9 +102,12 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
         db.meta[REST_POSE_FIELD] = rule
         db.meta["provenance"]["source"] = "bodyspace import"
         extra = {}
+        placed = None
         if landmarks is not None:
             cb(f"checking {landmarks} on the rest scans", 0.7)
             extra[LANDMARKS_FILE] = check_landmark_file(landmarks, db)
+            if not keep_placement:
+                placed = _place(db, landmarks)
         cb(f"writing {out}", 0.8)
         db.save(out, overwrite=force, extra_files=extra)
         cb("done", 1.0)
@@ -114,6 +123,32 @@ def import_meshes(mesh_folder: Path = typer.Argument(..., help="Folder of regist
     if landmarks is not None:
         out_console.print(f"landmarks: {landmarks} measures the rest scans; stored as {out / LANDMARKS_FILE} "
                           "(bodyspace build uses it)", highlight=False, soft_wrap=True)
+    if placed is not None:
+        out_console.print(placed, highlight=False, soft_wrap=True)
+
+
+def _place(db: ScanDatabase, landmarks: Path) -> str | None:
+    """Stand ``db``'s meshes in our frame (facing +Z, on the floor over the origin: one rigid move
+    for all, from the rest scans' landmarks; ``conventions.standing_placement``), in place; say
+    what moved. A scanner's frame turned 140° showed every picture (lineups, crowds) from the
+    back and put generated bodies metres away from the origin and under the floor."""
+    rows = rest_pose_rows(db.scans, db.meta)[:16]
+    found = standing_placement(load_landmarks(landmarks)[0], np.asarray(db.vertices[np.sort(rows)], dtype=float))
+    if found is None:
+        return (f"placement kept: {landmarks} has no shoulder and hip joints (shoulder_joint_l/r, hip_joint_l/r) to "
+                "tell which way the bodies face")
+    R, t, yaw = found
+    vertices = np.asarray(db.vertices)
+    if not vertices.flags.writeable:
+        vertices = vertices.copy()
+    for s in range(0, len(vertices), 256):       # in place, a chunk at a time: no float64 copy of all
+        vertices[s:s + 256] = vertices[s:s + 256].astype(float) @ R.T + t
+    db.vertices = vertices
+    db.meta["provenance"]["placement"] = {"faced_degrees": round(yaw, 3), "moved_m": [round(float(x), 6) for x in t],
+                                          "rule": "facing +Z, floor y = 0, hip joints over the origin"}
+    return (f"placed: the bodies faced {yaw:+.0f}° from +Z about the vertical, stood {np.hypot(t[0], t[2]):.2f} m from "
+            f"the origin with the floor at y = {-t[1]:.2f} m; turned to face +Z and moved onto the floor over the "
+            "origin (from the rest scans' shoulder and hip joints; --keep-placement keeps the meshes as they are)")
 
 
 def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up, landmarks, faces, model, steps,

@@ -11,6 +11,7 @@ standing on y = 0. Both branches meet in ``skeleton_and_weights``.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -22,7 +23,7 @@ from bodyspace.data.template import RIG_NAMES, load_template
 from bodyspace.errors import BodyspaceError, ParameterError
 from bodyspace.export.gltf import write_gltf
 from bodyspace.export.morphs import parse_morph_specs, semantic_morph_targets
-from bodyspace.measure.conventions import MESH_UNITS
+from bodyspace.measure.conventions import MESH_UNITS, winding_inwards
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
@@ -78,6 +79,13 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
     if rig is None:
         raise ParameterError(f"--rig {rig_name!r}: the asset folder has no such rig; it has "
                              f"{', '.join(template.rigs)}")
+    inwards, ratio = winding_inwards(v, f)
+    if inwards:
+        # A glTF viewer culls back faces: a body wound inwards would be drawn inside out (a rig
+        # of one was written without a word).
+        raise ParameterError(f"{where}: its faces are wound inwards (signed volume / area^1.5 = {ratio:.3f}, expected "
+                             "positive): a viewer would draw the body inside out; reverse them (bodyspace rig "
+                             "--flip-winding, or save the mesh with its faces reversed)")
     if v.shape == template.vertices.shape and np.array_equal(f, template.faces) and up is None and units is None:
         if weights_file is not None:
             raise ParameterError(f"--weights {weights_file}: {where} has the template's topology, whose own skin "
@@ -97,6 +105,13 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
     return body, skeleton, weights, how
 
 
+def _linear_part(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(3, 3) M with ``after - mean = (before - mean) @ M`` for a similarity (scale, rotation)
+    between two (V, 3) copies of one mesh: how displacements of ``before`` map onto ``after``."""
+    a, b = before - before.mean(axis=0), after - after.mean(axis=0)
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
 def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: str, *, body_model=None,
                  morphs: Optional[str] = None, png: Optional[Path] = None, bones: Optional[str] = None,
                  where: str = "the body", up: Optional[str] = None, units: Optional[str] = None,
@@ -105,6 +120,7 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
     names = [b.strip() for b in bones.split(",")] if bones else None
     if morphs is not None and body_model is None:
         raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
+    given = np.asarray(vertices, dtype=float)
     vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units,
                                                             weights_file=weights_file)
     for b in names or []:
@@ -113,10 +129,15 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
                                  f"{', '.join(skeleton.bone_names[:8])}, ... ({skeleton.n_bones} bones)")
     targets = []
     if morphs is not None:
+        if given.shape != np.shape(body_model.template_vertices) or not np.array_equal(faces, body_model.faces):
+            raise ParameterError(f"--morphs: {where} has {len(given)} vertices and other faces than the model "
+                                 f"({len(body_model.template_vertices)} vertices); morph targets are made for bodies "
+                                 "of the model's own topology (leave --morphs out, or give the model of this mesh)")
+        targets = semantic_morph_targets(body_model, given, parse_morph_specs(morphs))
         if how != "template topology":
-            raise ParameterError(f"--morphs: {where} is not of the model's topology; morph targets are made for bodies "
-                                 "of the template topology (leave --morphs out)")
-        targets = semantic_morph_targets(body_model, vertices, parse_morph_specs(morphs))
+            # A body of the model's own (not the template's) topology is rigged by embedding, which
+            # writes it in metres, +Y up, facing +Z: the same rigid move and scale carries the keys.
+            targets = [replace(t, deltas=t.deltas @ _linear_part(given, vertices)) for t in targets]
     write_gltf(out, vertices, faces, skeleton, weights, targets,
                extras={"rig": rig_name, "template": load_template().template_id})
     said = f"wrote {out}: rig {rig_name} ({skeleton.n_bones} bones), {len(vertices)} vertices, {how}"
@@ -144,6 +165,9 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
         weights: Optional[Path] = typer.Option(None, "--weights", help="Another topology: the landmark file of "
                                                "bodyspace landmarks MESH, whose carried MakeHuman skin weights are "
                                                "used instead of bone heat."),
+        flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for a mesh whose "
+                                          "faces are wound inwards (refused otherwise: viewers would draw it inside "
+                                          "out)."),
         force: bool = ForceOption):
     """A rigged glTF 2.0 of a body, bind pose = the mesh as given. Template topology: skeleton regressed from its
     vertices, MakeHuman's CC0 skin weights, optional morph targets of a model's semantic variables. Any other
@@ -159,6 +183,11 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
         if model is not None and morphs is None:
             raise ParameterError("--model is read for --morphs only; pass --morphs NAMES or leave --model out")
         v, f = load_mesh(mesh)
+        if flip_winding:
+            if not winding_inwards(v, f)[0]:
+                raise ParameterError(f"--flip-winding: the faces of {mesh} are wound outwards already; leave "
+                                     "--flip-winding out")
+            f = np.ascontiguousarray(f[:, ::-1])
         body_model = BodyModel.load(model) if model is not None else None
         if body_model is not None and body_model.semantics is None:
             raise ParameterError(f"--model {model}: holds no semantic regressors; fit them once with bodyspace generate "

@@ -132,8 +132,9 @@ def mapping_shape(model: Path = typer.Argument(..., help="A BodyModel file with 
             _check_in_set(text, t.name, body_model.measurement_set)
             targets[t.name] = 100.0 * t.value
         result = mapping.shape(body_model, targets, refine_result=refine_body, rng=seed)
+        given = mapping.given_inputs(targets)
         drawn = {n: v for n, v in zip(mapping.names, mapping.inputs(body_model, targets, seed)[0])
-                 if n not in targets}
+                 if n not in given}
     except BodyspaceError as exc:
         _fail(console, exc)
     for name, asked, got in zip(result.names, result.targets[0], result.measured[0]):

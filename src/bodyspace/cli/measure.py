@@ -108,8 +108,17 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         if png is not None:
             polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
                      for r in results.values()]
+            # Drawn facing the camera: a scanner's mesh turned about the vertical showed its back in
+            # the "front" view (the values do not depend on it).
+            shown = []
+            for (v, f), lines in zip(bodies, polys):
+                found = conventions.standing_placement(mset.landmarks, v[None])
+                if found is not None:
+                    R, t, _ = found
+                    v, lines[:] = v @ R.T + t, [np.asarray(q) @ R.T + t for q in lines]
+                shown.append(v)
             try:
-                contact_sheet([b[0] for b in bodies], [b[1] for b in bodies], png, labels=_column_names(meshes),
+                contact_sheet(shown, [b[1] for b in bodies], png, labels=_column_names(meshes),
                               views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
             except OSError as exc:   # a folder in the way, no permission, disk full
                 raise MeasurementError(f"--png {png}: could not write the picture ({exc.strerror or exc}); "
@@ -189,6 +198,13 @@ def _check_vertex_count(path: Path, n_vertices: int, mset, landmarks: Path | Non
     """The mesh's vertex count must be the set's, said in the flags that fix it."""
     if mset.n_vertices is None or n_vertices == mset.n_vertices:
         return
+    if Path(path).suffix.lower() == ".stl":
+        # STL keeps no vertex ids: every triangle lists its own corners (a 7,002-vertex body came
+        # back with 42,000, and the refusal asked for another landmark file).
+        raise MeasurementError(f"{path}: an STL file stores each triangle's corners ({n_vertices} here), not the mesh's "
+                               f"shared, numbered vertices, so no landmark file or model (made for meshes of "
+                               f"{mset.n_vertices} vertices) can name its points; export the mesh as OBJ or PLY "
+                               "keeping its vertex order, and measure that")
     if model is not None:
         raise MeasurementError(f"{path}: {n_vertices} vertices, but the model --model {model} is of meshes of "
                                f"{mset.n_vertices} vertices (its measurement set, from {mset.source}); measure meshes "
@@ -240,7 +256,8 @@ def _column_names(meshes: list[Path]) -> list[str]:
 
 
 def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
-    """One column per mesh; an undefined value is 'n/a [k]', its reason printed under the table."""
+    """One column per mesh; an undefined value is 'n/a [k]', its reason printed under the table, and
+    a value with a note 'VALUE [k]' (the note under the table too)."""
     table = Table(title="measurements")
     table.add_column("name")
     for h in headers:
@@ -254,6 +271,10 @@ def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
             if e["value"] is None:
                 k = reasons.setdefault(e.get("note") or "undefined for this body", len(reasons) + 1)
                 cells.append(escape(f"n/a [{k}]"))
+            elif e.get("note") and name != "unposed":    # a caveat (a landmark in a hole); the
+                # unposed row's note is printed under the table on its own line
+                k = reasons.setdefault(e["note"], len(reasons) + 1)
+                cells.append(escape(f"{e['value']:.4g} [{k}]"))
             else:
                 cells.append(f"{e['value']:.4g}")
         table.add_row(escape(name), *cells, escape(first["unit"]))

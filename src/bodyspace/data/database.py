@@ -24,6 +24,7 @@ import csv
 import json
 import math
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,6 +80,18 @@ UNIT_RANGES = {"cm": (0.0, 300.0), "kg": (0.0, 650.0), "kg/m^2": (8.0, 120.0), "
 LABEL_SUGGESTIONS = {"stature": "stature_cm", "height": "stature_cm", "mass": "mass_kg", "weight": "mass_kg",
                      "bmi": "bmi_kg_m2", "age": "age_years", "body_fat": "body_fat_percent", "volume": "volume_m3",
                      "gender": "gender_1"}
+# A unit written another way, or in a unit labels are not read in -> (the suffix we read, the
+# unit its values must be converted from, or "" when only the name is wrong).
+UNIT_SPELLINGS = {
+    "yrs": ("_years", ""), "yr": ("_years", ""), "year": ("_years", ""), "y": ("_years", ""), "a": ("_years", ""),
+    "kgs": ("_kg", ""), "kilo": ("_kg", ""), "kilos": ("_kg", ""), "kilograms": ("_kg", ""),
+    "kilogram": ("_kg", ""), "cms": ("_cm", ""), "centimeters": ("_cm", ""), "centimetres": ("_cm", ""),
+    "centimeter": ("_cm", ""), "centimetre": ("_cm", ""), "pct": ("_percent", ""), "perc": ("_percent", ""),
+    "%": ("_percent", ""), "mm": ("_cm", "mm"), "m": ("_cm", "m"), "in": ("_cm", "inches"),
+    "inch": ("_cm", "inches"), "inches": ("_cm", "inches"), "ft": ("_cm", "feet"), "g": ("_kg", "g"),
+    "lb": ("_kg", "pounds"), "lbs": ("_kg", "pounds"), "pounds": ("_kg", "pounds"),
+    "kgm2": ("_kg_m2", ""), "kg/m2": ("_kg_m2", ""), "kg/m^2": ("_kg_m2", ""), "l": ("_m3", "litres"),
+}
 SEXES = ("female", "male")
 SUBJECT_ID_COLUMN = "subject"
 SEX_COLUMN = "sex"
@@ -130,10 +143,31 @@ def check_label_columns(columns, reserved: tuple[str, ...], source: str) -> None
 
 
 def _suggestion(column: str) -> str:
-    """' (did you mean stature_cm?)' for a unit-less name we can guess, else ''."""
-    key = column.strip().lower().replace(" ", "_").replace("-", "_")
+    """' (did you mean stature_cm?)' for a name we can guess, else ''.
+
+    A unit-less name (``stature``), or a name whose unit is misspelt or not one we read
+    (``age_yrs``, ``mass_kgs``, ``stature (cm)``, ``stature_mm``: then the values must be converted
+    too, which the suggestion says).
+    """
+    key = column.strip().lower()
+    for ch in "()[]":
+        key = key.replace(ch, "_" if ch in "([" else "")
+    key = "_".join(part for part in key.replace(" ", "_").replace("-", "_").split("_") if part)
     if key in LABEL_SUGGESTIONS:
         return f" (did you mean {LABEL_SUGGESTIONS[key]}?)"
+    if key != column and unit_of_label(key) is not None:         # 'Stature (cm)' -> stature_cm
+        return f" (did you mean {key}?)"
+    base, _, unit = key.rpartition("_")
+    if base and unit in UNIT_SPELLINGS:
+        suffix, convert_from = UNIT_SPELLINGS[unit]
+        name = LABEL_SUGGESTIONS.get(base, "")
+        name = name if name.endswith(suffix) else base + suffix
+        if name == column:
+            return ""
+        if convert_from:
+            return (f" (did you mean {name}? its values are read in {LABEL_UNITS[suffix]}: "
+                    f"convert them from {convert_from} and rename the column)")
+        return f" (did you mean {name}?)"
     if any(word in key for word in ("girth", "circumference", "length", "width", "depth", "size")):
         return f" (did you mean {key}_cm?)"
     return ""
@@ -178,8 +212,9 @@ def label_values(column: str, values, source: str, lines: list[int] | None = Non
         sexes = np.char.lower(np.char.strip(values.astype(str)))
         for i, sex in enumerate(sexes.tolist()):
             if sex not in SEXES:
+                empty = " (empty: give it on at least one of the subject's rows, or leave the column out)" if not sex else ""
                 raise DatabaseError(f"{_position(source, lines, i)}, column '{column}': '{sex}', "
-                                    f"expected one of {', '.join(SEXES)}")
+                                    f"expected one of {', '.join(SEXES)}{empty}")
         return sexes
     if unit_of_label(column) is None:
         return values.astype(str)
@@ -248,13 +283,25 @@ def scan_table(columns: Mapping, n_scans: int, source: str, lines: list[int] | N
     return table
 
 
+# A number written with a decimal comma (a semicolon- or tab-separated spreadsheet export).
+_DECIMAL_COMMA = re.compile(r"[-+]?\d+,\d+")
+
+
 def read_csv_columns(path: Path) -> tuple[dict[str, list[str]], list[int]]:
-    """A CSV file -> ({column: stripped cells}, file line of each row). Blank lines are skipped."""
+    """A CSV file -> ({column: stripped cells}, file line of each row). Blank lines are skipped.
+
+    Commas separate the fields; a header with none but semicolons or tabs is a spreadsheet's
+    export in a locale that writes decimal commas (``mesh;stature_cm`` / ``a.obj;171,5``): read
+    with that separator, a cell that is a number with a decimal comma as that number.
+    """
     if not path.is_file():
         raise DatabaseError(f"{path}: file not found")
     try:
         with open(path, newline="", encoding="utf-8-sig") as handle:
-            reader = csv.reader(handle)
+            first = handle.readline()
+            handle.seek(0)
+            delimiter = next((d for d in (";", "\t") if "," not in first and d in first), ",")
+            reader = csv.reader(handle, delimiter=delimiter)
             header = [name.strip() for name in next(reader, [])]
             rows, lines = [], []
             for row in reader:
@@ -263,7 +310,10 @@ def read_csv_columns(path: Path) -> tuple[dict[str, list[str]], list[int]]:
                 if len(row) != len(header):
                     raise DatabaseError(f"{path}, line {reader.line_num}: {len(row)} fields, "
                                         f"expected {len(header)} (one per header column)")
-                rows.append([cell.strip() for cell in row])
+                cells = [cell.strip() for cell in row]
+                if delimiter != ",":
+                    cells = [c.replace(",", ".") if _DECIMAL_COMMA.fullmatch(c) else c for c in cells]
+                rows.append(cells)
                 lines.append(reader.line_num)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise DatabaseError(f"{path}: could not read as CSV: {exc}") from exc
@@ -687,7 +737,8 @@ def _subject_labels(cells: Mapping[str, list[str]], lines: list[int], subject_id
                     source: str) -> tuple[Table, list[str]]:
     """Per-scan CSV cells -> one row per subject (in order of first appearance) and notes.
 
-    Text columns (sex) must agree within a subject. A numeric label's value of a subject is its
+    Text columns (sex) must agree within a subject (a sex given on some of its scans only is the
+    subject's). A numeric label's value of a subject is its
     rest-pose scan's (``rest_rows``, when given there), else the mean of its given values; values
     more than ``LABEL_SPREAD`` of their median apart are refused as two people or a typo.
     """
@@ -705,14 +756,23 @@ def _subject_labels(cells: Mapping[str, list[str]], lines: list[int], subject_id
     for column in cells:
         if column in (MESH_COLUMN, SUBJECT_ID_COLUMN, "pose"):
             continue
-        per_scan = label_values(column, cells[column], source, lines)
+        column_cells = list(cells[column])
+        if column == SEX_COLUMN:
+            # Written on some scans only (the rest-pose row, as a clinic fills it in): the
+            # subject's other scans take it; agreement is checked below as for any text.
+            for rows in members.values():
+                given = next((column_cells[r] for r in rows if str(column_cells[r]).strip()), None)
+                for r in rows:
+                    if given is not None and not str(column_cells[r]).strip():
+                        column_cells[r] = given
+        per_scan = label_values(column, column_cells, source, lines)
         check_label_ranges({column: per_scan}, source, lines)
         if per_scan.dtype.kind != "f":
             for sid, rows in members.items():
                 other = next((r for r in rows if per_scan[r] != per_scan[rows[0]]), None)
                 if other is not None:
                     raise DatabaseError(f"{source}, line {lines[other]}, column '{column}': subject '{sid}' has "
-                                        f"'{cells[column][other]}' here but '{cells[column][rows[0]]}' on line "
+                                        f"'{column_cells[other]}' here but '{column_cells[rows[0]]}' on line "
                                         f"{lines[rows[0]]}; expected one value per subject")
             subjects[column] = per_scan[[rows[0] for rows in members.values()]]
             continue

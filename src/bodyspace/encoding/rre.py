@@ -446,6 +446,26 @@ def _central_face(graph: sp.csr_matrix, start: int) -> int:
     return int(path[len(path) // 2])
 
 
+def _degenerate_faces_message(vertices: np.ndarray, faces: np.ndarray, bad: np.ndarray) -> str:
+    """Why the reference body (V, 3) with faces (F, 3) cannot be encoded: ``bad`` (B,) zero-area
+    faces, how many come from vertices at the same point (a remesher's leftover), and the fix."""
+    corners = vertices[faces[bad]]                                         # (B, 3, 3)
+    gaps = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1)  # (B, 3): edge k joins corners k-1, k
+    coincident = gaps <= 1e-9 * np.ptp(vertices, axis=0).max()
+    pair = ""
+    if coincident.any():
+        row, k = np.argwhere(coincident)[0]
+        a, b = sorted((int(faces[bad[row]][k]), int(faces[bad[row]][k - 1])))
+        pair = (f"; {int(coincident.any(axis=1).sum())} of them join vertices at the same point "
+                f"(e.g. vertices {a} and {b})")
+    return (f"the meshes' topology has {len(bad)} zero-area face(s) of {len(faces)} on the reference body "
+            f"(faces {bad[:5].tolist()}{' ...' if len(bad) > 5 else ''}){pair}; the relative rotation "
+            "encoding needs a rotation per triangle, so every face must have an area. Fix the meshes (weld "
+            "coincident vertices and drop the faces they flatten, e.g. with trimesh's merge_vertices and "
+            "update_faces(nondegenerate_faces()), then import them again) or use the vertex encoding "
+            "(encoding='vertex'; bodyspace build --encoding vertex)")
+
+
 class RelativeRotationEncoder:
     """Relative rotation encoding of meshes registered to a template (Hasler et al. 2009).
 
@@ -517,8 +537,7 @@ class RelativeRotationEncoder:
         dbl_area = np.linalg.norm(np.cross(frames[..., 0], frames[..., 1]), axis=-1)
         bad = np.flatnonzero(dbl_area <= 1e-12 * dbl_area.mean())
         if len(bad):
-            raise MeshError(f"template: faces {bad[:5].tolist()} are degenerate (zero area); expected "
-                            "non-degenerate triangles")
+            raise MeshError(_degenerate_faces_message(tv, self.faces, bad))
         self._rest_frames_inv = np.linalg.inv(frames)
         self._rest_double_area = dbl_area
         nf = len(self.faces)

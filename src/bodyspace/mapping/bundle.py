@@ -20,7 +20,7 @@ import numpy as np
 from bodyspace.encoding.linearize import DecoderLinearization
 from bodyspace.errors import ParameterError
 from bodyspace.mapping.forest import LinearLeafForest
-from bodyspace.mapping.gradients import LinearBodyMeasures
+from bodyspace.mapping.gradients import SAME_QUANTITY, LinearBodyMeasures
 from bodyspace.mapping.linear import LinearMapping
 from bodyspace.mapping.refine import RefineResult, refine
 from bodyspace.mapping.training import default_sizes, make_training_set, sample_uniform
@@ -125,12 +125,25 @@ class MeasurementMapping:
             self.measurement_mean, self.measurement_cov = x.mean(axis=0), np.cov(x, rowvar=False)
         return self.measurement_mean, self.measurement_cov
 
+    def given_inputs(self, targets: dict) -> dict:
+        """The mapping's inputs a request ``targets`` (name -> cm) fixes: {input name: value}, the
+        asked ones and those asked under another name of the same quantity (``SAME_QUANTITY``:
+        stature=175cm fixes the input height; drawn from the population instead, it started the
+        forest at 176.6 cm)."""
+        given = {n: v for n, v in targets.items() if n in self.names}
+        for n in self.names:
+            alias = next((a for a in SAME_QUANTITY.get(n, ()) if a in targets), None)
+            if n not in given and alias is not None:
+                given[n] = targets[alias]
+        return given
+
     def inputs(self, model, targets: dict, rng=None) -> np.ndarray:
         """The forest's inputs (N, M) cm for a request ``targets`` (name -> cm, scalar or (N,)):
-        the mapping's names that were asked as asked, the others drawn from the population given
-        them (``conditional_draw`` of ``statistics``). Deterministic given ``rng``."""
+        the mapping's names that were asked as asked (``given_inputs``), the others drawn from
+        the population given them (``conditional_draw`` of ``statistics``). Deterministic given
+        ``rng``."""
         mean, cov = self.statistics(model)
-        return conditional_draw(mean, cov, {n: v for n, v in targets.items() if n in self.names}, self.names, rng)
+        return conditional_draw(mean, cov, self.given_inputs(targets), self.names, rng)
 
     def shape(self, model, targets, refine_result: bool = True, rng=None, **refine_kw) -> RefineResult:
         """Coefficients of bodies that measure ``targets`` (cm): a ``RefineResult`` (coefficients

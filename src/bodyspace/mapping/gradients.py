@@ -49,6 +49,13 @@ RUPPRECHT_SIX = ("height", "breast_size", "waist_size", "hip_size", "leg_length"
 SUBSTITUTES = {"height": ("stature",), "breast_size": ("chest_girth",), "waist_size": ("waist_girth",),
                "hip_size": ("hip_girth",), "leg_length": ("inside_leg_length", "crotch_height"),
                "shoulder_size": ("shoulder_width",)}
+# Measurements of one quantity under two names (Rupprecht's and ISO 8559-1's): a request of
+# one fixes the mapping's input of the other (height: the head-top landmark over the floor,
+# stature: the head's highest vertex, equal on a level head; the three leg lengths are one
+# definition, crotch to floor).
+SAME_QUANTITY = {"height": ("stature",), "leg_length": ("inside_leg_length", "crotch_height"),
+                 "stature": ("height",), "inside_leg_length": ("leg_length", "crotch_height"),
+                 "crotch_height": ("leg_length", "inside_leg_length")}
 # A mapping from fewer measurements than this is refused (two numbers do not pin a body shape).
 MIN_INPUTS = 3
 UP = np.array([0.0, 1.0, 0.0])

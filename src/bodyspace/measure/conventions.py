@@ -573,3 +573,38 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
     if findings:
         raise MeasurementError(describe(mesh_name, findings, words))
     return to_internal(vertices, faces, units or "m", up or "y", flip_winding)
+
+
+# ------------------------------------------------------------------------------ placement
+
+# Landmarks that say which way a body faces: its left side (+X in our frame, so that left x up
+# is the front, +Z) from the shoulder and hip joints, and where it stands (between the hips).
+PLACEMENT_PAIRS = (("shoulder_joint_l", "shoulder_joint_r"), ("hip_joint_l", "hip_joint_r"))
+
+
+def standing_placement(landmarks: dict, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The rigid move that stands bodies in our frame: facing +Z, the floor at y = 0, the point
+    between the hip joints over the origin.
+
+    landmarks: {name: (ids (K,), weights (K,))} of the bodies' topology (``MeasurementSet.landmarks``,
+    ``load_landmarks``).
+    vertices: (N, V, 3) standing bodies in metres, +Y up (a folder's rest scans): one move for
+    all, from the median of their left directions, floors and hip centres, so bodies keep their
+    places relative to each other. Returns (R (3, 3), t (3,), yaw in degrees) with ``x' = R x + t``
+    (R turns about +Y only), or None when the landmarks lack the shoulder and hip joints.
+    """
+    names = [n for pair in PLACEMENT_PAIRS for n in pair]
+    if any(n not in landmarks for n in names):
+        return None
+    v = np.asarray(vertices, dtype=float)
+    p = {n: np.einsum("k,nkd->nd", np.asarray(landmarks[n][1], float), v[:, np.asarray(landmarks[n][0])])
+         for n in names}                                                                               # (N, 3)
+    left = sum(p[a] - p[b] for a, b in PLACEMENT_PAIRS)                                              # (N, 3)
+    left = np.median(left, axis=0)
+    front = np.cross(left, [0.0, 1.0, 0.0])
+    yaw = float(np.arctan2(front[0], front[2]))          # front = (sin yaw, 0, cos yaw)
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])                                      # R @ front = +Z
+    hips = np.median(0.5 * (p["hip_joint_l"] + p["hip_joint_r"]), axis=0) @ R.T
+    floor = float(np.median(v[..., 1].min(axis=1)))
+    return R, np.array([-hips[0], -floor, -hips[2]]), float(np.degrees(yaw))

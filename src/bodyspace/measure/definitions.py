@@ -54,7 +54,9 @@ built-in ones:
 
 Any measurement may say ``"requires": ["upright"]``: on a body whose condition fails its value
 is NaN with a note, never silently wrong; and ``"plausible": {"range": [lo, hi], "ratio_to":
-{earlier name: [lo, hi]}}``: a value outside is NaN with the reason (``evaluate``). The body
+{earlier name: [lo, hi]}, "adult_stature": 1.5}``: a value outside is NaN with the reason
+(``evaluate``); with ``adult_stature`` the range is an adult's and its low end shrinks in
+proportion on a body whose measured stature is shorter (a child's wrist). The body
 part of every vertex is the optional ``"vertex_parts"`` (one letter a vertex, ``parts``).
 
 A condition holds when every axis in ``axes`` is within ``max_angle_deg`` of ``relative_to``
@@ -232,10 +234,17 @@ def _check_plausible(where: str, rule: Any, earlier: set) -> None:
                                                                for b in x) or not x[0] < x[1]):
             raise fail(where, f"{what} is {x!r}, expected [low, high] with low < high")
 
-    if not isinstance(rule, dict) or set(rule) - {"range", "ratio_to"}:
-        raise fail(where, f"got {rule!r}, expected {{\"range\": [low, high], \"ratio_to\": {{name: [low, high]}}}}")
+    if not isinstance(rule, dict) or set(rule) - {"range", "ratio_to", "adult_stature"}:
+        raise fail(where, f"got {rule!r}, expected {{\"range\": [low, high], \"ratio_to\": {{name: [low, high]}}, "
+                          "\"adult_stature\": metres}")
     if "range" in rule:
         bounds(rule["range"], "'range'")
+    if "adult_stature" in rule:
+        a = rule["adult_stature"]
+        if "range" not in rule or isinstance(a, bool) or not isinstance(a, (int, float)) or not 0.5 <= a <= 2.6:
+            raise fail(where, f"'adult_stature' is {a!r}, expected a stature in metres (0.5-2.6) beside a 'range'")
+        if "stature" not in earlier:
+            raise fail(where, "'adult_stature' needs a measurement 'stature' defined earlier in the file")
     ratios = rule.get("ratio_to", {})
     if not isinstance(ratios, dict):
         raise fail(where, f"'ratio_to' is {ratios!r}, expected {{measurement name: [low, high]}}")

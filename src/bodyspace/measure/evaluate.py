@@ -21,13 +21,22 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from bodyspace.errors import MeshError
 from bodyspace.measure.conventions import check_body_scale, check_winding
 from bodyspace.measure.definitions import MeasurementError, MeasurementSet, condition_notes, parts_on_standing_body
 from bodyspace.measure.methods import METHODS, Chunk, Topology, known_methods, template_vertices
 from bodyspace.measure.points import inline_key, inline_points
-from bodyspace.mesh.geometry import check_mesh
+from bodyspace.mesh.geometry import boundary_loops, check_mesh
 
 CHUNK = 64
+# A landmark vertex that no face uses is taken from its position when it lies in a hole of the
+# mesh (a scan's holes keep their vertices: a registered mesh with its holes cut out): inside a
+# boundary loop's sphere (HOLE_REACH x the loop's radius) whose radius is at most HOLE_MAX_SIZE of
+# the body's extent, on a mesh whose faces leave at most HOLE_MAX_UNUSED of its vertices. Else
+# (a face list cut short, a landmark file of another mesh) it is refused.
+HOLE_REACH = 1.25
+HOLE_MAX_SIZE = 0.08
+HOLE_MAX_UNUSED = 0.1
 _DISPLAY = {"m": ("cm", 100.0)}
 
 
@@ -69,12 +78,14 @@ def _topology(faces: np.ndarray) -> Topology:
 
 
 def check_compatible(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray,
-                     mesh_name: str = "the measured mesh") -> None:
+                     mesh_name: str = "the measured mesh") -> dict[str, str]:
     """Raise MeasurementError unless the mesh (vertices (..., V, 3), faces (F, 3)) fits the set:
-    its vertex count, every landmark and ring vertex in range and on a face.
+    its vertex count, every landmark and ring vertex in range and on a face or in a hole.
 
-    A needed vertex that no face uses is blamed on the mesh (``mesh_name``): that is what a
-    face list cut short looks like, where the set itself fits the vertex count.
+    A landmark vertex that no face uses but that lies in a hole of the mesh (``holed_landmarks``)
+    is measured from its position: returned as {landmark name: note}. Any other needed vertex
+    that no face uses is blamed on the mesh (``mesh_name``): that is what a face list cut short
+    looks like, where the set itself fits the vertex count.
     """
     nv = vertices.shape[-2]
     if mset.n_vertices is not None and nv != mset.n_vertices:
@@ -83,20 +94,64 @@ def check_compatible(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarr
                                "(load_landmarks and with_landmarks, docs/measurements.md)")
     used = np.zeros(nv, dtype=bool)
     used[faces.ravel()] = True
+    orphans = {}
     for name, (ids, _) in mset.landmarks.items():
         if ids.max() >= nv:
             raise MeasurementError(f"{mset.source}: landmark {name!r} is vertex {int(ids.max())}, which is off the "
                                    f"mesh: {mesh_name} has {nv} vertices (ids 0..{nv - 1})")
         if not used[ids].all():
-            bad = int(ids[~used[ids]][0])
+            orphans[name] = ids[~used[ids]]
+    holed = holed_landmarks(np.asarray(vertices).reshape(-1, nv, 3)[0], faces, used, orphans) if orphans else {}
+    for name, bad in orphans.items():
+        if name not in holed:
+            loops = len(_hole_loops(faces))
             raise MeasurementError(f"{mesh_name}: its faces use only {int(used.sum())} of its {nv} vertices, and "
-                                   f"vertex {bad} (landmark {name!r} of {mset.source}) is on none of them; expected "
-                                   "every landmark vertex on a face (is the file truncated or damaged?)")
+                                   f"vertex {int(bad[0])} (landmark {name!r} of {mset.source}) is on none of them"
+                                   f"{f' nor in one of its {loops} hole(s)' if loops else ''}; expected every landmark "
+                                   "vertex on a face or inside a small hole (is the file truncated or damaged, or "
+                                   "the landmark file made for another mesh?)")
     for m in mset.measurements:
         ring = template_vertices(m)
         if ring and max(ring) >= nv:
             raise MeasurementError(f"{mset.source}: measurement {m['name']!r} loops through vertex "
                                    f"{max(ring)}, but {mesh_name} has {nv} vertices")
+    return holed
+
+
+def _hole_loops(faces: np.ndarray) -> list:
+    """The boundary loops of the mesh, or none when its boundary is not a set of loops (a face
+    list cut short leaves vertices that start two boundary edges: no hole to speak of)."""
+    try:
+        return boundary_loops(faces)
+    except MeshError:
+        return []
+
+
+def holed_landmarks(vertices: np.ndarray, faces: np.ndarray, used: np.ndarray,
+                    orphans: dict[str, np.ndarray]) -> dict[str, str]:
+    """{landmark name: note} for the landmarks whose unused vertices all lie in a hole.
+
+    vertices (V, 3), faces (F, 3), used (V,) bool (vertex on a face), orphans {name: (K,) ids of
+    its vertices on no face}. A hole is a boundary loop of radius at most HOLE_MAX_SIZE of the
+    body's extent; a vertex lies in it within HOLE_REACH x that radius of its centre.
+    """
+    if (~used).mean() > HOLE_MAX_UNUSED:
+        return {}
+    extent = float(np.ptp(vertices[used], axis=0).max())
+    holes = []
+    for loop in _hole_loops(faces):
+        centre = vertices[loop].mean(axis=0)
+        radius = float(np.linalg.norm(vertices[loop] - centre, axis=1).max())
+        if radius <= HOLE_MAX_SIZE * extent:
+            holes.append((centre, radius))
+    out = {}
+    for name, ids in orphans.items():
+        inside = [min((float(np.linalg.norm(vertices[i] - c) / r) for c, r in holes), default=np.inf)
+                  for i in ids]
+        if holes and max(inside) <= HOLE_REACH:
+            out[name] = (f"landmark {name!r} lies in a hole of the mesh (vertex {int(ids[0])} is on no face): "
+                         "its position in the file is used, and a tape across the hole spans it straight")
+    return out
 
 
 def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, keep_polylines: bool,
@@ -142,7 +197,8 @@ def _evaluate_chunk(mset: MeasurementSet, v: np.ndarray, topology: Topology, L, 
 
 def _implausible(m: dict, val: np.ndarray, notes: list, earlier: dict) -> None:
     """Set to NaN (with the reason) the values outside the definition's ``plausible`` bounds: the
-    ``range`` [lo, hi] a human's value lies in (SI), and the ``ratio_to`` bounds against
+    ``range`` [lo, hi] a human's value lies in (SI; with ``adult_stature`` the low end shrinks in
+    proportion on a body shorter than that), and the ``ratio_to`` bounds against
     measurements made earlier ({name: [lo, hi]}: chest, waist and hip keep an order that holds
     for people). A tape that caught an arm or a chin, or a plane that missed the body, gives
     values these bounds catch; nonsense is never printed as a number (issue 12 §3)."""
@@ -153,10 +209,18 @@ def _implausible(m: dict, val: np.ndarray, notes: list, earlier: dict) -> None:
     label = m["name"].replace("_", " ")
     if "range" in rule:
         lo, hi = rule["range"]
+        lo = np.full(len(val), float(lo))
+        if "adult_stature" in rule and earlier.get("stature") is not None:
+            # A child's girths are an adult's scaled down: the low end follows the measured
+            # stature below an adult's (a 1 m child's wrist of 9 cm is no tape error).
+            with np.errstate(invalid="ignore"):
+                shrink = np.clip(earlier["stature"] / rule["adult_stature"], 0.3, 1.0)
+            lo = np.where(np.isfinite(shrink), lo * shrink, lo)
         for i in np.flatnonzero((val < lo) | (val > hi)):
             notes[i] = notes[i] or (f"implausible: {label} {val[i] * scale:.1f} {unit} is outside the "
-                                    f"{lo * scale:g}-{hi * scale:g} {unit} of a human (the tape caught another "
-                                    "body part or missed this one)")
+                                    f"{lo[i] * scale:.3g}-{hi * scale:g} {unit} of a human"
+                                    f"{' of this stature' if lo[i] < rule['range'][0] else ''} (the tape caught "
+                                    "another body part or missed this one)")
             val[i] = np.nan
     for other, (lo, hi) in rule.get("ratio_to", {}).items():
         ref = earlier.get(other)
@@ -202,7 +266,7 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
     single = v.ndim == 2
     if single:
         v = v[None]
-    check_compatible(mset, v, faces, mesh_name)
+    holed = check_compatible(mset, v, faces, mesh_name)
     if check_scale:
         check_body_scale(v, mesh_name)
     if check_faces:
@@ -238,8 +302,22 @@ def evaluate(mset: MeasurementSet, vertices: np.ndarray, faces: np.ndarray, *,
         note = sum((p[name][2] for p in parts), [])
         if single:
             val, poly, note = float(val[0]), (poly[0] if poly else None), note[0]
+        why = next((holed[k] for k in holed if k in _names_in(m)), None)
+        if why is not None:     # a value taken from a landmark in a hole says so
+            note = (note or why) if single else [n or why for n in note]
         out[name] = Measurement(name, val, m["unit"], m["method"], m.get("iso", ""), poly, note)
     return out
+
+
+def _names_in(definition) -> set:
+    """Every string in a measurement definition (its landmark names among them)."""
+    if isinstance(definition, str):
+        return {definition}
+    if isinstance(definition, dict):
+        return set().union(*(_names_in(x) for x in definition.values())) if definition else set()
+    if isinstance(definition, (list, tuple)):
+        return set().union(*(_names_in(x) for x in definition)) if definition else set()
+    return set()
 
 
 def vertex_parts(mset: MeasurementSet, v: np.ndarray, L, faces: np.ndarray | None = None

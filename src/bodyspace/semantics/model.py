@@ -319,7 +319,8 @@ class SemanticModel:
         if self.on_infeasible == "raise":
             raise TargetError(f"{name}: {format_value(name, value)} is outside what the model can reach "
                               f"({rng_txt}: within {self.sigma_limit:g} SD, and every training subject's value); "
-                              "ask within that range or clamp")
+                              "ask within that range, or have it clamped to the range (--clamp on the command line, "
+                              "on_infeasible='clamp' in Python)")
         clamped = min(max(value, lo), hi)
         msg = (f"{name}: {format_value(name, value)} is outside the reachable range {rng_txt}; "
                f"clamped to {format_value(name, clamped)}")
