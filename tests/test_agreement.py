@@ -69,13 +69,15 @@ def test_protocol_by_hand():
     h, c, b, lonely = rows
     assert h.n == 5 and h.mean == pytest.approx(0.003) and h.sd == pytest.approx(np.sqrt(2.5) / 1000)
     assert (h.ci_low, h.ci_high) == pytest.approx((0.003 - 0.0013859, 0.003 + 0.0013859), abs=1e-7)
-    assert not h.accepted and "interval" in h.reason
+    assert not h.accepted and h.reason.startswith("biased: the interval excludes 0")
     assert c.accepted and c.allowable == 0.009
     assert b.accepted and b.ci_high == pytest.approx(-0.0003 + 0.00013859, abs=1e-8)
     assert lonely.n == 1 and not lonely.accepted and "needs 2" in lonely.reason
     # A bias beyond the allowable error: refused as biased.
     biased = agreement(np.full((4, 1), 0.005) + [[0.0], [0.0001], [0.0], [-0.0001]], ["s"], [HEIGHT])[0]
-    assert not biased.accepted and biased.reason.startswith("biased")
+    assert not biased.accepted and biased.reason.startswith("biased: the whole interval")
+    spread = agreement(np.array([[0.004], [-0.004], [0.0]]), ["s"], [HEIGHT])[0]
+    assert not spread.accepted and spread.reason.startswith("spread")
     # Relative categories: errors divided by the reference (1 % of the value).
     ref = np.array([[70.0], [80.0], [100.0]])
     vol = agreement(np.array([[0.35], [0.4], [0.5]]), ["mass"], [NO_ISO], reference=ref)[0]

@@ -55,9 +55,11 @@ class Agreement:
             return ""
         if self.n < 2:
             return f"{self.n} subject(s), an interval needs 2"
-        if abs(self.mean) > self.allowable:
-            return "biased: the mean error alone exceeds the allowable error"
-        return "the interval is wider than the allowable error leaves (spread, or too few subjects)"
+        if self.ci_low > self.allowable or self.ci_high < -self.allowable:
+            return "biased: the whole interval lies beyond the allowable error"
+        if self.ci_low > 0 or self.ci_high < 0:
+            return "biased: the interval excludes 0 and reaches past the allowable error"
+        return "spread: the interval holds 0 but reaches past the allowable error (scattered, or too few subjects)"
 
 
 def agreement(errors, names, categories, *, reference=None) -> list[Agreement]:
