@@ -1,6 +1,8 @@
 """ISO 20685-1's categories and its protocol (measure/tolerances.py, measure/agreement.py; issue 15):
 numbers checked by hand."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -93,3 +95,31 @@ def test_protocol_refuses_bad_input():
         agreement(np.zeros((3, 1)), ["a"], ["tiny"])
     with pytest.raises(ParameterError, match="reference"):
         agreement(np.zeros((3, 1)), ["mass"], [NO_ISO])
+
+
+def test_cli_agreement(tmp_path):
+    """`bodyspace agreement`: subjects matched by id (one file's extra subject left out), cm and mm
+    columns, a user's own measurement given a category, the verdicts printed and written."""
+    from typer.testing import CliRunner
+
+    from bodyspace.cli import app
+    runner = CliRunner()
+    scans = tmp_path / "scans.csv"
+    tape = tmp_path / "tape.csv"
+    # waist (large, ±0.9 cm): errors 0.1, 0.2, 0.3 cm → accepted; stature in mm: errors 1..3 mm,
+    # mean 2, SD 1, CI 2 ± 1.13 → [0.87, 3.13] mm within ±4 → accepted; thumb (own, small, ±0.4 cm):
+    # errors 1 cm each → biased, rejected.
+    scans.write_text("subject,waist_girth_cm,stature_mm,thumb_cm\na,80.1,1701,6\nb,90.2,1802,7\nc,70.3,1603,8\n"
+                     "z,1,1,1\n")
+    tape.write_text("subject,waist_girth_cm,stature_mm,thumb_cm\nc,70,1600,7\nb,90,1800,6\na,80,1700,5\n")
+    out = tmp_path / "agreement.json"
+    r = runner.invoke(app, ["agreement", str(scans), str(tape), "--category", "thumb=small", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "3 subjects in both files (1 in one only" in r.output and "accepted for 2 of 3" in r.output
+    doc = json.loads(out.read_text())
+    rows = {m["name"]: m for m in doc["measurements"]}
+    assert rows["waist_girth"]["accepted"] and rows["waist_girth"]["mean"] == pytest.approx(0.2)
+    assert rows["stature"]["category"] == HEIGHT and rows["stature"]["ci_high"] == pytest.approx(0.2 + 0.1131596, abs=1e-4)
+    assert not rows["thumb"]["accepted"] and rows["thumb"]["reason"].startswith("biased")
+    bad = runner.invoke(app, ["agreement", str(scans), str(tape)])
+    assert bad.exit_code != 0 and "--category thumb=" in bad.output

@@ -105,14 +105,16 @@ def agreement(errors, names, categories, *, reference=None) -> list[Agreement]:
     return out
 
 
-def format_agreement(rows: list[Agreement]) -> str:
-    """The verdicts as a text table: mm for lengths, % for the relative ones."""
+def format_agreement(rows: list[Agreement], length_unit: str = "mm") -> str:
+    """The verdicts as a text table: lengths in ``length_unit`` ("mm" or "cm"), the relative ones in %."""
+    scale = {"mm": 1000.0, "cm": 100.0}[length_unit]
+    digits = 1 if length_unit == "mm" else 2
     lines = [f"{'measurement':<20} {'category':<20} {'N':>3} {'mean':>7} {'SD':>6} {'95% CI':>17} "
              f"{'allowed':>8}  verdict"]
     for r in rows:
-        s, u = (100.0, "%") if r.relative else (1000.0, "mm")
-        ci = f"[{r.ci_low * s:+.1f}, {r.ci_high * s:+.1f}]"
-        lines.append(f"{r.name:<20} {r.category:<20} {r.n:>3} {r.mean * s:>+7.1f} {r.sd * s:>6.1f} {ci:>17} "
+        s, u, d = (100.0, "%", 1) if r.relative else (scale, length_unit, digits)
+        ci = f"[{r.ci_low * s:+.{d}f}, {r.ci_high * s:+.{d}f}]"
+        lines.append(f"{r.name:<20} {r.category:<20} {r.n:>3} {r.mean * s:>+7.{d}f} {r.sd * s:>6.{d}f} {ci:>17} "
                      f"{'±' + format(r.allowable * s, 'g') + ' ' + u:>8}  "
                      f"{'accepted' if r.accepted else 'REJECTED (' + r.reason + ')'}")
     acc = sum(r.accepted for r in rows)
