@@ -124,7 +124,8 @@ def scan_offsets(posed: np.ndarray, faces: np.ndarray, points: np.ndarray, norma
     height of the points of the vertices within ``rings`` edges of it (default ``OFFSET_RINGS``,
     so that a few points a vertex still give a steady mean) less the same mean over as many
     points sampled on the posed surface itself: a point beside a vertex lies below its tangent
-    plane by the surface's curvature, and the difference takes that out exactly.
+    plane by the surface's curvature, and the difference takes that out exactly (``rng``: the seed
+    of those surface points).
     """
     rings = OFFSET_RINGS if rings is None else rings
     V = len(posed)
