@@ -36,6 +36,9 @@ def test_a_users_own_definitions_get_categories_by_the_rule():
     assert iso_category({"name": "x", "method": "distance", "from": "a", "to": "c", "unit": "m"}, landmarks=lm) == DEPTH
     assert iso_category({"name": "x", "method": "distance", "from": "a", "to": "d", "unit": "m"},
                         landmarks=lm) == SEGMENT_LENGTH
+    # Without a body: a left-right pair of one landmark name is a breadth, other distances segment lengths.
+    assert iso_category({"name": "x", "method": "distance", "from": "knee_l", "to": "knee_r", "unit": "m"}) == BREADTH
+    assert iso_category({"name": "x", "method": "distance", "from": "knee_l", "to": "hip_r", "unit": "m"}) == SEGMENT_LENGTH
     assert iso_category({"name": "x", "method": "distance", "from": "a", "to": "floor", "axis": "up",
                          "unit": "m"}) == HEIGHT
     assert iso_category({"name": "x", "method": "slice", "part": "forearm_l", "unit": "m"}) == SMALL_CIRCUMFERENCE

@@ -22,7 +22,8 @@ user's own measurement set gets categories too:
    ring (Rupprecht's loops), the part most of its vertices are on (the set's ``vertex_parts``, or
    ``parts.parts_from_landmarks`` on a standing body);
 4. a straight "distance" between two points: its direction on a standing body, mostly sideways
-   ``BREADTH``, mostly front to back ``DEPTH``, else ``SEGMENT_LENGTH``;
+   ``BREADTH``, mostly front to back ``DEPTH``, else ``SEGMENT_LENGTH`` (without a body: a
+   left-right pair of one landmark name, ``X_l`` to ``X_r``, is a breadth);
 5. anything else of unit "m" (a "path" through joint centres, a method bodyspace does not
    know): ``SEGMENT_LENGTH``.
 
@@ -37,7 +38,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from bodyspace.data.template import load_template
 from bodyspace.measure.definitions import load_measurement_set
 from bodyspace.measure.parts import PARTS, parts_from_landmarks
 
@@ -86,9 +86,9 @@ def iso_category(definition: dict, *, landmarks: dict | None = None, vertex_part
 
     landmarks: name → (3,) the set's landmark points on a standing body (metres, +Y up, +X the
     body's left, +Z front), for a straight distance's direction; vertex_parts: (V,) the set's
-    part labels (``parts.PARTS`` indices), for a vertex ring. Without them a distance is a
-    segment length and a ring a large circumference only if it is named so by ``ISO_EXCEPTIONS``
-    (else small).
+    part labels (``parts.PARTS`` indices), for a vertex ring. Without landmarks a distance between
+    a left and a right landmark of one name (``X_l``, ``X_r``) is a breadth, any other a segment
+    length; without parts a ring is a small circumference.
     """
     name, method = definition.get("name", ""), definition.get("method")
     if name in ISO_EXCEPTIONS:
@@ -104,6 +104,10 @@ def iso_category(definition: dict, *, landmarks: dict | None = None, vertex_part
         if part is None and method == "loop" and vertex_parts is not None and definition.get("vertices"):
             part = _part_of_ring(definition["vertices"], vertex_parts)
         return LARGE_CIRCUMFERENCE if part == "torso" else SMALL_CIRCUMFERENCE
+    if method == "distance" and landmarks is None:
+        a, b = str(definition.get("from")), str(definition.get("to"))
+        if {a[-2:], b[-2:]} == {"_l", "_r"} and a[:-2] == b[:-2]:      # a left-right pair: across the body
+            return BREADTH
     if method == "distance" and landmarks is not None:
         a, b = landmarks.get(definition.get("from")), landmarks.get(definition.get("to"))
         if a is not None and b is not None:
@@ -119,22 +123,21 @@ def iso_category(definition: dict, *, landmarks: dict | None = None, vertex_part
 def iso_categories(mset, body: np.ndarray | None = None) -> dict[str, str]:
     """name → ISO 20685-1 category of every measurement of ``mset`` (``iso_category``).
 
-    body: a standing body (V, 3) of the set's topology (metres, +Y up), or a ``Template`` (its
-    mean ``vertices``), or None: the template's mean body when the set is the template's size,
-    else the distances are segment lengths and the rings without parts small.
+    body: a standing body (V, 3) of the set's topology (metres, +Y up; e.g. the template's mean
+    body), or an object with such ``vertices`` (a ``Template``), or None. With it, a straight
+    distance's direction decides breadth, depth or segment length, and the rings of a set without
+    part labels get parts (``parts.parts_from_landmarks``); without it, a distance between a left
+    and a right landmark of one name (``X_l``, ``X_r``) is a breadth, other distances segment
+    lengths, and rings take the set's own part labels (small circumferences without them).
     """
     if body is not None and hasattr(body, "vertices"):
         body = body.vertices
-    if body is None and mset.n_vertices is not None:
-        template = load_template()
-        if template.n_vertices == mset.n_vertices:
-            body = template.vertices
-    landmarks = parts = None
+    landmarks = None
+    parts = mset.vertex_parts
     if body is not None:
         body = np.asarray(body, dtype=float)
         points = mset.landmark_matrix(len(body)) @ body
         landmarks = {n: points[i] for i, n in enumerate(mset.landmarks)}
-        parts = mset.vertex_parts
         if parts is None and any(m.get("method") == "loop" for m in mset.measurements):
             parts = parts_from_landmarks(body, landmarks)
     return {m["name"]: iso_category(m, landmarks=landmarks, vertex_parts=parts) for m in mset.measurements}
