@@ -12,8 +12,10 @@ time, its child processes' included (the short fits run on two forked processes;
 shared with other jobs the wall time says more about the load than the code). Also the mean distance
 of the measurement set's 25 landmarks on the fit from the true body's, and the measurements of
 the fit standing (``Registration.standing``), as ``bodyspace register`` measures it, against the true rest body's: how many are
-within ISO 20685-1 (stature, heights and slice girths 4 mm, lengths and breadths 5 mm, chest,
-underbust, waist, hip 9 mm, volume, area, mass, BMI 1 %).
+within the ISO 20685-1 maximum allowable error of their category (``measure.tolerances``: heights,
+small circumferences and breadths 4 mm, segment lengths and depths 5 mm, large circumferences (the
+trunk's girths and Rupprecht's rings) 9 mm; volume, area, mass, BMI 1 %). A count per scan, not the
+standard's protocol over a sample of subjects: that is benchmarks/study_iso.py.
 
 Folds: the fit's folded triangles, and those it *adds*: folded in the fit but not in the true
 body (the true LBS-posed bodies fold 4-35 triangles themselves, in armpits and groins).

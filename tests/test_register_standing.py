@@ -14,6 +14,7 @@ from bodyspace.register.pose_fit import PoseState, posed_vertices
 from bodyspace.register.pose_refit import refit_pose, standing_body
 from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.synth.poses import load_pose_library
+from bodyspace.synth.scans import sample_surface
 
 
 @pytest.fixture(scope="module")
@@ -73,3 +74,33 @@ def test_standing_body_is_the_rest_body_with_the_fit_s_normal_offsets(template, 
     bumped = standing_body(x + relief[:, None] * vertex_normals(x, template.faces), template.faces, template, truth)
     got = ((bumped - stand) * vertex_normals(stand, template.faces)).sum(axis=1)
     assert np.abs(got - relief).mean() < 2e-4
+
+
+def test_standing_body_takes_its_offsets_from_the_scan_where_it_has_points(template, posed_truth):
+    """A scan 2 mm outside the model's posed surface (noise σ 1 mm, the head cut out, floating
+    outliers 3 cm off): where it has points the standing body is 2 mm outside the rest body, the
+    registered mesh's offsets (none here: the mesh is the model's own surface) are ignored; in the
+    hole it keeps the registered mesh's (scan_offsets). Without the scan the offsets are the mesh's."""
+    truth, x = posed_truth
+    faces = template.faces
+    rng = np.random.default_rng(3)
+    points, face, bary = sample_surface(x, faces, 60_000, rng)
+    n_face = vertex_normals(x, faces)[faces[face]]
+    normal = (n_face * bary[:, :, None]).sum(axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    head = x[:, 1].max() - 0.25
+    scan = points + 0.002 * normal + rng.normal(0.0, 0.001, points.shape)
+    keep = scan[:, 1] < head
+    outliers = points[:2000] + 0.03 * normal[:2000]
+    scan = np.concatenate([scan[keep], outliers])
+    normals = np.concatenate([normal[keep], normal[:2000]])
+    rest = truth.scale * truth.rest
+    plain = standing_body(x, faces, template, truth)
+    stand = standing_body(x, faces, template, truth, points=scan, normals=normals)
+    body = x[:, 1] < head - 0.05
+    hole = x[:, 1] > head + 0.05
+    shift = np.median((stand - plain)[hole, 1])          # both stand on the ground: the soles moved out
+    got = ((stand - plain - [0.0, shift, 0.0]) * vertex_normals(rest, faces)).sum(axis=1)    # (V,) m
+    assert abs(np.median(got[body]) - 0.002) < 0.0002, np.median(got[body])
+    assert np.abs(got[body] - 0.002).mean() < 0.0004
+    assert np.abs(got[hole]).max() < 0.0003

@@ -98,6 +98,11 @@ COMMANDS: dict[str, CommandEntry] = {
     "landmarks": CommandEntry(
         "bodyspace.cli.register", "landmarks",
         "Landmarks for a mesh of another topology: register the template to it and carry them across."),
+    "agreement": CommandEntry(
+        "bodyspace.cli.agreement", "agreement",
+        "A method's measurements against a reference's over a sample of subjects, as ISO 20685-1 evaluates\n"
+        "them: per measurement the mean error, its 95 % confidence interval and whether it lies within the\n"
+        "maximum allowable error."),
     "mapping": CommandEntry(
         "bodyspace.cli.mapping", "app",
         "Measurements → shape: forest with linear leaves, exact refinement."),

@@ -14,8 +14,8 @@
 6. ``quality.assess``: how much of the scan the fit explains, as a whole and per body part both
    ways; refused below ``MIN_QUALITY``, the failed parts named;
 7. ``pose_refit.refit_pose`` and ``pose_refit.standing_body``: the model refitted to the scan with
-   a light shape prior, its rest body plus the registered mesh's normal offsets: the body
-   standing, to be measured (``Registration.standing``);
+   a light shape prior, its rest body plus the scan's normal offsets (from the scan points, the
+   registered mesh's over holes): the body standing, to be measured (``Registration.standing``);
 8. optionally ``detail.detail_offsets``: the scan's relief as normal offsets on the fit
    subdivided at mid-edges (Hasler §3, end), to be re-added after a morph.
 
@@ -274,14 +274,16 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
                                 "partial scan are refused)")
     # The body standing, for its measurements: the model refitted to the scan with a light shape
     # prior splits pose and shape (the pose fit's split left 145 of 186 measurements within ISO
-    # 20685-1 on the test scans, this one 159; docs/registration.md), the registered surface kept
-    # as normal offsets on the model's rest body.
+    # 20685-1 on the test scans, this one 159; docs/registration.md), the scan's surface kept as
+    # normal offsets on the model's rest body: from the scan points where it has them, from the
+    # registered mesh over its holes (the NICP stops stiff and kept the model's short girths:
+    # pose_refit.scan_offsets).
     standing_pose = stand = None
     if standing:
         report("standing body", 0.96)
         t = time.perf_counter()
         standing_pose = refit_pose(q, qn, template, state, basis, scan_tree=tree, rng=rng)
-        stand = standing_body(nicp.vertices, template.faces, template, standing_pose)
+        stand = standing_body(nicp.vertices, template.faces, template, standing_pose, points=q, normals=qn)
         seconds["standing"] = time.perf_counter() - t
     verts = nicp.vertices @ to_scan[:3, :3].T + to_scan[:3, 3]
     distance = tree.query(nicp.vertices)[0]
