@@ -189,3 +189,75 @@ def test_read_rows_into_a_kept_array(tmp_path):
     assert got is keep and np.array_equal(got, data[1:4])
     with pytest.raises(DatabaseError, match=r"\(2, 4, 3\) float32.*\(3, 4, 3\) float64"):
         read_rows(path, 3, 5, out=np.empty((3, 4, 3)))
+
+
+def _tube(n_around=24, n_rings=11, dz=0.01):
+    """A tube narrowing upwards (radius 6 cm at the bottom, 5 cm at the top), open at both ends:
+    vertices (1, V, 3), faces (F, 3) (each quad two triangles, one diagonal per quad)."""
+    z = np.arange(n_rings) * dz
+    r = 0.06 - 0.1 * z
+    th = 2 * np.pi * np.arange(n_around) / n_around
+    v = np.stack([np.repeat(r, n_around) * np.tile(np.cos(th), n_rings), np.repeat(z, n_around),
+                  np.repeat(r, n_around) * np.tile(np.sin(th), n_rings)], axis=1)
+    idx = np.arange(n_rings * n_around).reshape(n_rings, n_around)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+    faces = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return v[None], faces
+
+
+def test_a_plane_grazing_one_triangle_of_another_part_does_not_flip_the_min():
+    """Issue 15: the neck's min band left out every plane that touched one edge of a triangle with
+    a head vertex, so one vertex decided between planes centimetres apart in girth (ISO study:
+    -124 and +47 mm on two scans). A tube whose top rings are another part, and one vertex of the
+    ring below them too: the band's top plane grazes that vertex's triangles. Its ring goes on
+    round them and back onto the part, so it is measured as the tape's ring: the same girth and
+    plane as without the stray vertex; a ring that does not come back (a hole in the mesh) still
+    leaves the plane out of the min."""
+    from bodyspace.measure.slicing import mesh_edges, plane_basis, ring_runs
+
+    v, faces = _tube()
+    on = v[0, :, 1] < 0.075                                      # rings 0-7 the part, 8-10 another
+    origins = np.zeros((7, 1, 3))
+    origins[:, 0, 1] = 0.005 + 0.01 * np.arange(7)               # between the rings, the top at 6.5 cm
+    normal = np.array([[0.0, 1.0, 0.0]])
+    g_clean, plane_clean, _ = _tube_girths(v, faces, on, origins, normal)[:3]
+    assert plane_clean[0] == 6                                   # the narrowest plane of the band
+    stray = on.copy()
+    stray[7 * 24] = False                                        # a vertex of ring 7 is the other part's
+    g, plane, missed, pm = _tube_girths(v, faces, stray, origins, normal)
+    assert plane[0] == 6 and not missed[0]
+    assert g[0] == pytest.approx(g_clean[0], abs=1e-12)
+    assert g[0] == pytest.approx(2 * np.pi * 0.0535, rel=0.01)  # the tube's circumference there
+    # The rule it replaces (any crossing of the border opens the plane): the plane below, wider.
+    g_old, plane_old, _ = part_girths(v, part_mesh(pm.edges[pm.gid], pm.border), origins, normal, MODE_MIN)
+    assert plane_old[0] == 5 and g_old[0] - g[0] > 0.005
+    # The numpy path's runs (``ring_runs``): the part's crossings plus them are the kernel's ring.
+    cuts, _ = part_sections(v, pm.edges[pm.gid], origins, normal)
+    pts, group, closed = ring_runs(v, pm, origins, normal)
+    assert closed.all() and set(group) == {6} and len(pts) == 2  # the two crossings off the part
+    u, w = plane_basis(normal)
+    ring = np.concatenate([cuts.points[cuts.body == 6], pts])
+    assert hull_perimeter(np.stack([ring @ u[0], ring @ w[0]], axis=1))[0] == pytest.approx(g[0], abs=1e-12)
+    # A hole beside the stray vertex: the ring leaves the part and does not come back, so the
+    # plane stays out of the min (the plane below is chosen, as before).
+    holed = faces[~(np.sort(faces, axis=1) == [6 * 24, 7 * 24, 7 * 24 + 1]).all(axis=1)]
+    assert len(holed) == len(faces) - 1 and (mesh_edges(holed)[1] < 0).any()
+    g_h, plane_h, _, pm_h = _tube_girths(v, holed, stray, origins, normal)
+    assert plane_h[0] == 5 and not ring_runs(v, pm_h, origins, normal)[2][6]
+
+
+def _tube_girths(v, faces, on, origins, normal):
+    """``part_girths`` of a min band round the vertices ``on`` (V,) bool, walking the whole mesh
+    (as ``Topology.part_mesh`` builds it): girth, plane, missed, the ``PartMesh``."""
+    from bodyspace.measure.slicing import face_edge_ids, mesh_edges
+
+    edges, edge_faces = mesh_edges(faces)
+    keep = on[edges].all(axis=1)
+    face_on = on[faces].all(axis=1)
+    ef = edge_faces[keep]
+    border = ~np.where(ef >= 0, face_on[np.maximum(ef, 0)], False).all(axis=1)
+    mesh = {"faces": faces, "edges": edges, "edge_faces": edge_faces, "face_edges": face_edge_ids(faces, edges),
+            "gid": np.flatnonzero(keep), "on": on}
+    pm = part_mesh(edges[keep], border, mesh=mesh)
+    return (*part_girths(v, pm, origins, normal, MODE_MIN), pm)

@@ -37,16 +37,19 @@ from bodyspace.measure.slicing import (
     MODE_MAX,
     MODE_MIN,
     MODE_ONE,
+    Contours,
     PartMesh,
     approx_heights,
     band_contours,
     contour_girths,
     edge_neighbours,
+    face_edge_ids,
     mesh_edges,
     part_girths,
     part_mesh,
     part_sections,
     pick_contours,
+    ring_runs,
     support_perimeters,
 )
 from bodyspace.mesh.geometry import boundary_loops, capped_volume
@@ -71,6 +74,7 @@ class Topology:
         self.neighbours = edge_neighbours(self.faces, self.edges, self.edge_faces)
         self.loops = boundary_loops(self.faces)
         self._part_edges: dict = {}
+        self._face_edges = None
 
     def part_edges(self, labels: np.ndarray, part) -> tuple[np.ndarray, np.ndarray]:
         """The edges (E', 2) whose two ends are on ``part`` (a part name or a list of them) by the
@@ -94,7 +98,13 @@ class Topology:
         names = (part,) if isinstance(part, str) else tuple(part)
         key = ("mesh", hash(labels.tobytes()), names)
         if key not in self._part_edges:
-            self._part_edges[key] = part_mesh(*self.part_edges(labels, part))
+            # With the whole mesh, so a min band follows a plane off the part (``slicing.ring_runs``).
+            on = np.isin(labels, [PART_INDEX[p] for p in names])
+            if self._face_edges is None:
+                self._face_edges = face_edge_ids(self.faces, self.edges)
+            mesh = {"faces": self.faces, "edges": self.edges, "edge_faces": self.edge_faces,
+                    "face_edges": self._face_edges, "gid": np.flatnonzero(on[self.edges].all(axis=1)), "on": on}
+            self._part_edges[key] = part_mesh(*self.part_edges(labels, part), mesh=mesh)
         return self._part_edges[key]
 
 
@@ -202,11 +212,18 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         # in a plane are the contour (``slicing.part_sections``).
         part_edges, border = geo.part_edges(chunk.parts, part)
         cuts, edge = part_sections(v, part_edges, np.stack(origins), normal, heights=heights[key])
-        chosen = np.where(np.bincount(cuts.body, minlength=n_planes * n) >= 3, np.arange(n_planes * n), -1)
-        # A plane that crosses the part's border cuts it only partly (it leaves the part at a
-        # joint): its girth is too small, so a "min" band must not choose it while a plane
-        # that goes round the whole part exists.
+        # A plane that crosses the part's border leaves the part (at a joint, or grazing a
+        # triangle of another part). In a "min" band its ring goes on along the other parts'
+        # skin it meets until it is back on the part (``slicing.ring_runs``: the tape's ring
+        # there, as ``part_girths`` measures it); a plane whose ring does not come back (a hole
+        # of the mesh) is left out while another plane exists.
         opened = np.bincount(cuts.body[border[edge]], minlength=n_planes * n) > 0
+        if band is not None and band["mode"] == "min":
+            run_points, run_group, closed = ring_runs(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal)
+            opened &= ~closed
+            cuts = Contours(np.concatenate([cuts.points, run_points]), np.concatenate([cuts.body, run_group]),
+                            np.concatenate([cuts.label, run_group]), cuts.seg, cuts.n_labels)
+        chosen = np.where(np.bincount(cuts.body, minlength=n_planes * n) >= 3, np.arange(n_planes * n), -1)
         notes = _missed_notes(part, (chosen < 0).reshape(n_planes, n).all(axis=0))
     else:
         cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,

@@ -33,7 +33,7 @@ Arrays: vertices (N, V, 3), faces (F, 3), plane origins and normals (N, 3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -581,26 +581,173 @@ def contour_girths(c: Contours, chosen: np.ndarray, normals: np.ndarray,
 # perimeter (to rounding, ~1e-16 relative).
 
 _N_DIRS = 48     # ``support_perimeters``' directions
+# Crossings a body's planes may add off the part (``_ring_runs``): a neck band's runs over the
+# jaw and shoulders are a few hundred; a plane beyond this stays "opened" (left out of a min).
+_RUN_POINTS = 8192
 
 
 @dataclass
 class PartMesh:
     """A body part's edges for ``part_girths``: its vertices (Vp,) (ids into the mesh), the edges
     as local indices into them ``ea``, ``eb`` (E',) (in ``part_edges`` order, the first end
-    first), and ``border`` (E',) bool (the edge lies on the part's border)."""
+    first), and ``border`` (E',) bool (the edge lies on the part's border).
+
+    With the mesh (``part_mesh``'s ``faces``), how far a plane leaves the part is measured along
+    the other parts' faces: ``gid`` (E',) the part edges' ids in the mesh's edges ``edges``
+    (E, 2), ``edge_faces`` (E, 2) (-1: none), ``face_edges`` (F, 3), ``face_on`` (F,) bool (all
+    three corners on the part), ``edge_on`` (E,) bool (both ends on the part). Without it (empty
+    arrays) any crossing of the border opens a plane."""
 
     vertices: np.ndarray
     ea: np.ndarray
     eb: np.ndarray
     border: np.ndarray
+    gid: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    edge_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    face_edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
+    face_on: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))
+    edge_on: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))
 
 
-def part_mesh(edges: np.ndarray, border: np.ndarray) -> PartMesh:
-    """``PartMesh`` of a part's edges (E', 2) and their border flags (E',) (``Topology.part_edges``)."""
+def face_edge_ids(faces: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Each face's three edges (F, 3) as ids into ``mesh_edges``' sorted unique ``edges`` (E, 2):
+    the edges (0, 1), (1, 2), (2, 0) of the face."""
+    faces = np.asarray(faces, dtype=np.int64)
+    nv = int(max(faces.max(), edges.max())) + 1
+    keys = edges[:, 0].astype(np.int64) * nv + edges[:, 1]
+    out = np.empty(faces.shape, dtype=np.int64)
+    for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        lo, hi = np.minimum(faces[:, a], faces[:, b]), np.maximum(faces[:, a], faces[:, b])
+        out[:, k] = np.searchsorted(keys, lo * nv + hi)
+    return out
+
+
+def part_mesh(edges: np.ndarray, border: np.ndarray, mesh: dict | None = None) -> PartMesh:
+    """``PartMesh`` of a part's edges (E', 2) and their border flags (E',) (``Topology.part_edges``);
+    ``mesh``: the whole mesh's ``faces`` (F, 3), ``edges`` (E, 2), ``edge_faces`` (E, 2),
+    ``face_edges`` (F, 3) (``face_edge_ids``), ``gid`` (E',) and the part's vertex flags ``on``
+    (V,) bool, so that a min band follows a plane's ring off the part (``ring_runs``)."""
     verts, local = np.unique(edges, return_inverse=True)
     local = local.reshape(edges.shape).astype(np.int64)
-    return PartMesh(verts.astype(np.int64), np.ascontiguousarray(local[:, 0]), np.ascontiguousarray(local[:, 1]),
-                    np.ascontiguousarray(border, dtype=np.bool_))
+    pm = PartMesh(verts.astype(np.int64), np.ascontiguousarray(local[:, 0]), np.ascontiguousarray(local[:, 1]),
+                  np.ascontiguousarray(border, dtype=np.bool_))
+    if mesh is not None:
+        on = np.asarray(mesh["on"], dtype=bool)
+        pm.gid = np.ascontiguousarray(mesh["gid"], dtype=np.int64)
+        pm.edges = np.ascontiguousarray(mesh["edges"], dtype=np.int64)
+        pm.edge_faces = np.ascontiguousarray(mesh["edge_faces"], dtype=np.int64)
+        pm.face_edges = np.ascontiguousarray(mesh["face_edges"], dtype=np.int64)
+        pm.face_on = np.ascontiguousarray(on[np.asarray(mesh["faces"])].all(axis=1))
+        pm.edge_on = np.ascontiguousarray(on[pm.edges].all(axis=1))
+    return pm
+
+
+@numba.njit(cache=True, nogil=True)
+def _off_run(v, i, n0, n1, n2, off, e, f, edges, edge_faces, face_edges, edge_on, seen, stamp, pts, k):
+    """Follow a plane's contour off the part: from the part's border edge ``e`` (a crossed mesh
+    edge) into the face ``f`` that has a vertex off the part, face by face along the other parts'
+    skin until the contour is back on an edge of the part. Heights and crossings as
+    ``_part_girths_kernel``'s (float32 heights, lo < off <= hi, so a crossed face has exactly
+    two crossed edges). Appends the crossings off the part to ``pts`` (cap, 3) from row ``k``;
+    stamps the faces walked with ``stamp`` in ``seen`` (F,): a face already stamped ends the
+    walk (the run was followed from its other end). Returns (True when the contour comes back
+    to the part, False where it ends at a hole of the mesh, a degenerate face or the end of
+    ``pts``; the new row count)."""
+    while True:
+        if seen[f] == stamp:
+            return True, k
+        seen[f] = stamp
+        nxt = -1
+        ha = hb = np.float32(0.0)
+        for j in range(3):
+            g = face_edges[f, j]
+            if g == e:
+                continue
+            a, b = edges[g, 0], edges[g, 1]
+            ha = np.float32(v[i, a, 0] * n0 + v[i, a, 1] * n1 + v[i, a, 2] * n2)
+            hb = np.float32(v[i, b, 0] * n0 + v[i, b, 1] * n1 + v[i, b, 2] * n2)
+            if min(ha, hb) < off and off <= max(ha, hb):
+                nxt = g
+                break
+        if nxt < 0:
+            return False, k
+        if edge_on[nxt]:                                 # back on the part: its own crossing
+            return True, k
+        if k >= len(pts):
+            return False, k
+        a, b = edges[nxt, 0], edges[nxt, 1]
+        da = np.float64(ha) - np.float64(off)
+        t = da / (da - (np.float64(hb) - np.float64(off)))
+        for c in range(3):
+            pts[k, c] = v[i, a, c] + t * (v[i, b, c] - v[i, a, c])
+        k += 1
+        e = nxt
+        f = edge_faces[e, 1] if edge_faces[e, 0] == f else edge_faces[e, 0]
+        if f < 0:                                        # a hole: the ring never closes
+            return False, k
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_runs(v, i, n0, n1, n2, offs_i, bx_p, bx_e, n_bx, gid, edges, edge_faces, face_edges, face_on,
+               edge_on, seen, stamp0, pts, run_plane, closed):
+    """Every run off the part of body ``i``'s planes (offsets ``offs_i`` (P,)) from its border
+    crossings ``bx_p``, ``bx_e`` [:n_bx] (plane, part edge): the points into ``pts`` (cap, 3),
+    their plane into ``run_plane`` (cap,); ``closed`` (P,) set False for a plane whose contour
+    leaves the part and does not come back. Returns the number of points."""
+    k = 0
+    for j in range(n_bx):
+        p = bx_p[j]
+        g = gid[bx_e[j]]
+        for s in range(2):
+            f = edge_faces[g, s]
+            if f < 0:                                    # a hole beside the part's border edge
+                closed[p] = False
+                continue
+            if face_on[f]:
+                continue
+            k0 = k
+            ok, k = _off_run(v, i, n0, n1, n2, offs_i[p], g, f, edges, edge_faces, face_edges, edge_on, seen,
+                             stamp0 + p, pts, k)
+            for r in range(k0, k):
+                run_plane[r] = p
+            if not ok:
+                closed[p] = False
+    return k
+
+
+def ring_runs(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals: np.ndarray):
+    """The runs off the part of P parallel planes per body (``origins`` (P, N, 3), unit
+    ``normals`` (N, 3)), as ``part_girths`` adds them to a min band's rings: their crossings
+    (K, 3), the group p * N + i of each (K,), and ``closed`` (P * N,) bool (every run of the
+    plane comes back to the part; a plane without a run is closed)."""
+    v = np.ascontiguousarray(vertices, dtype=float)
+    n = np.ascontiguousarray(normals, dtype=float)
+    offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
+    n_planes, nb = offs.shape
+    closed = np.ones((n_planes, nb), dtype=bool)
+    points, groups = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)]
+    if not len(part.gid):
+        return points[0], groups[0], closed.ravel()
+    border = np.flatnonzero(part.border)
+    seen = np.zeros(len(part.face_on), dtype=np.int64)
+    pts = np.empty((_RUN_POINTS, 3))
+    run_plane = np.empty(_RUN_POINTS, dtype=np.int64)
+    for i in range(nb):
+        h = v[i, :, 0] * n[i, 0] + v[i, :, 1] * n[i, 1] + v[i, :, 2] * n[i, 2]   # the kernel's sum, in its order
+        ha = h[part.vertices[part.ea[border]]].astype(np.float32)
+        hb = h[part.vertices[part.eb[border]]].astype(np.float32)
+        lo, hi = np.minimum(ha, hb), np.maximum(ha, hb)
+        cross = (lo[None] < offs[:, i, None]) & (offs[:, i, None] <= hi[None])          # (P, B)
+        bx_p, bx_j = np.nonzero(cross)
+        c = np.ones(n_planes, dtype=np.bool_)
+        k = _ring_runs(v, i, n[i, 0], n[i, 1], n[i, 2], np.ascontiguousarray(offs[:, i]), bx_p.astype(np.int64),
+                       border[bx_j].astype(np.int64), len(bx_p), part.gid, part.edges, part.edge_faces,
+                       part.face_edges, part.face_on, part.edge_on, seen, i * n_planes + 1, pts, run_plane, c)
+        closed[:, i] = c
+        points.append(pts[:k].copy())
+        groups.append(run_plane[:k] * nb + i)
+    return np.concatenate(points), np.concatenate(groups), closed.ravel()
 
 
 MODE_ONE, MODE_MAX, MODE_MIN = 0, 1, 2
@@ -610,8 +757,11 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
                 mode: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tape round one body part of each body: ``vertices`` (N, V, 3), P parallel planes a body
     through ``origins`` (P, N, 3) with unit ``normals`` (N, 3); ``mode`` MODE_ONE (P = 1),
-    MODE_MAX or MODE_MIN (a band: the plane of largest / smallest support-function estimate, for
-    MODE_MIN among the planes that go round the whole part when one does).
+    MODE_MAX or MODE_MIN (a band: the plane of largest / smallest support-function estimate).
+    For MODE_MIN with the mesh in ``part`` (``part_mesh(..., mesh=)``), a plane that crosses the
+    part's border has its ring followed along the other parts' faces back onto the part and
+    those crossings join its hull (``ring_runs``); a plane whose ring does not come back (a hole),
+    or any plane that crosses the border without the mesh, is chosen only when every plane is.
 
     Returns girth (N,) (the convex-hull perimeter of the chosen plane's crossings, NaN where it
     has fewer than three), the chosen plane (N,) and ``missed`` (N,) bool (no plane crosses the
@@ -627,7 +777,8 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     girth, plane, missed = np.empty(nb), np.empty(nb, dtype=np.int64), np.empty(nb, dtype=np.bool_)
     _part_girths_kernel(v, part.vertices, part.ea, part.eb, part.border, np.ascontiguousarray(offs), n,
                         np.ascontiguousarray(u), np.ascontiguousarray(w), int(mode), np.cos(th), np.sin(th),
-                        2 * np.pi / _N_DIRS, girth, plane, missed)
+                        2 * np.pi / _N_DIRS, part.gid, part.edges, part.edge_faces, part.face_edges, part.face_on,
+                        part.edge_on, girth, plane, missed)
     return girth, plane, missed
 
 
@@ -672,21 +823,35 @@ def _hull_chain(x, y, k, order, hull):
 
 @numba.njit(cache=True, nogil=True)
 def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos, sin, step,
-                        girth, plane, missed):
+                        gid, edges, edge_faces, face_edges, face_on, edge_on, girth, plane, missed):
     """Per body: float32 heights of the part's vertices, every crossing of every plane (lo < off
-    <= hi, as ``_band_crossings``), its in-plane point, each plane's hull, the band's choice."""
+    <= hi, as ``_band_crossings``), its in-plane point, for a min band with the mesh the runs off
+    the part (``_ring_runs``), each plane's hull, the band's choice."""
     n_bodies, n_planes, n_edges, n_dirs = v.shape[0], offs.shape[0], len(ea), len(cos)
     h = np.empty(len(verts), dtype=np.float32)
-    xs = np.empty((n_planes, n_edges))
-    ys = np.empty((n_planes, n_edges))
+    walk = len(gid) > 0 and mode == 2
+    cap = n_edges + (_RUN_POINTS if walk else 0)      # the part's crossings, then the runs off it
+    xs = np.empty((n_planes, cap))
+    ys = np.empty((n_planes, cap))
+    seen = np.zeros(len(face_on) if walk else 0, dtype=np.int64)
     cnt = np.zeros(n_planes, dtype=np.int64)
     opened = np.zeros(n_planes, dtype=np.bool_)
     per = np.empty(n_planes)
     est = np.empty(n_planes)
-    order = np.empty(n_edges, dtype=np.int64)
-    hull = np.empty(n_edges + 1, dtype=np.int64)
+    order = np.empty(cap, dtype=np.int64)
+    hull = np.empty(cap + 1, dtype=np.int64)
     sup = np.empty(n_dirs)
+    n_border = 0
+    for e in range(n_edges):
+        if border[e]:
+            n_border += 1
+    bx_p = np.empty(n_border * n_planes + 1, dtype=np.int64)
+    bx_e = np.empty(n_border * n_planes + 1, dtype=np.int64)
+    closed = np.ones(n_planes, dtype=np.bool_)
+    pts = np.empty((_RUN_POINTS if walk else 0, 3))
+    run_plane = np.empty(len(pts), dtype=np.int64)
     for i in range(n_bodies):
+        n_bx = 0
         n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
         u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
         w0, w1, w2 = w[i, 0], w[i, 1], w[i, 2]
@@ -721,12 +886,33 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                     cnt[p] = c + 1
                     if border[e]:
                         opened[p] = True
-        any_whole = False
+                        bx_p[n_bx] = p
+                        bx_e[n_bx] = e
+                        n_bx += 1
+        if walk:
+            # A min band: a plane that leaves the part goes on round the other parts' skin it
+            # meets, joined to the part's ring (the jaw under a short neck, a triangle of the
+            # head grazed by the plane): the tape's ring there, so the choice does not hang on
+            # whether a plane touches one edge of a triangle with another part's vertex.
+            for p in range(n_planes):
+                closed[p] = True
+            k = _ring_runs(v, i, n0, n1, n2, offs[:, i], bx_p, bx_e, n_bx, gid, edges, edge_faces, face_edges,
+                           face_on, edge_on, seen, i * n_planes + 1, pts, run_plane, closed)
+            for r in range(k):
+                p = run_plane[r]
+                c = cnt[p]
+                if c >= cap:
+                    closed[p] = False
+                    continue
+                xs[p, c] = pts[r, 0] * u0 + pts[r, 1] * u1 + pts[r, 2] * u2
+                ys[p, c] = pts[r, 0] * w0 + pts[r, 1] * w1 + pts[r, 2] * w2
+                cnt[p] = c + 1
+            for p in range(n_planes):
+                if closed[p]:
+                    opened[p] = False
         for p in range(n_planes):
             per[p] = np.nan
             est[p] = np.nan
-            if not opened[p]:
-                any_whole = True
             k = cnt[p]
             if k < 3:
                 continue
@@ -754,6 +940,10 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                         best = val
                 sup[d] = best
             est[p] = _pairwise_sum(sup) * step
+        any_whole = False
+        for p in range(n_planes):
+            if not opened[p]:
+                any_whole = True
         missed[i] = True
         for p in range(n_planes):
             if cnt[p] >= 3:
