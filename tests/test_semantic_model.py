@@ -82,6 +82,21 @@ def test_taller_same_mass(setup):
     assert abs(after["mass"] - before["mass"]) <= 0.5
 
 
+def test_morph_of_a_turned_body_is_the_morph_turned(setup):
+    # A registration keeps the scan's turn about the vertical; the change must turn with the body
+    # (it was added in the model's frame: a 30° turned body grew its belly 30° off).
+    _, _, model, sm = setup
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
+    a = np.radians(30.0)
+    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    shift = np.array([0.3, -0.8, 0.1])
+    straight = sm.morph(x0, {"mass": 5.0})
+    turned = sm.morph(x0 @ R.T + shift, {"mass": 5.0})
+    expected = straight.vertices @ R.T + shift
+    assert np.abs(turned.vertices - expected).max() < 1e-3
+    assert abs(turned.values["mass"] - straight.values["mass"]) < 0.05
+
+
 @pytest.mark.parametrize("region", ["upper_body", "legs", "left"])
 def test_masked_morph_keeps_outside(setup, region):
     _, _, model, sm = setup
