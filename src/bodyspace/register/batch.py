@@ -38,7 +38,8 @@ class ScanOutcome:
     accepted); vertices: (V, 3) the registered body, metres, +Y up (None if refused); quality:
     the fit's ``Quality`` (None if it never got that far); mean_distance: metres, registered
     vertices to the scan; seconds: wall time; landmarks: the sidecar landmark file used, if any;
-    notes: what was assumed (units, up axis) or read.
+    notes: what was assumed (units, up axis) or read. units, up: the scan's length unit and up
+    axis, given or found ('' if it never got that far).
     """
 
     path: Path
@@ -50,6 +51,8 @@ class ScanOutcome:
     seconds: float = 0.0
     landmarks: Path | None = None
     notes: tuple = ()
+    units: str = ""
+    up: str = ""
 
 
 def register_files(paths: list[Path], *, template: Template, units: str | None = None, up: str | None = None,
@@ -81,6 +84,7 @@ def register_files(paths: list[Path], *, template: Template, units: str | None =
             out.append(ScanOutcome(path, False, str(exc), seconds=time.perf_counter() - start, landmarks=lm_path))
             continue
         out.append(ScanOutcome(path, True, "", reg.internal, reg.quality, float(np.mean(reg.distance)),
-                               time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed)))
+                               time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed),
+                               reg.units, reg.up))
     report("done", 1.0)
     return out
