@@ -222,6 +222,33 @@ def test_cli_generate_and_morph(setup, app, tmp_path):
     assert r.exit_code == 2 and "no unit" in r.output
 
 
+def test_cli_morph_of_a_posed_body_is_morphed_standing(setup, app, tmp_path, template):
+    # A T-posed registered scan: the change is the standing body's, posed back (it was added to the
+    # posed mesh in the rest pose's directions and measured on the posed mesh)
+    root, _, model, sm = setup
+    from bodyspace.mesh.io import save_mesh
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.rig.unpose import unpose
+    from bodyspace.synth.poses import load_pose_library
+    rig = template.rigs["default"]
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
+    R = load_pose_library().rotations("t_pose", rig)
+    save_mesh(tmp_path / "posed.obj", pose_bodies(x0, rig, R, on_ground=True), model.faces)
+    r = CliRunner().invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "posed.obj"), "--set", "mass=+5kg",
+                                 "--out", str(tmp_path / "heavier.obj")])
+    assert r.exit_code == 0, r.output
+    assert "morphed standing" in r.output
+    posed_in, f = load_mesh(tmp_path / "posed.obj")
+    out, _ = load_mesh(tmp_path / "heavier.obj")
+    before = measure(sm.mset, unpose(posed_in, rig)[0], f)["mass"]
+    after = measure(sm.mset, unpose(out, rig)[0], f)["mass"]
+    assert abs(after - before - 5.0) <= 0.55, (before, after)
+    # the arms' change follows the arms: the posed output is the standing morph posed
+    expected = pose_bodies(sm.morph(x0, {"mass": 5.0}).vertices, rig, R, on_ground=True)
+    err = np.linalg.norm(out - expected - (out - expected).mean(axis=0), axis=1)   # up to where it stands
+    assert np.percentile(err, 95) < 0.003, np.percentile(err, 95)
+
+
 def test_cli_crowd_and_evaluate(setup, app, tmp_path):
     root, db, _, _ = setup
     runner = CliRunner()
