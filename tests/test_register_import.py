@@ -179,7 +179,7 @@ def test_import_register_builds_a_database_and_lists_refusals(imported, template
     assert float(rows[0]["quality"]) >= 0.9 and rows[0]["landmarks"] == "anna.lnd" and all(r["reason"] for r in rows[1:])
     assert "3 refused and left out" in text
     # what was found rather than given is said per scan and kept: the unit here (--up was given)
-    assert "[assumed] units: mm" in text and "read in mm, z up" in text
+    assert "[assumed] units: mm" in text and "read in mm, z up" in text and "[warning]" not in text
     assert rows[0]["units"] == "mm" and rows[0]["up"] == "z" and "units: mm" in rows[0]["assumed"]
     assert rows[0]["turned_degrees"] != "" and rows[1]["turned_degrees"] == ""
 

@@ -200,7 +200,7 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
         if o.accepted:
             console.print(f"{o.path.name}: registered in {o.seconds:.0f} s, {o.quality.describe()}"
                           f"{'' if o.landmarks is None else f'; landmarks {o.landmarks.name}'}; "
-                          f"read in {o.units}, {o.up} up; turned {-turned[i]:+.0f}° to face +Z",
+                          f"read in {o.units}, {o.up}{' axis' if up is None else ''} up; turned {-turned[i]:+.0f}° to face +Z",
                           markup=False, highlight=False, soft_wrap=True)
         else:
             console.print(f"{o.path.name}: REFUSED, left out: {o.reason}", markup=False, highlight=False,

@@ -85,6 +85,8 @@ def register_files(paths: list[Path], *, template: Template, units: str | None =
             continue
         out.append(ScanOutcome(path, True, "", reg.internal, reg.quality, float(np.mean(reg.distance)),
                                time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed),
-                               reg.units, reg.up))
+                               # found, not given: only the axis is (the fit finds which end is the
+                               # head; the prepared sign is arbitrary and differed across one folder)
+                               reg.units, reg.up if up is not None else reg.up.lstrip("-")))
     report("done", 1.0)
     return out
