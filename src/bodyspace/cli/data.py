@@ -38,6 +38,10 @@ from bodyspace.register.batch import register_files
 from bodyspace.register.pipeline import DEFAULT_STEPS
 
 LENGTH_UNITS = ("m", "cm", "mm")
+# A fit whose joint is turned more than this from the template's rest (A-)pose is not standing in
+# the rest pose (measured on the user walk's scans: a rest-pose scan fits at 2.4° at most, a
+# T-pose at 45°; people asked for the A-pose stand within some 15° of it).
+POSED_DEGREES = 25.0
 # The per-scan report ``import --register`` writes into the database folder.
 REGISTRATION_REPORT = "registration.csv"
 
@@ -219,6 +223,17 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
             console.print(f"[warning] the scans were not all read in the same {'unit' if what == 'units' else 'up axis'}"
                           f" ({listed}); if they come from one scanner, give {flag} so that none is misread",
                           markup=False, highlight=False, soft_wrap=True)
+    # Without a pose column every scan is the subject's rest scan (build --selection rest): fits
+    # standing otherwise (a T-pose, elbows bent) would put their pose into the shape space.
+    posed = [o for o in outcomes if o.accepted and o.pose_degrees > POSED_DEGREES]
+    if "pose" not in cells and posed:
+        listed = ", ".join(f"{o.path.name} ({o.pose_degrees:.0f}°)" for o in posed[:8])
+        console.print(f"[warning] {labels} has no 'pose' column, so every scan counts as its subject's rest pose, but "
+                      f"{len(posed)} fit(s) stand otherwise (a joint turned over {POSED_DEGREES:.0f}° from the rest "
+                      f"A-pose): {listed}{' ...' if len(posed) > 8 else ''}; a model built with --selection rest "
+                      "takes their poses into its shape space. Add a 'pose' column naming each subject's rest "
+                      "scan 'rest' (and --rest-pose), or scan in the A-pose", markup=False, highlight=False,
+                      soft_wrap=True)
     kept = [i for i, o in enumerate(outcomes) if o.accepted]
     if not kept:
         raise DatabaseError(f"{folder}: none of the {len(outcomes)} scans could be registered (each one's reason is "
@@ -252,7 +267,7 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
     report = io.StringIO()
     w = csv.writer(report)
     w.writerow(["scan", "accepted", "quality", "explained_share", "coverage_share", "weakest_part",
-                "weakest_part_quality", "mean_distance_mm", "seconds", "landmarks", "units", "up", "turned_degrees",
+                "weakest_part_quality", "mean_distance_mm", "seconds", "landmarks", "units", "up", "turned_degrees", "pose_degrees",
                 "assumed", "reason"])
     for i, o in enumerate(outcomes):
         q = o.quality
@@ -262,7 +277,8 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
                     "" if weakest is None else weakest.name, "" if weakest is None else f"{weakest.quality:.4f}",
                     "" if not np.isfinite(o.mean_distance) else f"{1000 * o.mean_distance:.3f}", f"{o.seconds:.1f}",
                     "" if o.landmarks is None else o.landmarks.name, o.units, o.up,
-                    f"{-turned[i]:.1f}" if i in turned else "", " | ".join(o.notes), o.reason])
+                    f"{-turned[i]:.1f}" if i in turned else "",
+                    f"{o.pose_degrees:.1f}" if np.isfinite(o.pose_degrees) else "", " | ".join(o.notes), o.reason])
     db.save(out, overwrite=force, extra_files={REGISTRATION_REPORT: report.getvalue()})
     refused = [o for o in outcomes if not o.accepted]
     out_console.print(f"wrote {out}: {db.n_scans} registered scans of {db.n_subjects} subjects ({db.n_vertices} "
