@@ -178,6 +178,14 @@ def test_import_register_builds_a_database_and_lists_refusals(imported, template
     assert [r["accepted"] for r in rows] == ["1", "0", "0", "0"]
     assert float(rows[0]["quality"]) >= 0.9 and rows[0]["landmarks"] == "anna.lnd" and all(r["reason"] for r in rows[1:])
     assert "3 refused and left out" in text
+    # what was found rather than given is said per scan and kept: the unit here (--up was given)
+    assert "[assumed] units: mm" in text and "read in mm, z up" in text and "same up axis" not in text
+    assert rows[0]["units"] == "mm" and rows[0]["up"] == "z" and "units: mm" in rows[0]["assumed"]
+    assert rows[0]["turned_degrees"] != "" and rows[1]["turned_degrees"] == ""
+    # a fit standing otherwise than the rest pose, taken for a rest scan (no pose column), is named
+    # (this 2-step fit with the test's small user model turns a joint far from the A-pose)
+    assert rows[1]["pose_degrees"] == ""
+    assert ("has no 'pose' column" in text) == (float(rows[0]["pose_degrees"]) > 25)
 
 
 def test_import_register_refuses_before_work(imported, tmp_path):
@@ -207,6 +215,13 @@ def test_registered_scan_is_near_the_truth(imported, template):
     fit = v - v.mean(axis=0)
     err = np.linalg.norm(fit - truth, axis=1).mean()
     assert err < 0.03, err
+    # standing as the truth stands, not only up to a rigid move: facing +Z, on the floor, over the
+    # origin (the fit kept its scan's turn and floor: 0.83 m under y = 0, turned up to 25°)
+    assert abs(v[:, 1].min()) < 1e-6
+    shift = (v - good.body).mean(axis=0)
+    assert abs(shift[1]) < 0.02                                          # the floor is the truth's (a 2-step fit)
+    turned_err = np.linalg.norm(v - shift - good.body, axis=1).mean()    # no rotation allowed
+    assert turned_err < 0.03, turned_err
 
 
 def test_parts_and_skin_weights_carried_to_another_topology(template, phenotype_model, tmp_path):

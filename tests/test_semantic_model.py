@@ -82,6 +82,21 @@ def test_taller_same_mass(setup):
     assert abs(after["mass"] - before["mass"]) <= 0.5
 
 
+def test_morph_of_a_turned_body_is_the_morph_turned(setup):
+    # A registration keeps the scan's turn about the vertical; the change must turn with the body
+    # (it was added in the model's frame: a 30° turned body grew its belly 30° off).
+    _, _, model, sm = setup
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
+    a = np.radians(30.0)
+    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    shift = np.array([0.3, -0.8, 0.1])
+    straight = sm.morph(x0, {"mass": 5.0})
+    turned = sm.morph(x0 @ R.T + shift, {"mass": 5.0})
+    expected = straight.vertices @ R.T + shift
+    assert np.abs(turned.vertices - expected).max() < 1e-3
+    assert abs(turned.values["mass"] - straight.values["mass"]) < 0.05
+
+
 @pytest.mark.parametrize("region", ["upper_body", "legs", "left"])
 def test_masked_morph_keeps_outside(setup, region):
     _, _, model, sm = setup
@@ -205,6 +220,33 @@ def test_cli_generate_and_morph(setup, app, tmp_path):
     r = runner.invoke(app, ["generate", str(root / "model.npz"), "--set", "stature=180", "--out",
                             str(tmp_path / "d.obj")])
     assert r.exit_code == 2 and "no unit" in r.output
+
+
+def test_cli_morph_of_a_posed_body_is_morphed_standing(setup, app, tmp_path, template):
+    # A T-posed registered scan: the change is the standing body's, posed back (it was added to the
+    # posed mesh in the rest pose's directions and measured on the posed mesh)
+    root, _, model, sm = setup
+    from bodyspace.mesh.io import save_mesh
+    from bodyspace.rig.posing import pose_bodies
+    from bodyspace.rig.unpose import unpose
+    from bodyspace.synth.poses import load_pose_library
+    rig = template.rigs["default"]
+    x0 = model.reconstruct(model.sample_coefficients(1, sigma_range=1.0, rng=5))[0]
+    R = load_pose_library().rotations("t_pose", rig)
+    save_mesh(tmp_path / "posed.obj", pose_bodies(x0, rig, R, on_ground=True), model.faces)
+    r = CliRunner().invoke(app, ["morph", str(root / "model.npz"), str(tmp_path / "posed.obj"), "--set", "mass=+5kg",
+                                 "--out", str(tmp_path / "heavier.obj")])
+    assert r.exit_code == 0, r.output
+    assert "morphed standing" in r.output
+    posed_in, f = load_mesh(tmp_path / "posed.obj")
+    out, _ = load_mesh(tmp_path / "heavier.obj")
+    before = measure(sm.mset, unpose(posed_in, rig)[0], f)["mass"]
+    after = measure(sm.mset, unpose(out, rig)[0], f)["mass"]
+    assert abs(after - before - 5.0) <= 0.55, (before, after)
+    # the arms' change follows the arms: the posed output is the standing morph posed
+    expected = pose_bodies(sm.morph(x0, {"mass": 5.0}).vertices, rig, R, on_ground=True)
+    err = np.linalg.norm(out - expected - (out - expected).mean(axis=0), axis=1)   # up to where it stands
+    assert np.percentile(err, 95) < 0.003, np.percentile(err, 95)
 
 
 def test_cli_crowd_and_evaluate(setup, app, tmp_path):

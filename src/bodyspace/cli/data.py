@@ -31,13 +31,17 @@ from bodyspace.data.database import (
 )
 from bodyspace.data.template import load_template
 from bodyspace.errors import DatabaseError
-from bodyspace.measure import load_landmarks
+from bodyspace.measure import load_landmarks, load_measurement_set
 from bodyspace.measure.conventions import MESH_UNITS, UP_ROTATIONS, standing_placement
 from bodyspace.model import check_landmark_file
 from bodyspace.register.batch import register_files
 from bodyspace.register.pipeline import DEFAULT_STEPS
 
 LENGTH_UNITS = ("m", "cm", "mm")
+# A fit whose joint is turned more than this from the template's rest (A-)pose is not standing in
+# the rest pose (measured on the user walk's scans: a rest-pose scan fits at 2.4° at most, a
+# T-pose at 45°; people asked for the A-pose stand within some 15° of it).
+POSED_DEGREES = 25.0
 # The per-scan report ``import --register`` writes into the database folder.
 REGISTRATION_REPORT = "registration.csv"
 
@@ -185,14 +189,51 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
     with progress("import --register", eta=True) as cb:
         outcomes = register_files([folder / n for n in names], template=template, units=units, up=up, basis=basis,
                                   mset=mset, steps=steps, progress=cb)
-    for o in outcomes:
+    # Each fit stands in the frame its own registration chose (the scan's turn about the vertical
+    # kept, up to 25° on a T-posed scan; the floor where the scan had it, 0.83 m under y = 0 on a
+    # scanner's Z-up millimetres): each is turned to face +Z and put on the floor over the origin,
+    # as import does for registered meshes, so pictures, generated bodies and morphs stand alike.
+    placement_set = load_measurement_set()
+    turned = {}
+    for i, o in enumerate(outcomes):
+        if o.accepted:
+            R, t, yaw = standing_placement(placement_set.landmarks, o.vertices[None])
+            o.vertices = o.vertices @ R.T + t
+            turned[i] = yaw
+    for i, o in enumerate(outcomes):
         if o.accepted:
             console.print(f"{o.path.name}: registered in {o.seconds:.0f} s, {o.quality.describe()}"
-                          f"{'' if o.landmarks is None else f'; landmarks {o.landmarks.name}'}",
+                          f"{'' if o.landmarks is None else f'; landmarks {o.landmarks.name}'}; "
+                          f"read in {o.units}, {o.up}{' axis' if up is None else ''} up; turned {-turned[i]:+.0f}° to face +Z",
                           markup=False, highlight=False, soft_wrap=True)
         else:
             console.print(f"{o.path.name}: REFUSED, left out: {o.reason}", markup=False, highlight=False,
                           soft_wrap=True)
+        for note in o.notes:
+            console.print(f"  [assumed] {note}", markup=False, highlight=False, soft_wrap=True)
+    # One folder, one scanner: scans read in different units or up axes (each found on its own
+    # when --units/--up are not given) are named, as one of them is likely misread.
+    for what, given, flag in (("units", units, "--units"), ("up", up, "--up")):
+        found = {}
+        for o in outcomes:
+            if getattr(o, what):
+                found.setdefault(getattr(o, what), []).append(o.path.name)
+        if given is None and len(found) > 1:
+            listed = "; ".join(f"{k}: {', '.join(v[:5])}{' ...' if len(v) > 5 else ''}" for k, v in found.items())
+            console.print(f"[warning] the scans were not all read in the same {'unit' if what == 'units' else 'up axis'}"
+                          f" ({listed}); if they come from one scanner, give {flag} so that none is misread",
+                          markup=False, highlight=False, soft_wrap=True)
+    # Without a pose column every scan is the subject's rest scan (build --selection rest): fits
+    # standing otherwise (a T-pose, elbows bent) would put their pose into the shape space.
+    posed = [o for o in outcomes if o.accepted and o.pose_degrees > POSED_DEGREES]
+    if "pose" not in cells and posed:
+        listed = ", ".join(f"{o.path.name} ({o.pose_degrees:.0f}°)" for o in posed[:8])
+        console.print(f"[warning] {labels} has no 'pose' column, so every scan counts as its subject's rest pose, but "
+                      f"{len(posed)} fit(s) stand otherwise (a joint turned over {POSED_DEGREES:.0f}° from the rest "
+                      f"A-pose): {listed}{' ...' if len(posed) > 8 else ''}; a model built with --selection rest "
+                      "takes their poses into its shape space. Add a 'pose' column naming each subject's rest "
+                      "scan 'rest' (and --rest-pose), or scan in the A-pose", markup=False, highlight=False,
+                      soft_wrap=True)
     kept = [i for i, o in enumerate(outcomes) if o.accepted]
     if not kept:
         raise DatabaseError(f"{folder}: none of the {len(outcomes)} scans could be registered (each one's reason is "
@@ -219,20 +260,25 @@ def _import_scans(folder: Path, labels: Path, out: Path, *, rest_pose, units, up
             raise DatabaseError(f"{labels} (the rows of the {len(kept)} registered scans): {exc}") from None
     db.meta[REST_POSE_FIELD] = choose_rest_pose(db.scans, rest_pose, str(labels))
     db.meta["provenance"].update({"source": "bodyspace import --register", "folder": str(folder),
-                                  "labels": str(labels), "model": None if model is None else str(model)})
+                                  "labels": str(labels), "model": None if model is None else str(model),
+                                  "placement": {"rule": "each fit turned to face +Z, floor y = 0, hip joints over "
+                                                "the origin"}})
     db.meta["template"] = template.template_id
     report = io.StringIO()
     w = csv.writer(report)
     w.writerow(["scan", "accepted", "quality", "explained_share", "coverage_share", "weakest_part",
-                "weakest_part_quality", "mean_distance_mm", "seconds", "landmarks", "reason"])
-    for o in outcomes:
+                "weakest_part_quality", "mean_distance_mm", "seconds", "landmarks", "units", "up", "turned_degrees", "pose_degrees",
+                "assumed", "reason"])
+    for i, o in enumerate(outcomes):
         q = o.quality
         weakest = None if q is None or not q.parts else min(q.parts, key=lambda p: p.quality)
         w.writerow([o.path.name, int(o.accepted), "" if q is None else f"{q.quality:.4f}",
                     "" if q is None else f"{q.explained:.4f}", "" if q is None else f"{q.coverage:.4f}",
                     "" if weakest is None else weakest.name, "" if weakest is None else f"{weakest.quality:.4f}",
                     "" if not np.isfinite(o.mean_distance) else f"{1000 * o.mean_distance:.3f}", f"{o.seconds:.1f}",
-                    "" if o.landmarks is None else o.landmarks.name, o.reason])
+                    "" if o.landmarks is None else o.landmarks.name, o.units, o.up,
+                    f"{-turned[i]:.1f}" if i in turned else "",
+                    f"{o.pose_degrees:.1f}" if np.isfinite(o.pose_degrees) else "", " | ".join(o.notes), o.reason])
     db.save(out, overwrite=force, extra_files={REGISTRATION_REPORT: report.getvalue()})
     refused = [o for o in outcomes if not o.accepted]
     out_console.print(f"wrote {out}: {db.n_scans} registered scans of {db.n_subjects} subjects ({db.n_vertices} "

@@ -39,7 +39,8 @@ from bodyspace.cli.common import (
 from bodyspace.cli.export import BonesOption, MorphsOption, PngOption, RigOption, check_rig_options, write_rigged
 from bodyspace.cli.resources import check_bodies_fit
 from bodyspace.data.database import ScanDatabase
-from bodyspace.errors import BodyspaceError
+from bodyspace.data.template import load_template
+from bodyspace.errors import BodyspaceError, MeshError
 from bodyspace.mapping.gradients import SUBSTITUTES
 from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
@@ -47,6 +48,8 @@ from bodyspace.mesh.io import load_mesh, save_mesh
 from bodyspace.model import BodyModel, request_tolerance
 from bodyspace.register.detail import apply_detail, load_detail
 from bodyspace.report.render import contact_sheet
+from bodyspace.rig.posing import pose_bodies
+from bodyspace.rig.unpose import fits_template, unpose
 from bodyspace.semantics.evaluation import (
     RegressionTable,
     format_angle_table,
@@ -298,7 +301,12 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
                                                 "(MESH its registered_standard.obj): the scan's relief re-added "
                                                 "on the morphed body (the output is then the subdivided mesh)."),
           clamp: bool = ClampOption, database: Optional[Path] = DatabaseOption, refit: bool = RefitOption,
-          accept_misses: bool = AcceptMissesOption, force: bool = ForceOption):
+          accept_misses: bool = AcceptMissesOption,
+          as_posed: bool = typer.Option(False, "--as-posed", help="Morph and measure the mesh as it is. By default "
+                                        "a posed body (a registered scan in a T-pose, elbows bent) is brought "
+                                        "back to standing, morphed and measured there as bodyspace measure "
+                                        "measures it, and the change is posed back onto the mesh."),
+          force: bool = ForceOption):
     """Change a body: --set stature=+5cm --keep mass ("taller, same weight"), optionally within a --mask."""
     check_file_output(out, "--out", force, MESH_SUFFIXES, example="body.obj")
     try:
@@ -311,23 +319,68 @@ def morph(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspa
         if v.shape != sm.body_model.template_vertices.shape or not np.array_equal(f, sm.body_model.faces):
             raise BodyspaceError(f"{mesh}: {len(v)} vertices / {len(f)} faces, expected the model's template topology "
                                  f"({len(sm.body_model.template_vertices)} vertices, {len(sm.body_model.faces)} faces)")
+        standing, posed_back, note = _morph_standing(v, f, mesh, as_posed)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
-            result = sm.body_model.morph(v, changes, keep=list(keep or []), mask=list(mask) if mask else None,
+            result = sm.body_model.morph(standing, changes, keep=list(keep or []), mask=list(mask) if mask else None,
                                          accept_misses=accept_misses)
+        morphed = posed_back(result.vertices)
         if relief is None:
-            _save_mesh(out, result.vertices, f)
+            _save_mesh(out, morphed, f)
         else:
-            _save_mesh(out, *apply_detail(result.vertices, f, relief, name=f"{mesh} (--detail {detail})"))
+            _save_mesh(out, *apply_detail(morphed, f, relief, name=f"{mesh} (--detail {detail})"))
     except BodyspaceError as exc:
         _fail(exc)
     _report_warnings(caught)
+    if note:
+        console.print(f"[unposed] {mesh.name}: {note}", markup=False, highlight=False, soft_wrap=True)
     out_console.print(_result_table(f"morphed {mesh.name}" + (f" within {', '.join(mask)}" if mask else ""), result,
                                     sm))
-    moved = np.linalg.norm(result.vertices - v, axis=1)
+    moved = np.linalg.norm(morphed - v, axis=1)
     out_console.print(f"wrote {out}: {result.iterations} correction(s); vertices moved up to {1000 * moved.max():.1f} mm"
                       f"{'' if relief is None else f'; the relief of {detail} re-added ({relief.describe()})'}",
                       highlight=False)
+
+
+# A body whose largest part is turned less than this from the rest pose is morphed as it is: the
+# model's own bodies and standing scans (unposing them would only add its small residual).
+MORPH_UNPOSE_DEG = 10.0
+
+
+def _morph_standing(vertices: np.ndarray, faces: np.ndarray, mesh: Path, as_posed: bool):
+    """The body to morph and how to put its change back on the mesh: ``(standing (V, 3),
+    posed_back(morphed standing (V, 3)) -> (V, 3), note or None)``.
+
+    The model's change is a change of a standing body: added to a T-posed registered scan, the arms'
+    change went along the arms' rest direction and the measurements were taken on the posed mesh
+    (stature and mass of the morph 1 cm and 1 kg off what ``bodyspace measure`` reads on it). A
+    posed mesh of the template's topology is unposed with the default rig (as ``measure`` does),
+    morphed standing, and the change posed with the body's own rotations and added to the mesh,
+    so the scan's own surface and pose stay as they were.
+    """
+    def same(x):
+        return x
+
+    template = load_template()
+    if as_posed or not fits_template(vertices, faces, template):
+        return vertices, same, None
+    rig = template.rigs["default"]
+    try:
+        rest, rotations, info = unpose(vertices, rig, mesh_name=str(mesh))
+    except MeshError as exc:
+        if "cannot be unposed" not in str(exc):
+            raise
+        raise MeshError(f"{exc} (--as-posed morphs the mesh as it is, without unposing)") from None
+    if float(info.largest_rotation_deg) < MORPH_UNPOSE_DEG:
+        return vertices, same, None
+    posed_rest = pose_bodies(rest, rig, rotations)
+
+    def posed_back(morphed):
+        return vertices + (pose_bodies(morphed, rig, rotations) - posed_rest)
+
+    return rest, posed_back, (f"morphed standing: the body was brought back to the rest pose ({info.describe()}), "
+                              "morphed and measured there, and the change posed back onto the mesh; --as-posed "
+                              "morphs the mesh as it is")
 
 
 def crowd(model_file: Path = typer.Argument(..., help="Model file (.npz, bodyspace build)."),

@@ -26,6 +26,7 @@ from bodyspace.register.model_fit import ShapeBasis
 from bodyspace.register.pipeline import DEFAULT_STEPS, register_scan
 from bodyspace.register.prepare import read_scan
 from bodyspace.register.quality import Quality
+from bodyspace.rig.kinematics import matrix_to_rotvec
 
 __all__ = ["ScanOutcome", "register_files"]
 
@@ -38,7 +39,9 @@ class ScanOutcome:
     accepted); vertices: (V, 3) the registered body, metres, +Y up (None if refused); quality:
     the fit's ``Quality`` (None if it never got that far); mean_distance: metres, registered
     vertices to the scan; seconds: wall time; landmarks: the sidecar landmark file used, if any;
-    notes: what was assumed (units, up axis) or read.
+    notes: what was assumed (units, up axis) or read. units, up: the scan's length unit and up
+    axis, given or found ('' if it never got that far). pose_degrees: the fit's largest joint turn
+    from the template's rest pose (the root's turn left out), NaN if refused.
     """
 
     path: Path
@@ -50,6 +53,16 @@ class ScanOutcome:
     seconds: float = 0.0
     landmarks: Path | None = None
     notes: tuple = ()
+    units: str = ""
+    up: str = ""
+    pose_degrees: float = float("nan")
+
+
+def _largest_turn(rotations: np.ndarray, template: Template) -> float:
+    """Degrees: the largest turn (B, 3, 3) ``rotations`` give a bone of the default rig, the root
+    (the whole body's turn) left out."""
+    nonroot = np.asarray(template.rigs["default"].parents) >= 0
+    return float(np.degrees(np.linalg.norm(matrix_to_rotvec(np.asarray(rotations)[nonroot]), axis=-1)).max())
 
 
 def register_files(paths: list[Path], *, template: Template, units: str | None = None, up: str | None = None,
@@ -81,6 +94,10 @@ def register_files(paths: list[Path], *, template: Template, units: str | None =
             out.append(ScanOutcome(path, False, str(exc), seconds=time.perf_counter() - start, landmarks=lm_path))
             continue
         out.append(ScanOutcome(path, True, "", reg.internal, reg.quality, float(np.mean(reg.distance)),
-                               time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed)))
+                               time.perf_counter() - start, lm_path, tuple(notes) + tuple(reg.assumed),
+                               # found, not given: only the axis is (the fit finds which end is the
+                               # head; the prepared sign is arbitrary and differed across one folder)
+                               reg.units, reg.up if up is not None else reg.up.lstrip("-"),
+                               _largest_turn(reg.pose.rotations, template)))
     report("done", 1.0)
     return out

@@ -47,6 +47,7 @@ from bodyspace.data.template import load_template
 from bodyspace.errors import BodyspaceError, MeasurementError, ParameterError, SemanticsFileError, TargetError
 from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import measure
+from bodyspace.mesh.alignment import rigid_procrustes
 from bodyspace.semantics.closed_loop import closed_loop
 from bodyspace.semantics.evaluation import cross_validated_rmse, direction_angles
 from bodyspace.semantics.labels import (
@@ -541,6 +542,11 @@ class SemanticModel:
         c0 = self.project_mesh(x0).reshape(-1)
         d0 = np.asarray(self.body_model.reconstruct(c0))[0]
         timings["decode"] += time.perf_counter() - t
+        # The model decodes in its own frame (the encoder's Procrustes frame), the mesh stands in
+        # its own: a registration keeps the scan's turn about the vertical (24° on a T-posed scan),
+        # and the change added unturned put a "heavier" belly and longer legs 24° off the body.
+        # The change is turned by the rigid motion of the model's reconstruction onto the mesh.
+        _, turn, _ = rigid_procrustes(d0, x0)
         w = self.mask_weights(mask)
         blend = self.masked_blend(w) if w is not None else None
 
@@ -550,7 +556,7 @@ class SemanticModel:
                 t = time.perf_counter()
                 d = blend(d)
                 timings["solve"] += time.perf_counter() - t
-            return x0 + d
+            return x0 + d @ turn.T
 
         names = list(reqs)
         vals0, meas0 = self._values(names, x0, c0, timings)
