@@ -41,7 +41,9 @@ START_POSES = ("t_pose", "arms_overhead", "arms_forward")
 # assignments, the better short fit is kept.
 STRIDES = {"stride_left": (("upperleg01.L", (-20.0, 0.0, 0.0)), ("upperleg01.R", (15.0, 0.0, 0.0))),
            "stride_right": (("upperleg01.R", (-20.0, 0.0, 0.0)), ("upperleg01.L", (15.0, 0.0, 0.0)))}
-# Degrees the best heading candidate is also turned by, either way.
+# Degrees the principal-axis headings of the best candidate's up direction are also turned by
+# (the diagonals between them), then the best heading either way.
+DIAGONAL_TURN = 45.0
 HEADING_TURN = 25.0
 # The limbs whose rotations are mixed between the start fits (each with its subtree).
 LIMB_ROOTS = ("clavicle.L", "clavicle.R", "upperleg01.L", "upperleg01.R")
@@ -232,6 +234,21 @@ def initial_alignment(points: np.ndarray, normals: np.ndarray, template: Templat
         k = int(np.argmin(scores))
         score, (R, t), state = scores[k], candidates[k], fitted[k][0]
         if landmarks is None:
+            # A stepping body's principal axes lie between its front and its side (its stride
+            # spreads it front to back as much as its shoulders do side to side: 26-44° off on
+            # step-forward scans); 45° off, front and back scored alike and a thin tall man was
+            # fitted facing backwards (592 mm; docs/registration.md, "Facing backwards"). The
+            # diagonals of the best candidate's up direction are scored too.
+            upright = [(R2, t2) for R2, t2 in candidates if R2[1, 1] * R[1, 1] > 0]
+            diagonal = []
+            for R1, _ in upright:
+                R2 = _yaw(np.radians(DIAGONAL_TURN)) @ R1
+                diagonal.append((R2, _place(p @ R2.T, rest)))
+            for (R2, t2), (s2, sc2) in zip(diagonal, run(_candidate_fit, [(R2, t2, None, iterations)
+                                                                          for R2, t2 in diagonal])):
+                scores.append(sc2)
+                if sc2 < score:
+                    score, R, t, state = sc2, R2, t2, s2
             # The principal axes miss a stepping or twisting body's heading (by 29° on a
             # step-forward scan, which the pose fit took up as a twist between pelvis and chest):
             # the best candidate turned either way is scored too.
