@@ -142,7 +142,8 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
             "coverage_share": round(q.coverage, 4), "accepted": q.accepted, "failed_parts": q.to_dict()["failed_parts"],
             "parts": q.to_dict()["parts"], "restarted_limbs": reg.restarted,
             "mean_vertex_distance_mm": round(1000 * float(np.mean(reg.distance)), 3),
-            "seconds": {k: round(v, 2) for k, v in reg.seconds.items()}})
+            "seconds": {k: round(v, 2) for k, v in reg.seconds.items()},
+            **({} if reg.detail is None else {"detail": _detail_summary(reg.detail)})})
         with open(tmp / "quality.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(["part", "quality", "accepted", "seen_share", "mean_distance_mm", "unexplained_cm2", "area_cm2",
@@ -167,6 +168,16 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
                   "distance.png"
                   f"{'; detail.npz, detailed.obj, detailed_standard.obj' if reg.detail is not None else ''})",
                   markup=False, highlight=False)
+
+
+def _detail_summary(detail) -> dict:
+    """summary.json's ``detail``: how much of the scan's relief was kept and why (``Detail``)."""
+    def share(x):
+        return None if not np.isfinite(x) else round(float(x), 4)
+    return {"levels": detail.levels, "on_scan_share": round(float(detail.valid.mean()), 4),
+            "kept_share": share(detail.kept), "too_sparse_share": share(detail.wide),
+            "noise_mm": None if not np.isfinite(detail.noise) else round(1000 * detail.noise, 3),
+            "offsets_rms_mm": round(1000 * float(np.sqrt(np.mean(detail.offsets ** 2))), 3), "notice": detail.notice()}
 
 
 def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology (OBJ/PLY/GLB/STL; any frame and unit)."),

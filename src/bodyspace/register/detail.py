@@ -19,7 +19,11 @@ and the stored offsets are added." Here:
    two triangles and gets one value, so the detailed mesh has no cracks). Where the scan has a
    hole, where the patch's normal disagrees with n by more than ``MAX_ANGLE_DEG`` or the cut is
    farther than ``max_offset`` (another body part across a gap), the vertex is marked invalid
-   and keeps h = 0: the fit's own smooth surface.
+   and keeps h = 0: the fit's own smooth surface. Then only what the scan can vouch for is
+   kept (``shrink``): an offset that stands out of the scan's noise, among neighbours that do
+   too, measured by a patch narrow enough for relief finer than the mesh; elsewhere h = 0, so
+   a sparse or noisy scan's detail never takes the body farther from the scan's truth than the
+   smooth fit (``Detail.kept``, ``Detail.notice``).
 3. ``apply_detail``: any mesh of the base topology (the morphed body) subdivided the same way,
    each subdivided vertex moved by its stored h along the new surface's normal: the relief rides
    on the morphed body, rotated and stretched with it.
@@ -68,6 +72,28 @@ ROBUST_FLOOR = 0.0003
 CHUNK = 40_000
 # Offsets beyond this (metres) are not relief but a misfit or a gap crossed: left out.
 MAX_OFFSET = 0.015
+# Which measured offsets are kept (``shrink=True``; measured on bench_detail.py's bodies at
+# 200 k / 80 k / 40 k points and on the user walk's f07, 40 k points, σ = 2 mm, no relief):
+# - an offset must stand out of its noise by SIGNIFICANCE standard deviations (the noise's
+#   variance pooled over the scan: one patch's 10 residual degrees of freedom say little);
+SIGNIFICANCE = 2.5
+# - a patch both wider than PATCH_RADIUS (RMS distance of its points from p, metres) and wider
+#   than PATCH_EDGES local subdivided edges measures the base mesh's own shape, not finer relief:
+#   on a sparse scan (points ~7 mm apart) it spans a finger, a toe, the nose, and its quadratic
+#   is biased by millimetres there (f07's hands: 0.54 -> 1.87 mm with such offsets);
+PATCH_RADIUS = 0.006
+PATCH_EDGES = 1.5
+# - relief is a surface, not a speck: offsets are kept only where COHERENT of the
+#   COHERENT_NEIGHBOURS subdivided vertices nearest stand out of the noise (noise alone passes a
+#   2.5σ test at ~1-3 % of vertices, scattered). f07 against its smooth fit's 0.5600 mm: 0.5610
+#   with 2σ, 0.5605 with 2.5σ, 0.5602 with 3σ; the 200 k bench body on its true base: 0.39 / 0.40
+#   / 0.42 mm (0.38 before these tests, 0.94 smooth);
+COHERENT = 0.3
+COHERENT_NEIGHBOURS = 48
+# - a patch whose surface lies farther from p than p's nearest scan point (by more than
+#   NEAR_SLACK times the points' noise) fitted another surface (f07's hands: the next finger's,
+#   -6 to -10 mm, where the smooth fit was within 0.4 mm of the truth); it counts as no relief.
+NEAR_SLACK = 1.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +104,9 @@ class Detail:
     valid: (S,) bool, the offset was measured on the scan; levels: mid-edge subdivisions;
     n_base_vertices, n_base_faces, faces_sha256: the base topology they belong to.
     noise: metres, the median standard deviation the scan's noise leaves in an offset (NaN: unknown).
+    kept: share of the S offsets kept (non-zero) after the noise tests; wide: share of the S
+    vertices whose scan patch was too wide for relief finer than the mesh (a sparse scan); NaN:
+    unknown (a file of version 1 without them).
     S = the subdivided mesh's vertex count (``midpoint_subdivide``).
     """
 
@@ -88,18 +117,35 @@ class Detail:
     n_base_faces: int
     faces_sha256: str
     noise: float = float("nan")
+    kept: float = float("nan")
+    wide: float = float("nan")
+
+    def notice(self) -> str | None:
+        """Why little or no detail was kept (None when most of the measured relief was kept)."""
+        if not np.isfinite(self.kept) or self.kept >= 0.2:
+            return None
+        why = []
+        if np.isfinite(self.wide) and self.wide >= 0.05:
+            why.append(f"at {100 * self.wide:.0f} % of the body the scan's points are farther apart than the "
+                       "subdivided mesh's edges (too sparse for relief finer than the mesh)")
+        if np.isfinite(self.noise):
+            why.append(f"{'elsewhere ' if why else ''}the offsets do not stand {SIGNIFICANCE:g} times out of the "
+                       f"scan's noise ({1000 * self.noise:.2f} mm in an offset, median)")
+        return (f"only {100 * self.kept:.1f} % of the detail was kept: {', '.join(why) or 'the scan holds none'}; the "
+                "detailed mesh is the smooth fit there. For more detail, scan denser (points closer than 3 mm) or "
+                "with less noise")
 
     def describe(self) -> str:
-        h = self.offsets[self.valid]
+        h = self.offsets[self.offsets != 0]
         spread = f"{1000 * np.sqrt(np.mean(h ** 2)):.2f} mm RMS, {1000 * np.abs(h).max():.1f} mm at most" if h.size \
-            else "none measured"
+            else "none kept"
+        kept = "" if not np.isfinite(self.kept) else f", {100 * self.kept:.1f} % kept"
         text = (f"{len(self.offsets)} subdivided vertices ({self.levels} level(s)), {100 * self.valid.mean():.1f} % "
-                f"on the scan; offsets {spread}")
+                f"on the scan{kept}; offsets {spread}")
         if np.isfinite(self.noise):
             text += f"; the scan's noise leaves {1000 * self.noise:.2f} mm of uncertainty in an offset (median)"
-            if h.size and self.noise >= 0.7 * np.sqrt(np.mean(h ** 2)):
-                text += " - as large as the relief: this scan is too noisy for its detail to be worth keeping"
-        return text
+        note = self.notice()
+        return text if note is None else f"{text}. Notice: {note}"
 
 
 def faces_digest(faces: np.ndarray) -> str:
@@ -142,9 +188,11 @@ def _check_levels(levels) -> int:
     return int(levels)
 
 
-def _patch_offsets(sv, n, pts, tree, neighbours, max_offset, max_angle_deg, shrink):
-    """Offsets (S,), their noise variances (S,) and validity (S,) of subdivided vertices sv (S, 3)
-    with normals n (S, 3) against scan points pts (P, 3) (``detail_offsets``)."""
+def _patch_offsets(sv, n, pts, tree, neighbours, max_offset, max_angle_deg):
+    """Of subdivided vertices sv (S, 3) with normals n (S, 3) against scan points pts (P, 3)
+    (``detail_offsets``): offsets (S,) unshrunk, the patch fits' residual variances (S,), the
+    factors (AᵀA)⁻¹₀₀ (S,) that turn a residual variance into the offset's, validity (S,) and the
+    patches' RMS radii (S,) in metres."""
     dist, nb = tree.query(sv, k=neighbours)                                  # (S, k)
     # The scan near p as a height field over p's tangent plane, t = a + b u + c v + d u² + e uv + f v²
     # (least squares over the k points): the line p + h n meets it at (u, v) = (0, 0), h = a. A
@@ -171,18 +219,12 @@ def _patch_offsets(sv, n, pts, tree, neighbours, max_offset, max_angle_deg, shri
     h = coef[:, 0]
     # The scan's noise passes into h with variance σ² (AᵀA)⁻¹₀₀, σ² from the fit's own residuals.
     dof = np.maximum(used.sum(axis=1) - 6, 1)
-    var = (used * res ** 2).sum(axis=1) / dof * np.linalg.inv(AtA)[:, 0, 0]
-    if shrink:
-        # Each offset shrunk by 1 - var/h² (James-Stein), so the noise of a scan coarser than its
-        # relief is not stamped onto the morph as relief (measured in bench_detail.py's setting,
-        # on the true base: mean offset error 1.63 → 1.36 mm at σ = 2 mm, 0.47 → 0.44 at 0.5 mm).
-        with np.errstate(divide="ignore", invalid="ignore"):
-            h = h * np.clip(1 - var / h ** 2, 0, 1)
+    resvar = (used * res ** 2).sum(axis=1) / dof
     slope = np.hypot(coef[:, 1], coef[:, 2]) / r[:, 0]                       # tan of the patch's tilt
     valid = (slope <= np.tan(np.radians(max_angle_deg))) & np.isfinite(h) & (np.abs(h) <= max_offset)
     # Over a hole the nearest scan point is off to one side, farther than any relief.
     valid &= dist[:, 0] <= max_offset
-    return np.where(valid, h, 0.0), var, valid
+    return np.where(valid, h, 0.0), resvar, np.linalg.inv(AtA)[:, 0, 0], valid, r[:, 0], dist[:, 0]
 
 
 def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, *, levels: int = 1,
@@ -190,7 +232,13 @@ def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
                    max_angle_deg: float = MAX_ANGLE_DEG, shrink: bool = True) -> Detail:
     """The scan's relief over a registered mesh (module docstring, step 2).
 
-    shrink: each offset shrunk toward 0 by its noise (1 - var/h², var from the fit's residuals).
+    shrink: keep only the offsets the scan can vouch for (else every measured offset is kept as
+    it is): an offset is set to 0 where its patch is wider than PATCH_RADIUS and PATCH_EDGES local
+    edges (a sparse scan), and where fewer than COHERENT of its COHERENT_NEIGHBOURS nearest
+    subdivided vertices are significant: standing SIGNIFICANCE standard deviations out of the
+    scan's noise (var = the residual variance, at least the scan's median, times (AᵀA)⁻¹₀₀), and
+    no farther than the nearest scan point (+ NEAR_SLACK times the points' noise). A kept offset
+    is shrunk by 1 - var/h² (James-Stein: nearly unbiased for an offset well out of the noise). ``Detail.kept``, ``.wide`` and ``.notice()`` say how much was kept and why.
 
     vertices: (V, 3) the registration (metres, the frame of ``points``); faces: (F, 3);
     points: (P, 3) the scan's points (outliers may stay: a patch is fitted per vertex and an
@@ -206,14 +254,43 @@ def detail_offsets(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, 
     sv, sf = midpoint_subdivide(vertices, faces, levels)
     n = vertex_normals(sv, sf)                                               # (S, 3)
     tree = cKDTree(pts)
-    h, var, valid = np.zeros(len(sv)), np.zeros(len(sv)), np.zeros(len(sv), dtype=bool)
+    S = len(sv)
+    h, resvar, inv00, radius, nearest = np.zeros(S), np.zeros(S), np.zeros(S), np.zeros(S), np.zeros(S)
+    valid = np.zeros(S, dtype=bool)
     # In blocks: the per-vertex patches (S, k, 6) of two levels would take a gigabyte at once.
-    for lo in range(0, len(sv), CHUNK):
+    for lo in range(0, S, CHUNK):
         block = slice(lo, lo + CHUNK)
-        h[block], var[block], valid[block] = _patch_offsets(sv[block], n[block], pts, tree, int(neighbours),
-                                                            max_offset, max_angle_deg, shrink)
-    noise = float(np.sqrt(np.median(var[valid]))) if valid.any() else float("nan")
-    return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces), noise)
+        h[block], resvar[block], inv00[block], valid[block], radius[block], nearest[block] = _patch_offsets(
+            sv[block], n[block], pts, tree, int(neighbours), max_offset, max_angle_deg)
+    if not valid.any():
+        return Detail(np.zeros(S), valid, levels, len(vertices), len(faces), faces_digest(faces), float("nan"),
+                      0.0, float("nan"))
+    e = edges(sf)
+    length = np.linalg.norm(sv[e[:, 0]] - sv[e[:, 1]], axis=1)
+    local_edge = (np.bincount(e.ravel(), np.repeat(length, 2), S) / np.maximum(np.bincount(e.ravel(), minlength=S), 1))
+    wide = valid & (radius > PATCH_RADIUS) & (radius > PATCH_EDGES * local_edge)
+    # The noise pooled over the scan (where the patches are narrow enough to measure it: a wide
+    # patch's residuals hold its misfit too): a patch's own residuals (10 degrees of freedom) can
+    # be small by chance, and a small variance would pass its noise as relief.
+    narrow = valid & ~wide if (valid & ~wide).any() else valid
+    var = np.maximum(resvar, np.median(resvar[narrow])) * inv00
+    noise = float(np.sqrt(np.median(var[narrow])))
+    if not shrink:
+        return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces), noise,
+                      float(np.mean(h != 0)), float(wide.mean()))
+    significant = valid & ~wide & (h ** 2 > SIGNIFICANCE ** 2 * var)
+    # A scan point nearer p than the surface the patch found (by more than the points' noise):
+    # the patch fitted another surface (the next finger), not relief under p.
+    significant &= np.abs(h) <= nearest + NEAR_SLACK * np.sqrt(np.median(resvar[narrow]))
+    k = min(COHERENT_NEIGHBOURS, S)
+    _, near = cKDTree(sv).query(sv, k=k)
+    # Inside a region of relief every offset is kept (shrunk): dropping the ones under the test
+    # would flatten the relief where it crosses 0 (200 k-point bench body: 0.42 against 0.46 mm).
+    kept = valid & ~wide & (significant[near].mean(axis=1) >= COHERENT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = np.where(kept, h * np.clip(1 - var / h ** 2, 0, 1), 0.0)
+    return Detail(h, valid, levels, len(vertices), len(faces), faces_digest(faces), noise,
+                  float(np.mean(h != 0)), float(wide.mean()))
 
 
 def apply_detail(vertices: np.ndarray, faces: np.ndarray, detail: Detail, *,
@@ -247,7 +324,9 @@ def save_detail(path: str | os.PathLike, detail: Detail, **provenance) -> Path:
               "levels": detail.levels, "n_base_vertices": detail.n_base_vertices,
               "n_base_faces": detail.n_base_faces, "faces_sha256": detail.faces_sha256,
               "n_subdivided_vertices": len(detail.offsets),
-              "noise_m": None if not np.isfinite(detail.noise) else round(float(detail.noise), 7), **provenance}
+              "noise_m": None if not np.isfinite(detail.noise) else round(float(detail.noise), 7),
+              "kept_share": None if not np.isfinite(detail.kept) else round(float(detail.kept), 5),
+              "wide_share": None if not np.isfinite(detail.wide) else round(float(detail.wide), 5), **provenance}
     raw = np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -300,5 +379,7 @@ def load_detail(path: str | os.PathLike) -> Detail:
                                 "(one per subdivided vertex)")
     noise = header.get("noise_m")
     noise = float(noise) if isinstance(noise, (int, float)) and np.isfinite(noise) and noise >= 0 else float("nan")
-    return Detail(offsets, valid, levels, nv, nf, digest, noise)
+    shares = [header.get(k) for k in ("kept_share", "wide_share")]
+    kept, wide = (float(x) if isinstance(x, (int, float)) and 0 <= x <= 1 else float("nan") for x in shares)
+    return Detail(offsets, valid, levels, nv, nf, digest, noise, kept, wide)
 
