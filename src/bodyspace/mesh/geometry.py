@@ -9,6 +9,7 @@ import numba
 import numpy as np
 
 from bodyspace.errors import MeshError
+from bodyspace.validation import as_generator
 
 
 def check_mesh(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> None:
@@ -51,6 +52,21 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Triangle areas (..., F)."""
     return 0.5 * np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=-1)
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` points spread uniformly by area over a mesh (V, 3), (F, 3).
+
+    rng: a seed or ``numpy.random.Generator``. Returns points (n, 3), their faces (n,) and
+    barycentric coordinates (n, 3).
+    """
+    rng = as_generator(rng)
+    area = face_areas(vertices, faces)
+    face = rng.choice(len(faces), size=int(n), p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(int(n))), rng.random(int(n))
+    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
+    points = np.einsum("nk,nkd->nd", bary, vertices[faces[face]])
+    return points, face, bary
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:

@@ -48,7 +48,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template
-from bodyspace.mesh.geometry import vertex_normals
+from bodyspace.mesh.geometry import sample_surface, vertex_normals
 from bodyspace.mesh.topology import edges as mesh_edges
 from bodyspace.parallel import cores
 from bodyspace.register.model_fit import SCALE_PRIOR, ShapeBasis
@@ -133,13 +133,7 @@ def scan_offsets(posed: np.ndarray, faces: np.ndarray, points: np.ndarray, norma
     tree = cKDTree(posed)
     near, h = _heights(posed, n, tree, points, normals)
     # The same count of points on the model's own surface (area-uniform), heights taken alike.
-    rng = np.random.default_rng(rng)
-    tri = posed[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    f = rng.choice(len(faces), size=max(len(points), 1000), p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(len(f))), rng.random(len(f))
-    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    own = (tri[f] * bary[:, :, None]).sum(axis=1)
+    own = sample_surface(posed, faces, max(len(points), 1000), rng)[0]
     own_near, own_h = _heights(posed, n, tree, own, None)
     total, count = np.bincount(near, h, minlength=V), np.bincount(near, minlength=V).astype(float)
     own_total, own_count = np.bincount(own_near, own_h, minlength=V), np.bincount(own_near, minlength=V).astype(float)

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from bodyspace.errors import MeshError, ParameterError
 from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, to_internal
+from bodyspace.mesh.geometry import face_areas, sample_surface
 from bodyspace.parallel import cores, halves, run_both
 
 __all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "MIN_POINTS", "SCAN_SUFFIXES"]
@@ -133,15 +134,10 @@ def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarr
 
 def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """``n`` points area-uniform on a mesh, with a fixed seed (a scan reads the same each time)."""
-    rng = np.random.default_rng(0)
-    tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = face_areas(vertices, faces)
     if not np.isfinite(area).all() or area.sum() <= 0:
         return vertices
-    f = rng.choice(len(faces), size=n, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
-    return np.einsum("nk,nkd->nd", w, tri[f])
+    return sample_surface(vertices, faces, n, 0)[0]
 
 
 def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: str | None = None,

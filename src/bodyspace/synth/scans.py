@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from bodyspace.data.template import Template
 from bodyspace.errors import ParameterError
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
-from bodyspace.mesh.geometry import face_areas, face_normals
+from bodyspace.mesh.geometry import face_normals, sample_surface
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.foreign import foreign_phenotype, hole_sites, to_frame
 from bodyspace.synth.poses import load_pose_library
@@ -76,20 +76,6 @@ class RawScan:
         """The landmarks as a ``--landmarks`` document: {"landmarks": {name: [x, y, z]}, "unit": ...}."""
         unit = {1.0: "m", 100.0: "cm", 1000.0: "mm"}.get(float(self.frame["scale"]), "m")
         return {"landmarks": {k: [float(c) for c in v] for k, v in self.landmarks.items()}, "unit": unit}
-
-
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` points spread uniformly by area over a mesh (V, 3), (F, 3).
-
-    Returns points (n, 3), their faces (n,) and barycentric coordinates (n, 3).
-    """
-    rng = as_generator(rng)
-    area = face_areas(vertices, faces)
-    face = rng.choice(len(faces), size=int(n), p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(int(n))), rng.random(int(n))
-    bary = np.stack([1.0 - r1, r1 * (1.0 - r2), r1 * r2], axis=1)
-    points = np.einsum("nk,nkd->nd", bary, vertices[faces[face]])
-    return points, face, bary
 
 
 def raw_scan(template: Template, phenotype_model, rng=None, *, n_points: int = 80_000, sigma: float = 0.002,
