@@ -259,6 +259,12 @@ def test_garbage_scale_fits_no_unit(template, mset, library_bodies):
         assert conv.units == ()
         with pytest.raises(MeasurementError, match="bounding box"):
             cv.prepare(bad, template.faces, mset)
+    # A body's extent but not a body's surface (its vertices in another order than its faces):
+    # no scale is advised ("1x too small: multiply by 1" was).
+    scrambled = v[np.random.default_rng(0).permutation(len(v))]
+    with pytest.raises(MeasurementError, match=r"m across in metres, but its surface area is [\d.e+]+ m²") as err:
+        cv.prepare(scrambled, template.faces, mset)
+    assert "multiply by 1)" not in str(err.value) and "1x too" not in str(err.value)
 
 
 # ---------------------------------------------------------------------------- the batch door

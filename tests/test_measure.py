@@ -701,13 +701,13 @@ def test_cli_measure_an_stl_says_why_its_vertices_cannot_be_named(mean_body, tem
 def test_cli_measure_png_draws_a_turned_body_facing_the_camera(mean_body, template, tmp_path, monkeypatch):
     """A scanner's mesh turned 140° about the vertical is drawn facing the camera, its lines with
     it (its "front" view showed its back)."""
-    import bodyspace.cli.measure as cli_measure
+    import bodyspace.report.measured as measured_figure
     from bodyspace.measure.conventions import standing_placement
     from bodyspace.synth.foreign import to_frame
     turned = to_frame(mean_body, up="y", scale=1.0, translation=(1.2, 0.0, -0.7), yaw_degrees=140.0)
     save_mesh(tmp_path / "turned.obj", turned, template.faces)
     drawn = {}
-    monkeypatch.setattr(cli_measure, "contact_sheet",
+    monkeypatch.setattr(measured_figure, "contact_sheet",
                         lambda bodies, faces, out, polylines=None, **kw: drawn.update(bodies=bodies, lines=polylines))
     result = runner.invoke(app, ["measure", str(tmp_path / "turned.obj"), "--as-posed", "--png", str(tmp_path / "l.png")])
     assert result.exit_code == 0, result.output

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
-from bodyspace.errors import MeshError, ParameterError
+from bodyspace.errors import MeshError, ParameterError, UnposeError
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig import unpose as U
 from bodyspace.rig.posing import pose_bodies
@@ -135,7 +135,7 @@ def test_foreign_frames_noise_and_holes(template, phenotype_model, rig, rest_bod
     assert not fits_template(fb.vertices, fb.faces, template)
 
 
-def test_refuses_what_it_cannot_unpose(template, rig, library_case):
+def test_refuses_what_it_cannot_unpose(template, rig, library_case, tmp_path):
     posed = library_case[0][0]
     with pytest.raises(MeshError, match=r"shape \(100, 3\).*13380"):
         unpose(posed[:100], rig)
@@ -146,8 +146,17 @@ def test_refuses_what_it_cannot_unpose(template, rig, library_case):
     with pytest.raises(MeshError, match="is it in mm"):
         unpose(posed * 1000, rig, mesh_name="scan.obj")
     shuffled, _, _ = shuffle_vertices(posed, template.faces, rng=0)
-    with pytest.raises(MeshError, match="cannot be unposed.*shuffled"):
+    with pytest.raises(UnposeError, match="cannot be unposed.*shuffled"):
         unpose(shuffled, rig, mesh_name="scan.obj")
+    # The command line names the flag that goes on without unposing: a body whose arms are
+    # 2.5x as long as any (37 mm from the rest-shape space).
+    stretched = template.vertices.copy()
+    stretched[np.abs(stretched[:, 0]) > 0.2, 0] *= 2.5
+    path = tmp_path / "scan.obj"
+    save_mesh(path, stretched, template.faces)
+    result = runner.invoke(app, ["measure", str(path)])
+    assert result.exit_code == 2 and "cannot be unposed" in result.output, result.output
+    assert "--as-posed measures the mesh as it is" in result.output and "Traceback" not in result.output
     with pytest.raises(ParameterError, match="weights='dense'"):
         unpose(posed, rig, weights="dense")
     # Asked not to check, it still returns, and says how far from a rest body the result is.

@@ -17,6 +17,12 @@ class MeshError(BodyspaceError):
     """A mesh has the wrong shape, topology or values."""
 
 
+class UnposeError(MeshError):
+    """A mesh of the template's topology cannot be brought back to the rest pose: after the best
+    fit of the rig its rest body is still far from any of the template's (shuffled vertex order,
+    or not a human body). Callers that can go on with the posed mesh catch this one only."""
+
+
 class DatabaseError(BodyspaceError):
     """A scan database folder or a user's mesh folder is malformed."""
 

@@ -20,14 +20,14 @@ from bodyspace.atomic import atomic_path
 from bodyspace.cli.common import ForceOption, check_file_output, console, progress
 from bodyspace.data.database import META_FILE, VERTICES_FILE, ScanDatabase
 from bodyspace.data.template import load_template
-from bodyspace.errors import BodyspaceError, MeasurementError, MeshError
+from bodyspace.errors import BodyspaceError, MeasurementError, MeshError, UnposeError
 from bodyspace.measure import check_compatible, conventions, evaluate, load_measurement_set, to_json
 from bodyspace.measure.definitions import standing_note, with_standing_body
 from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.io import load_mesh
 from bodyspace.model import BodyModel
 from bodyspace.parallel import in_order
-from bodyspace.report.render import contact_sheet
+from bodyspace.report.measured import measured_bodies_figure
 from bodyspace.rig.unpose import KNOWN_POSE_TOLERANCE, fits_template, unpose, unpose_known
 from bodyspace.rowfile import npy_layout, read_rows
 
@@ -106,20 +106,8 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
             own = with_standing_body(mset, v, f)     # the set itself once a standing mesh placed all
             results[label] = evaluate(own, v, f, keep_polylines=png is not None, mesh_name=str(path))
         if png is not None:
-            polys = [[m.polyline for m in r.values() if m.polyline is not None and not np.isnan(m.value)]
-                     for r in results.values()]
-            # Drawn facing the camera: a scanner's mesh turned about the vertical showed its back in
-            # the "front" view (the values do not depend on it).
-            shown = []
-            for (v, f), lines in zip(bodies, polys):
-                found = conventions.standing_placement(mset.landmarks, v[None])
-                if found is not None:
-                    R, t, _ = found
-                    v, lines[:] = v @ R.T + t, [np.asarray(q) @ R.T + t for q in lines]
-                shown.append(v)
             try:
-                contact_sheet(shown, [b[1] for b in bodies], png, labels=_column_names(meshes),
-                              views=("front", "side"), polylines=polys, title="bodyspace measure", panel_height=6.0)
+                measured_bodies_figure(png, bodies, list(results.values()), mset, _column_names(meshes))
             except OSError as exc:   # a folder in the way, no permission, disk full
                 raise MeasurementError(f"--png {png}: could not write the picture ({exc.strerror or exc}); "
                                        "choose a writable file path") from None
@@ -166,10 +154,8 @@ def _standing(vertices: np.ndarray, faces: np.ndarray, path: Path, as_posed: boo
                                   "measured as posed"}
     try:
         rest, _, info = unpose(vertices, template.rigs["default"], mesh_name=str(path))
-    except MeshError as exc:
-        if "cannot be unposed" not in str(exc):
-            raise
-        raise MeshError(f"{exc} (--as-posed measures the mesh as it is, without unposing)") from None
+    except UnposeError as exc:
+        raise UnposeError(f"{exc} (--as-posed measures the mesh as it is, without unposing)") from None
     return rest, {"value": round(float(info.largest_rotation_deg), 1), "unit": "deg",
                   "note": f"measured standing: the body was brought back to the rest pose first ({info.describe()}); "
                           "--as-posed measures the mesh as it is"}

@@ -40,7 +40,7 @@ from bodyspace.cli.export import BonesOption, MorphsOption, PngOption, RigOption
 from bodyspace.cli.resources import check_bodies_fit
 from bodyspace.data.database import ScanDatabase
 from bodyspace.data.template import load_template
-from bodyspace.errors import BodyspaceError, MeshError
+from bodyspace.errors import BodyspaceError, UnposeError
 from bodyspace.mapping.gradients import SUBSTITUTES
 from bodyspace.measure import evaluate as evaluate_measurements
 from bodyspace.measure import to_json
@@ -367,10 +367,8 @@ def _morph_standing(vertices: np.ndarray, faces: np.ndarray, mesh: Path, as_pose
     rig = template.rigs["default"]
     try:
         rest, rotations, info = unpose(vertices, rig, mesh_name=str(mesh))
-    except MeshError as exc:
-        if "cannot be unposed" not in str(exc):
-            raise
-        raise MeshError(f"{exc} (--as-posed morphs the mesh as it is, without unposing)") from None
+    except UnposeError as exc:
+        raise UnposeError(f"{exc} (--as-posed morphs the mesh as it is, without unposing)") from None
     if float(info.largest_rotation_deg) < MORPH_UNPOSE_DEG:
         return vertices, same, None
     posed_rest = pose_bodies(rest, rig, rotations)

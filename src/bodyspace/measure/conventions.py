@@ -40,7 +40,7 @@ the batch path, where the bodies are decoded from a model of the set's own topol
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
@@ -162,6 +162,7 @@ class Conventions:
     up: the axis ("y", "-z", ...) the feet→head direction is nearest, None when unknown (too
         few landmarks, a wrong layout, or no axis within ``UP_AXIS_MAX_ANGLE``).
     up_angle: degrees between the feet→head direction and that axis (NaN when unknown).
+    size: the square root of its surface area, mesh units.
     """
 
     extent: float
@@ -172,6 +173,7 @@ class Conventions:
     layout_failures: tuple[str, ...]
     up: str | None
     up_angle: float
+    size: float
 
     @property
     def layout_wrong(self) -> bool:
@@ -444,9 +446,9 @@ def inspect(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet) -> Co
     ran, failed = layout_checks(points, np.sqrt(area), MESH_UNITS[units[0]] if units else None) if area > 0 else (0, [])
     up, angle = up_axis(points)
     conv = Conventions(extent, units, volume * MESH_UNITS[units[0]] ** 3 if units else volume, ratio, ran,
-                       tuple(failed), up, angle)
+                       tuple(failed), up, angle, float(np.sqrt(area)))
     if conv.layout_wrong:   # landmarks on the wrong body parts say nothing about the up axis
-        conv = Conventions(extent, units, conv.signed_volume, ratio, ran, tuple(failed), None, float("nan"))
+        conv = replace(conv, up=None, up_angle=float("nan"))
     return conv
 
 
@@ -491,6 +493,16 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
                                  f"metres (a human body is {lo:g}-{hi:g} m)", {"units": conv.units}))
         elif not np.isfinite(conv.extent) or conv.extent == 0:
             found.append(Finding(f"its bounding box is {conv.extent:g} across; expected a human body"))
+        elif plausible_units(conv.extent):
+            # A body's extent but not a body's surface: no scale fixes that (the advice was "the
+            # mesh is 1x too small: multiply by 1" for a scrambled vertex order).
+            u = plausible_units(conv.extent)[0]
+            metres = MESH_UNITS[u]
+            found.append(Finding(f"its bounding box is {conv.extent * metres:.3g} m across in {_UNIT_WORDS[u]}, but "
+                                 f"its surface area is {(conv.size * metres) ** 2:.3g} m², a human body's is "
+                                 f"{BODY_SIZE_M[0] ** 2:.2g}-{BODY_SIZE_M[1] ** 2:.2g} m²: its faces join vertices "
+                                 "far apart (vertices in another order than its faces expect?) or it has almost "
+                                 "no faces"))
         else:
             found.append(Finding(f"its bounding box is {conv.extent:.3g} across, a human body's is {lo:g}-{hi:g} m; "
                                  f"{_scale_advice(conv.extent)}"))

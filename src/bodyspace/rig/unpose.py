@@ -57,7 +57,7 @@ from scipy.linalg.blas import dsyrk
 from scipy.linalg.lapack import dposv
 
 from bodyspace.data.template import Rig, Template, load_template
-from bodyspace.errors import MeshError, ParameterError
+from bodyspace.errors import MeshError, ParameterError, UnposeError
 from bodyspace.mesh.solver import single_threaded_blas
 from bodyspace.rig.kinematics import forward_kinematics, matrix_to_rotvec, rotvec_to_matrix, topological_order
 from bodyspace.rig.posing import smoothed_weights
@@ -1045,7 +1045,7 @@ def unpose(vertices: np.ndarray, rig: Rig, *, prior: RestShapePrior | None = Non
     weights: the skin weights of the skinning to invert: ``"original"`` (the default, as
         ``pose_bodies`` and the synthetic population use) or ``"smoothed"``.
     faces: (F, 3) only for ``weights="smoothed"`` (the template's by default).
-    check: refuse (MeshError) a mesh the fit cannot bring within ``MAX_SHAPE_DISTANCE`` of the
+    check: refuse (UnposeError) a mesh the fit cannot bring within ``MAX_SHAPE_DISTANCE`` of the
         rest-shape space: not a posed body of this topology in its vertex order.
     Returns ``(rest, rotations, info)``: rest (N, V, 3) bodies on the ground (lowest vertex at
     y = 0, root head x/z where the posed one is), rotations (N, B, 3, 3) in the convention of
@@ -1091,7 +1091,7 @@ def unpose(vertices: np.ndarray, rig: Rig, *, prior: RestShapePrior | None = Non
         if len(bad):
             i = int(bad[0])
             which = mesh_name if single else f"body {i} of {mesh_name}"
-            raise MeshError(f"{which}: cannot be unposed: after the best fit of rig {rig.name!r} its rest body is "
+            raise UnposeError(f"{which}: cannot be unposed: after the best fit of rig {rig.name!r} its rest body is "
                             f"still {1000 * shape_distance[i]:.0f} mm (RMS) from any rest body of the template "
                             f"(at most {1000 * MAX_SHAPE_DISTANCE:.0f} mm); expected a posed body of the template "
                             "topology with its vertices in the template's order (is the vertex order shuffled, or "
