@@ -94,15 +94,19 @@ def labels_from_subjects(columns, subjects, labels=None) -> dict[str, np.ndarray
     for name, col in (SUBJECT_LABELS if labels is None else labels).items():
         if col not in columns:
             continue
-        raw = np.asarray(columns[col])[where]
-        if name == "sex" or raw.dtype.kind in "OUS":
-            low = np.char.lower(raw.astype(str))
-            v = np.where(low == "male", 1.0, np.where(low == "female", 0.0, np.nan))
-        else:
-            v = raw.astype(float)
+        v = _subject_values(name, np.asarray(columns[col])[where])
         if np.isfinite(v).sum() >= MIN_LABELLED and np.nanstd(v) > 0:
             out[name] = v
     return out
+
+
+def _subject_values(name: str, raw: np.ndarray) -> np.ndarray:
+    """A subject label column's values (N,) as float64: ``sex`` and any text column as 1 male /
+    0 female / NaN, numbers as they are."""
+    if name == "sex" or raw.dtype.kind in "OUS":
+        low = np.char.lower(raw.astype(str))
+        return np.where(low == "male", 1.0, np.where(low == "female", 0.0, np.nan))
+    return raw.astype(float)
 
 
 def measured_labels(values: dict, measured=MEASURED_LABELS) -> dict[str, np.ndarray]:
@@ -247,12 +251,7 @@ def label_set(mset, columns, subjects, measured_values, measured_notes=None, mea
     for name, column in (SUBJECT_LABELS if subject_labels is None else subject_labels).items():
         if column not in columns:
             continue
-        raw = np.asarray(columns[column])[where]
-        if name == "sex" or raw.dtype.kind in "OUS":
-            low = np.char.lower(raw.astype(str))
-            v = np.where(low == "male", 1.0, np.where(low == "female", 0.0, np.nan))
-        else:
-            v = raw.astype(float)
+        v = _subject_values(name, np.asarray(columns[column])[where])
         known = np.isfinite(v)
         out.provenance[name] = {"kind": "subject", "source": source, "column": column, "n": n,
                                 "from_labels": int(known.sum()), "measured": 0, "unknown": int((~known).sum()),
