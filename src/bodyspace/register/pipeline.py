@@ -88,6 +88,12 @@ MAX_POINTS = 60_000
 # back-only test scans, under 0.02 all round), at least ONE_SIDED_COVERAGE of the template found
 # points, the fit explains the scan (``EXPLAINED_GOOD``) and no body part failed; a scan cut
 # across (the legs missing) faces every way and stays refused.
+# A body part with under this share of its vertices near a scan point is not in the scan at all
+# (a scan cut across at the waist: the legs 0.0; a front-only scan's least part 0.5; a hole
+# under the soles or the top of the head leaves 0.77 and more of its part): the quality, which
+# takes a part the scanner missed for a hole, accepted such a scan at 1.00 with the legs made up
+# by the shape model; it is refused, the parts named.
+UNSEEN_PART = 0.10
 ONE_SIDED_FACING = 0.3
 ONE_SIDED_COVERAGE = 0.35
 ONE_SIDED_SEEN = 0.010
@@ -151,6 +157,11 @@ def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, t
     return M, scan
 
 
+def unseen_parts(quality: Quality) -> list[str]:
+    """The body parts (``quality.PARTS`` names) the scan holds nothing of (``UNSEEN_PART``)."""
+    return [p.name for p in quality.parts if p.seen < UNSEEN_PART]
+
+
 def one_sided_view(vertices: np.ndarray, faces: np.ndarray, scan_tree: cKDTree, quality: Quality) -> str | None:
     """A sentence naming the side a one-sided scan was seen from (``ONE_SIDED_*``), or None when
     the fit is not one of a one-sided scan (all round, or failing for another reason).
@@ -204,7 +215,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     t0 = time.perf_counter()
 
     report("reading the scan", 0.0)
-    prep = prepare_scan(points, faces, units=units, up=up, name=name)
+    prep = prepare_scan(points, faces, units=units, up=up, name=name, keep_dense=detail_levels is not None)
     rng = np.random.default_rng(rng)
     q = prep.points
     qn = prep.normals
@@ -309,6 +320,12 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     one_sided = None if quality.accepted else one_sided_view(nicp.vertices, template.faces, tree, quality)
     if one_sided is not None:
         assumed.append(one_sided)
+    unseen = unseen_parts(quality)
+    if check and unseen:
+        raise RegistrationError(f"{name}: refused, the scan holds nothing of the {', '.join(unseen)} (under "
+                                f"{100 * UNSEEN_PART:.0f} % of each within {1000 * ONE_SIDED_SEEN:.0f} mm of a scan "
+                                "point): a partial scan, whose missing parts the fit could only make up from the "
+                                "shape model; a scan of the whole body is expected")
     if check and not quality.accepted and one_sided is None:
         lost = [p.name for p in quality.failed_parts]
         what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
@@ -341,4 +358,4 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
                         prep.units, prep.up, assumed, seconds, detail, restarted, stand, standing_pose,
-                        quality.accepted or one_sided is not None, one_sided)
+                        (quality.accepted or one_sided is not None) and not unseen, one_sided)

@@ -150,13 +150,14 @@ def isolated_points(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> np.nda
 
 
 def _isolation(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> tuple[np.ndarray, float]:
-    """``isolated_points`` and the distance (the points' units) beyond which a point is isolated."""
+    """``isolated_points`` and ``ISOLATION_FACTOR`` times the points' median spacing (the distance
+    to the nearest other point; the points' units): farther than that from every kept point, a
+    point of the dense scan the points were drawn from is not on the surface they sample."""
     k = min(int(k), len(points) - 1)
     if k < 1:
         return np.zeros(len(points), dtype=bool), np.inf
-    d = cKDTree(points).query(points, k=k + 1, workers=cores())[0][:, -1]
-    limit = ISOLATION_FACTOR * float(np.median(d))
-    return d > limit, limit
+    d = cKDTree(points).query(points, k=k + 1, workers=cores())[0]
+    return d[:, -1] > ISOLATION_FACTOR * float(np.median(d[:, -1])), ISOLATION_FACTOR * float(np.median(d[:, 1]))
 
 
 def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
@@ -282,7 +283,7 @@ def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray
 
 
 def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: str | None = None,
-                 up: str | None = None, name: str = "the scan") -> PreparedScan:
+                 up: str | None = None, name: str = "the scan", keep_dense: bool = True) -> PreparedScan:
     """Points (P, 3) in a file's frame → a ``PreparedScan`` in metres, +Y up.
 
     faces: (F, 3) if the scan is a mesh (points are then also sampled on its faces).
@@ -291,6 +292,9 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
     up: one of ``UP_AXES``, or None: the axis along which the points spread most (a standing
         body's height); its sign is found by the initial alignment (``align.py``), which tries
         both, so the prepared scan may be upside down when ``up`` is not given.
+    keep_dense: keep every point of a scan denser than ``PREPARE_POINTS`` as ``dense`` (its
+        outliers and floor removed: a KD-tree query per point, seconds a million); False: only the
+        subsample (``dense`` None).
     Raises MeshError for an empty scan, fewer than ``MIN_POINTS`` points, or NaN.
     """
     p = np.asarray(points, dtype=float)
@@ -325,8 +329,10 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
         # A dense scan (photogrammetry: millions of points) is fitted on a random subsample; its
         # every point is kept for the detail transfer (``PreparedScan.dense``).
         dense, p = p, p[np.random.default_rng(0).choice(len(p), PREPARE_POINTS, replace=False)]
-        assumed.append(f"{len(dense):,} points: the fit uses {PREPARE_POINTS:,} of them spread at random (the detail "
-                       "transfer all)")
+        assumed.append(f"{len(dense):,} points: the fit uses {PREPARE_POINTS:,} of them spread at random"
+                       + (" (the detail transfer all)" if keep_dense else ""))
+        if not keep_dense:
+            dense = None
     isolated, limit = _isolation(p)
     if isolated.any():
         p = p[~isolated]
