@@ -199,6 +199,8 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     template = load_template()
     with progress("landmarks") as report:
         lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
+    for line in reg.assumed:        # units, up axis, a floor removed: what was found rather than given
+        console.print(f"[assumed] {line}", markup=False, highlight=False)
     carried = carry_vertex_data(reg.vertices, template, vertices, faces)
     doc = landmark_document(lms, len(vertices), carried, mesh_joints(reg, template, vertices, faces),
                             written_by="bodyspace",
