@@ -321,18 +321,20 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     if one_sided is not None:
         assumed.append(one_sided)
     unseen = unseen_parts(quality)
-    if check and unseen:
-        raise RegistrationError(f"{name}: refused, the scan holds nothing of the {', '.join(unseen)} (under "
-                                f"{100 * UNSEEN_PART:.0f} % of each within {1000 * ONE_SIDED_SEEN:.0f} mm of a scan "
-                                "point): a partial scan, whose missing parts the fit could only make up from the "
-                                "shape model; a scan of the whole body is expected")
-    if check and not quality.accepted and one_sided is None:
-        lost = [p.name for p in quality.failed_parts]
-        what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
-                f"the fit lost the {', '.join(lost)}")
-        raise RegistrationError(f"{name}: refused, {what}: {quality.describe()}; a scan of one person standing alone, "
-                                "limbs apart from the body where possible, is expected (two people, an object or a "
-                                "partial scan are refused)")
+    if check and (unseen or (not quality.accepted and one_sided is None)):
+        reasons = []
+        if unseen:
+            reasons.append(f"the scan holds nothing of the {', '.join(unseen)} (under {100 * UNSEEN_PART:.0f} % of each "
+                           f"within {1000 * ONE_SIDED_SEEN:.0f} mm of a scan point: a partial scan, whose missing parts "
+                           "the fit could only make up from the shape model)")
+        if not quality.accepted:
+            lost = [p.name for p in quality.failed_parts]
+            what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
+                    f"the fit lost the {', '.join(lost)}")
+            reasons.append(f"{what}: {quality.describe()}")
+        raise RegistrationError(f"{name}: refused, {'; '.join(reasons)}; a scan of one person standing alone, limbs "
+                                "apart from the body where possible, is expected (two people, an object or a partial "
+                                "scan are refused)")
     # The body standing, for its measurements: the model refitted to the scan with a light shape
     # prior splits pose and shape (the pose fit's split left 145 of 186 measurements within ISO
     # 20685-1 on the test scans, this one 159; docs/registration.md), the scan's surface kept as
