@@ -323,7 +323,9 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     unseen = unseen_parts(quality)
     if check and (unseen or (not quality.accepted and one_sided is None)):
         reasons = []
-        if unseen:
+        # Parts are named unseen only on a fit that lies on the scan: a fit off its points
+        # (quality 0.00) "sees" nothing anywhere, and the quality's own reason says more.
+        if unseen and (quality.accepted or quality.explained >= EXPLAINED_GOOD):
             reasons.append(f"the scan holds nothing of the {', '.join(unseen)} (under {100 * UNSEEN_PART:.0f} % of each "
                            f"within {1000 * ONE_SIDED_SEEN:.0f} mm of a scan point: a partial scan, whose missing parts "
                            "the fit could only make up from the shape model)")
