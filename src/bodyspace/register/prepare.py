@@ -3,7 +3,10 @@
 Stage 1 of the registration (Hasler §2.2 starts from a point cloud). A scanner writes PLY, OBJ,
 STL or XYZ files, points with or without faces, in millimetres more often than metres, with any
 axis up. ``prepare_scan`` brings the points into metres with +Y up (the heading is left to the
-initial alignment, ``align.py``), estimates unoriented normals, and says what it assumed.
+initial alignment, ``align.py``), estimates unoriented normals, and says what it assumed. What a
+real rig adds is taken away and said: the floor or turntable the body stands on (``find_floor``,
+``remove_floors``; its normal is the up axis), and a scan of millions of points is prepared on a
+subsample (``PREPARE_POINTS``; every point kept in ``PreparedScan.dense`` for the detail transfer).
 """
 
 from __future__ import annotations
@@ -63,8 +66,8 @@ FLOOR_MIN_HEIGHT = 1.0
 FLOOR_BELOW_SHARE = 0.25
 FLOOR_BELOW_DEPTH = 0.4
 FLOOR_ROUNDS = 3
-# Points within this many of the plane's noise widths (the RMS distance of its inliers, at least
-# FLOOR_MIN_NOISE) are the floor's: the soles that touch it go with it (a scanner never sees
+# Points within this many of the plane's noise widths (1.4826 times the median absolute height of
+# the points within FLOOR_TOLERANCE of it, at least FLOOR_MIN_NOISE) are the floor's: the soles that touch it go with it (a scanner never sees
 # them) and the rest of the feet stay.
 FLOOR_CUT_SIGMAS = 3.0
 FLOOR_MIN_NOISE = 0.002
@@ -181,7 +184,7 @@ def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarr
     return np.concatenate([first, second])
 
 
-def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple[np.ndarray, np.ndarray] | None:
+def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple[np.ndarray, float] | None:
     """The floor a scanned body stands on (module constants ``FLOOR_*``), or None.
 
     points: (P, 3) metres; up: (3,) the up direction if known (the floor's normal must be within

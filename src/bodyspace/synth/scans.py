@@ -69,7 +69,8 @@ class RawScan:
     """A raw scan and its truth.
 
     points: (P, 3) in the scan's frame (``frame``: ``to_frame`` arguments; millimetres).
-    truth_vertex: (P,) the template vertex each point was sampled next to, -1 for an outlier.
+    truth_vertex: (P,) the template vertex each point was sampled next to, -1 for an outlier,
+        -2 for a point of the floor (``raw_scan(floor=...)``).
     body: (V, 3) the true body on the template topology, metres, +Y up, on the ground.
     landmarks: name → (3,) the measurement set's landmarks of ``body`` in the scan's frame.
     phenotype: (11,); pose: its library name; frame: the ``to_frame`` arguments.
