@@ -168,13 +168,16 @@ def test_register_refuses_two_people(scan, template):
 
 
 @pytest.fixture(scope="module")
-def cli_fit(scan, tmp_path_factory):
+def cli_fit(scan, template, phenotype_model, tmp_path_factory):
     """One ``bodyspace register`` run on the scan (mm, Z up not given, turned; 13 landmarks,
-    2 NICP levels), shared by the tests that read its outputs: a registration costs most of
-    this file's time."""
+    2 NICP levels) standing on a scanned turntable (its top, side and the ground around it: as
+    many points again as the body; the same body, frame and landmarks as ``scan``), shared by the
+    tests that read its outputs: a registration costs most of this file's time."""
     tmp = tmp_path_factory.mktemp("register")
     path = tmp / "scan.ply"
-    trimesh.PointCloud(scan.points).export(path)
+    on_turntable = raw_scan(template, phenotype_model, 7, pose="rest", n_points=15_000, floor="turntable")
+    assert np.allclose(on_turntable.body, scan.body)
+    trimesh.PointCloud(on_turntable.points).export(path)
     lm = tmp / "lm.json"
     lm.write_text(json.dumps({"landmarks": {n: scan.landmark_file()["landmarks"][n] for n in SURFACE_LANDMARKS},
                               "unit": "mm"}))
@@ -184,9 +187,9 @@ def cli_fit(scan, tmp_path_factory):
 
 
 def test_register_fits_the_scan_and_accepts_it(cli_fit, scan, template):
-    """The pipeline on a raw scan: the fit is near the truth in the scan's own frame (measured
-    on this 15 k-point scan: 2.5 mm, surface 0.8 mm), the units and up axis were found, its
-    quality is accepted."""
+    """The pipeline on a raw scan on a turntable: the fit is near the truth in the scan's own frame
+    (measured on this 15 k-point scan: 2.5 mm, surface 0.8 mm), the units and up axis were found,
+    the turntable removed, its quality is accepted."""
     result, _, out = cli_fit
     assert result.exit_code == 0, result.output
     v, f = load_mesh(out / "registered.obj")
@@ -195,6 +198,10 @@ def test_register_fits_the_scan_and_accepts_it(cli_fit, scan, template):
     assert e["surface_mm"] < 2.0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["accepted"] and summary["units"] == "mm" and summary["up"].lstrip("-") == "z"
+    # The turntable found and removed (its normal gives the up axis, sign and all).
+    assert any(n.startswith("removed the floor") for n in summary["assumed"]), summary["assumed"]
+    assert any(n.startswith("removed a platform on it") for n in summary["assumed"]), summary["assumed"]
+    assert summary["up"] == "z" and summary["one_sided"] is None
     # Every body part on its points, none restarted (a restart costs seconds: only lost limbs get one).
     assert len(summary["parts"]) == 14 and all(p["accepted"] for p in summary["parts"].values())
     assert summary["failed_parts"] == [] and summary["restarted_limbs"] == []

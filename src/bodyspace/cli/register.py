@@ -139,7 +139,8 @@ def register(scan: Path = typer.Argument(..., help="A raw scan: PLY/OBJ/STL/GLB 
             "shape_space": "the default (MakeHuman phenotype range)" if basis is None else
             f"{model}: {len(basis.sigma)} components", "units": reg.units, "up": reg.up, "assumed": reg.assumed,
             "quality": round(q.quality, 4), "explained_share": round(q.explained, 4),
-            "coverage_share": round(q.coverage, 4), "accepted": q.accepted, "failed_parts": q.to_dict()["failed_parts"],
+            "coverage_share": round(q.coverage, 4), "accepted": reg.accepted, "quality_accepted": q.accepted,
+            "one_sided": reg.one_sided, "failed_parts": q.to_dict()["failed_parts"],
             "parts": q.to_dict()["parts"], "restarted_limbs": reg.restarted,
             "mean_vertex_distance_mm": round(1000 * float(np.mean(reg.distance)), 3),
             "seconds": {k: round(v, 2) for k, v in reg.seconds.items()},
@@ -198,6 +199,8 @@ def landmarks(mesh: Path = typer.Argument(..., help="A body mesh of any topology
     template = load_template()
     with progress("landmarks") as report:
         lms, reg = mesh_landmarks(vertices, faces, template=template, units=units, up=up, progress=report)
+    for line in reg.assumed:        # units, up axis, a floor removed: what was found rather than given
+        console.print(f"[assumed] {line}", markup=False, highlight=False)
     carried = carry_vertex_data(reg.vertices, template, vertices, faces)
     doc = landmark_document(lms, len(vertices), carried, mesh_joints(reg, template, vertices, faces),
                             written_by="bodyspace",

@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from bodyspace.data.template import Template, load_template
 from bodyspace.errors import RegistrationError
-from bodyspace.mesh.geometry import vertex_normals
+from bodyspace.mesh.geometry import face_areas, vertex_normals
 from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment, restart_limbs
 from bodyspace.register.correspondences import orient_normals
@@ -79,6 +79,24 @@ NICP_STIFFNESS_END = 10.0
 # Scan points the fits use at most (a subsample spread at random: 60 k points hold the surface
 # to well under a millimetre at 2 mm noise, and the KD-tree and plane fits scale with them).
 MAX_POINTS = 60_000
+# A single view (one Kinect, structured-light or phone LiDAR capture; a rig with its cameras on one
+# side) sees one side of the body: about half of the template finds scan points and the quality's
+# coverage refuses it, though the fit lies on what was seen (a front-only test scan: 3.0 mm to the
+# truth, 0.75 mm from the seen surface, 3.6 mm on the unseen side from the shape model's prior).
+# Such a scan is accepted when the surface the fit found points for faces one way (its
+# area-weighted mean normal, horizontal part, at least ONE_SIDED_FACING: 0.55 on front-only and
+# back-only test scans, under 0.02 all round), at least ONE_SIDED_COVERAGE of the template found
+# points, the fit explains the scan (``EXPLAINED_GOOD``) and no body part failed; a scan cut
+# across (the legs missing) faces every way and stays refused.
+# A body part with under this share of its vertices near a scan point is not in the scan at all
+# (a scan cut across at the waist: the legs 0.0; a front-only scan's least part 0.5; a hole
+# under the soles or the top of the head leaves 0.77 and more of its part): the quality, which
+# takes a part the scanner missed for a hole, accepted such a scan at 1.00 with the legs made up
+# by the shape model; it is refused, the parts named.
+UNSEEN_PART = 0.10
+ONE_SIDED_FACING = 0.3
+ONE_SIDED_COVERAGE = 0.35
+ONE_SIDED_SEEN = 0.010
 
 
 @dataclass
@@ -99,6 +117,8 @@ class Registration:
     standing: (V, 3) the registered body brought back to the rest pose (metres, +Y up, lowest
         vertex at y = 0): what its measurements are taken on (``pose_refit.standing_body``);
         standing_pose: the refitted model's ``PoseState`` that split pose and shape for it.
+    accepted: the quality accepted it, or it is a one-sided scan fitted on its seen side
+        (``one_sided``: the sentence saying so, also in ``assumed``; ``one_sided_view``).
     """
 
     vertices: np.ndarray
@@ -118,6 +138,8 @@ class Registration:
     restarted: list[str] = field(default_factory=list)
     standing: np.ndarray | None = None
     standing_pose: PoseState | None = None
+    accepted: bool = True
+    one_sided: str | None = None
 
 
 def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, to_prepared) -> tuple:
@@ -133,6 +155,35 @@ def _landmark_pairs(landmarks: dict, mset: MeasurementSet, template: Template, t
     M = sub.landmark_matrix(template.n_vertices)
     scan = to_prepared(np.array([np.asarray(landmarks[n], dtype=float) for n in names]))
     return M, scan
+
+
+def unseen_parts(quality: Quality) -> list[str]:
+    """The body parts (``quality.PARTS`` names) the scan holds nothing of (``UNSEEN_PART``)."""
+    return [p.name for p in quality.parts if p.seen < UNSEEN_PART]
+
+
+def one_sided_view(vertices: np.ndarray, faces: np.ndarray, scan_tree: cKDTree, quality: Quality) -> str | None:
+    """A sentence naming the side a one-sided scan was seen from (``ONE_SIDED_*``), or None when
+    the fit is not one of a one-sided scan (all round, or failing for another reason).
+
+    vertices: (V, 3) the fit, metres, +Y up, +Z front (the scan's points in ``scan_tree``).
+    """
+    if quality.explained < EXPLAINED_GOOD or quality.failed_parts or quality.coverage < ONE_SIDED_COVERAGE:
+        return None
+    seen = scan_tree.query(vertices)[0] < ONE_SIDED_SEEN
+    normals = vertex_normals(vertices, faces)
+    area = np.bincount(faces.ravel(), np.repeat(face_areas(vertices, faces), 3), len(vertices))
+    mean = (normals[seen] * area[seen, None]).sum(axis=0) / max(area[seen].sum(), 1e-12)
+    facing = float(np.hypot(mean[0], mean[2]))
+    if facing < ONE_SIDED_FACING:
+        return None
+    # +Z is the body's front, +X its left.
+    angle = np.degrees(np.arctan2(mean[0], mean[2])) % 360
+    side = ("the front", "the left", "the back", "the right")[int(((angle + 45) % 360) // 90)]
+    return (f"one-sided scan: seen from {side} only ({100 * seen.mean():.0f} % of the fit within "
+            f"{1000 * ONE_SIDED_SEEN:.0f} mm of a scan point; the surface seen faces one way, {facing:.2f} of its "
+            f"normals' mean against under 0.02 all round): the unseen side is the shape model's prior, and so "
+            f"are the girths and depths through it (quality {quality.quality:.2f} on the whole body)")
 
 
 def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, template: Template | None = None,
@@ -164,7 +215,7 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     t0 = time.perf_counter()
 
     report("reading the scan", 0.0)
-    prep = prepare_scan(points, faces, units=units, up=up, name=name)
+    prep = prepare_scan(points, faces, units=units, up=up, name=name, keep_dense=detail_levels is not None)
     rng = np.random.default_rng(rng)
     q = prep.points
     qn = prep.normals
@@ -265,13 +316,27 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     t = time.perf_counter()
     quality = assess(nicp.vertices, template.faces, q, nicp.has_target, template=template, scan_tree=tree)
     seconds["quality"] = time.perf_counter() - t
-    if check and not quality.accepted:
-        lost = [p.name for p in quality.failed_parts]
-        what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
-                f"the fit lost the {', '.join(lost)}")
-        raise RegistrationError(f"{name}: refused, {what}: {quality.describe()}; a scan of one person standing alone, "
-                                "limbs apart from the body where possible, is expected (two people, an object or a "
-                                "partial scan are refused)")
+    assumed = list(prep.assumed)
+    one_sided = None if quality.accepted else one_sided_view(nicp.vertices, template.faces, tree, quality)
+    if one_sided is not None:
+        assumed.append(one_sided)
+    unseen = unseen_parts(quality)
+    if check and (unseen or (not quality.accepted and one_sided is None)):
+        reasons = []
+        # Parts are named unseen only on a fit that lies on the scan: a fit off its points
+        # (quality 0.00) "sees" nothing anywhere, and the quality's own reason says more.
+        if unseen and (quality.accepted or quality.explained >= EXPLAINED_GOOD):
+            reasons.append(f"the scan holds nothing of the {', '.join(unseen)} (under {100 * UNSEEN_PART:.0f} % of each "
+                           f"within {1000 * ONE_SIDED_SEEN:.0f} mm of a scan point: a partial scan, whose missing parts "
+                           "the fit could only make up from the shape model)")
+        if not quality.accepted:
+            lost = [p.name for p in quality.failed_parts]
+            what = ("the fit does not explain the scan" if not lost or quality.explained < EXPLAINED_GOOD else
+                    f"the fit lost the {', '.join(lost)}")
+            reasons.append(f"{what}: {quality.describe()}")
+        raise RegistrationError(f"{name}: refused, {'; '.join(reasons)}; a scan of one person standing alone, limbs "
+                                "apart from the body where possible, is expected (two people, an object or a partial "
+                                "scan are refused)")
     # The body standing, for its measurements: the model refitted to the scan with a light shape
     # prior splits pose and shape (the pose fit's split left 145 of 186 measurements within ISO
     # 20685-1 on the test scans, this one 159; docs/registration.md), the scan's surface kept as
@@ -291,9 +356,10 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
     if detail_levels is not None:
         report("detail", 0.97)
         t = time.perf_counter()
-        detail = detail_offsets(nicp.vertices, template.faces, align.apply(prep.points), levels=detail_levels)
+        detail = detail_offsets(nicp.vertices, template.faces, align.apply(prep.all_points), levels=detail_levels)
         seconds["detail"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
     report("done", 1.0)
     return Registration(verts, nicp.vertices, template.faces, distance, state, coef, quality, to_scan, q,
-                        prep.units, prep.up, list(prep.assumed), seconds, detail, restarted, stand, standing_pose)
+                        prep.units, prep.up, assumed, seconds, detail, restarted, stand, standing_pose,
+                        (quality.accepted or one_sided is not None) and not unseen, one_sided)

@@ -3,7 +3,10 @@
 Stage 1 of the registration (Hasler §2.2 starts from a point cloud). A scanner writes PLY, OBJ,
 STL or XYZ files, points with or without faces, in millimetres more often than metres, with any
 axis up. ``prepare_scan`` brings the points into metres with +Y up (the heading is left to the
-initial alignment, ``align.py``), estimates unoriented normals, and says what it assumed.
+initial alignment, ``align.py``), estimates unoriented normals, and says what it assumed. What a
+real rig adds is taken away and said: the floor or turntable the body stands on (``find_floor``,
+``remove_floors``; its normal is the up axis), and a scan of millions of points is prepared on a
+subsample (``PREPARE_POINTS``; every point kept in ``PreparedScan.dense`` for the detail transfer).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, 
 from bodyspace.mesh.geometry import face_areas, sample_surface
 from bodyspace.parallel import cores, halves, run_both
 
-__all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "MIN_POINTS", "SCAN_SUFFIXES"]
+__all__ = ["PreparedScan", "read_scan", "estimate_normals", "prepare_scan", "find_floor", "MIN_POINTS", "SCAN_SUFFIXES"]
 
 SCAN_SUFFIXES = (".ply", ".obj", ".stl", ".xyz", ".txt", ".csv", ".npy", ".glb")
 # A scan with fewer points cannot hold a body's shape (100 points: ~10 cm apart on the skin).
@@ -37,6 +40,40 @@ ISOLATION_FACTOR = 3.0
 # Points are taken from a mesh's faces, area-uniform, when the mesh has fewer vertices than this
 # (a coarse mesh's vertices alone are too sparse for the correspondences).
 MESH_SAMPLES = 60_000
+# Points a scan is prepared (and fitted) on at most: a photogrammetry scan's millions would cost
+# seconds of KD-tree and plane fits per million and gigabytes for the normals' patches (1.5 M
+# points: 156 s and 3.4 GB, against 15 s for 200 k, under load), and the fit uses 60,000
+# (pipeline.MAX_POINTS) anyway. Above the issue's 50-200 k points and their outliers, so those
+# scans are prepared as before.
+PREPARE_POINTS = 250_000
+# The floor (photogrammetry and booth scans carry the ground or the turntable the body stands on):
+# a plane found by RANSAC (``FLOOR_TRIALS`` planes through three points of a ``FLOOR_SAMPLE``
+# subsample) holding at least ``FLOOR_MIN_SHARE`` of the points within ``FLOOR_TOLERANCE``
+# (metres; the scanner's noise is 2-5 mm), spread over at least ``FLOOR_MIN_WIDTH`` both ways (a
+# sheet, not a flat patch of a back or a thigh), with the rest of the scan standing on it: at
+# least ``FLOOR_MIN_HEIGHT`` of it along the plane's normal and all but ``FLOOR_BELOW_SHARE`` on
+# one side (a wall behind the body holds the body within 0.4 m of it and is not a floor; a
+# turntable's side, at most ``FLOOR_BELOW_SHARE`` of the points and ``FLOOR_BELOW_DEPTH`` deep, may
+# lie below its top; a plane through a body's middle has half the body beyond it). Found,
+# the plane and everything beyond it are removed, then the next one is looked for (a turntable:
+# the ground around it, then its top with its side below): at most ``FLOOR_ROUNDS``.
+FLOOR_SAMPLE = 20_000
+FLOOR_TRIALS = 300
+FLOOR_TOLERANCE = 0.012
+FLOOR_MIN_SHARE = 0.03
+FLOOR_MIN_WIDTH = 0.5
+FLOOR_MIN_HEIGHT = 1.0
+FLOOR_BELOW_SHARE = 0.25
+FLOOR_BELOW_DEPTH = 0.4
+FLOOR_ROUNDS = 3
+# Points within this many of the plane's noise widths (1.4826 times the median absolute height of
+# the points within FLOOR_TOLERANCE of it, at least FLOOR_MIN_NOISE) are the floor's: the soles that touch it go with it (a scanner never sees
+# them) and the rest of the feet stay.
+FLOOR_CUT_SIGMAS = 3.0
+FLOOR_MIN_NOISE = 0.002
+# A floor's normal within this angle of a given up axis (--up): a plane at another angle is not
+# the floor of a body standing along that axis.
+FLOOR_UP_DEGREES = 25.0
 
 
 @dataclass(frozen=True)
@@ -49,6 +86,8 @@ class PreparedScan:
     units, up: what was used; up_known: False when the up axis was found (its sign is then left
         to the alignment); assumed: sentences saying what was found rather than given.
     faces: (F, 3) when the file was a mesh (indices into ``mesh_vertices``), else None.
+    dense: (D, 3) every point of a scan denser than ``PREPARE_POINTS`` (same frame, isolated
+        points and the floor removed) when ``points`` is a subsample of it, else None.
     """
 
     points: np.ndarray
@@ -60,6 +99,12 @@ class PreparedScan:
     assumed: list[str] = field(default_factory=list)
     mesh_vertices: np.ndarray | None = None
     faces: np.ndarray | None = None
+    dense: np.ndarray | None = None
+
+    @property
+    def all_points(self) -> np.ndarray:
+        """(D, 3) every point of the scan (``dense``, else ``points``)."""
+        return self.points if self.dense is None else self.dense
 
 
 def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
@@ -106,11 +151,18 @@ def read_scan(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
 def isolated_points(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> np.ndarray:
     """(P,) bool: points far from the surface the others sample (dust, reflections, hair): the
     distance to their ``k``-th neighbour is over ``ISOLATION_FACTOR`` times the median one."""
+    return _isolation(points, k)[0]
+
+
+def _isolation(points: np.ndarray, k: int = ISOLATION_NEIGHBOURS) -> tuple[np.ndarray, float]:
+    """``isolated_points`` and ``ISOLATION_FACTOR`` times the points' median spacing (the distance
+    to the nearest other point; the points' units): farther than that from every kept point, a
+    point of the dense scan the points were drawn from is not on the surface they sample."""
     k = min(int(k), len(points) - 1)
     if k < 1:
-        return np.zeros(len(points), dtype=bool)
-    d = cKDTree(points).query(points, k=k + 1, workers=cores())[0][:, -1]
-    return d > ISOLATION_FACTOR * np.median(d)
+        return np.zeros(len(points), dtype=bool), np.inf
+    d = cKDTree(points).query(points, k=k + 1, workers=cores())[0]
+    return d[:, -1] > ISOLATION_FACTOR * float(np.median(d[:, -1])), ISOLATION_FACTOR * float(np.median(d[:, 1]))
 
 
 def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
@@ -132,6 +184,101 @@ def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarr
     return np.concatenate([first, second])
 
 
+def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple[np.ndarray, float] | None:
+    """The floor a scanned body stands on (module constants ``FLOOR_*``), or None.
+
+    points: (P, 3) metres; up: (3,) the up direction if known (the floor's normal must be within
+    ``FLOOR_UP_DEGREES`` of it), None to accept any plane the rest of the scan stands on.
+    Returns (normal (3,) unit, pointing to the body; offset d): the plane ``points @ normal = d``,
+    and the points' signed heights over it are ``points @ normal - d``.
+    """
+    rng = np.random.default_rng(rng)
+    if len(points) < 100:
+        return None
+    sub = points[rng.choice(len(points), min(FLOOR_SAMPLE, len(points)), replace=False)]
+    tri = sub[rng.integers(0, len(sub), (FLOOR_TRIALS, 3))]                    # (T, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    ok = length > 1e-9
+    n, tri = n[ok] / length[ok, None], tri[ok]
+    if up is not None:
+        n = np.where((n @ up)[:, None] < 0, -n, n)
+        good = n @ up > np.cos(np.radians(FLOOR_UP_DEGREES))
+        n, tri = n[good], tri[good]
+    if not len(n):
+        return None
+    d = np.einsum("tj,tj->t", n, tri[:, 0])
+    # Inlier counts of every trial plane, in blocks (T × P distances at once would be 48 MB).
+    counts = np.concatenate([(np.abs(sub @ n[i:i + 64].T - d[i:i + 64]) < FLOOR_TOLERANCE).sum(axis=0)
+                             for i in range(0, len(n), 64)])
+    best = int(np.argmax(counts))
+    if counts[best] < FLOOR_MIN_SHARE * len(sub):
+        return None
+    # Least squares on the inliers (twice: the first pass's inliers may take in a sole).
+    normal, offset = n[best], d[best]
+    for _ in range(2):
+        on = sub[np.abs(sub @ normal - offset) < FLOOR_TOLERANCE]
+        centre = on.mean(axis=0)
+        _, _, vt = np.linalg.svd(on - centre, full_matrices=False)
+        normal = vt[2] * (1.0 if vt[2] @ normal >= 0 else -1.0)
+        offset = float(normal @ centre)
+    on = sub[np.abs(sub @ normal - offset) < FLOOR_TOLERANCE]
+    if len(on) < FLOOR_MIN_SHARE * len(sub):
+        return None
+    # A sheet: spread at least FLOOR_MIN_WIDTH along both of its in-plane axes (robust extents).
+    flat = (on - on.mean(axis=0)) @ vt[:2].T
+    width = np.percentile(flat, 98, axis=0) - np.percentile(flat, 2, axis=0)
+    if width.min() < FLOOR_MIN_WIDTH:
+        return None
+    # The rest stands on it: on one side, and tall along the normal.
+    height = sub @ normal - offset
+    rest = height[np.abs(height) >= FLOOR_TOLERANCE]
+    if len(rest) < FLOOR_MIN_SHARE * len(sub):
+        return None
+    if np.median(rest) < 0:
+        normal, offset, rest = -normal, -offset, -rest
+    below = rest[rest < 0]
+    if np.percentile(rest, 99) < FLOOR_MIN_HEIGHT or len(below) > FLOOR_BELOW_SHARE * len(rest) or (
+            len(below) > 0.01 * len(rest) and np.percentile(-below, 99) > FLOOR_BELOW_DEPTH):
+        return None
+    if up is not None and normal @ up < np.cos(np.radians(FLOOR_UP_DEGREES)):
+        return None
+    return normal, offset
+
+
+def remove_floors(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple[np.ndarray, list[str], list]:
+    """Points (P, 3) metres without the floors ``find_floor`` finds (a ground plane, a turntable's
+    top and the ground around it): (the (P,) bool mask of points kept, a sentence per floor, the
+    floors as (normal (3,) towards the body, offset, cut): a point x is kept when
+    ``x @ normal - offset >= cut`` for every one)."""
+    keep = np.ones(len(points), dtype=bool)
+    notes, planes = [], []
+    for _ in range(FLOOR_ROUNDS):
+        idx = np.flatnonzero(keep)
+        found = find_floor(points[idx], up, rng)
+        if found is None:
+            break
+        normal, offset = found
+        height = points[idx] @ normal - offset
+        near = np.abs(height) < FLOOR_TOLERANCE
+        # The median absolute height of the points near it (a turntable's side below its top
+        # would inflate an RMS).
+        noise = max(1.4826 * float(np.median(np.abs(height[near]))), FLOOR_MIN_NOISE)
+        cut = height < FLOOR_CUT_SIGMAS * noise
+        keep[idx[cut]] = False
+        planes.append((normal, offset, FLOOR_CUT_SIGMAS * noise))
+        on = points[idx[near]]
+        flat = on - on.mean(axis=0)
+        flat = flat - np.outer(flat @ normal, normal)
+        what = "the floor" if not notes else "a platform on it (a turntable's top with its side)"
+        notes.append(f"removed {what}: {int(cut.sum())} points ({100 * cut.mean():.1f} %) on a flat sheet "
+                     f"{100 * 2 * np.percentile(np.linalg.norm(flat, axis=1), 98):.0f} cm across the body stands "
+                     f"on, within {1000 * FLOOR_CUT_SIGMAS * noise:.0f} mm of it or below it")
+        if up is None:
+            up = normal           # a second floor (a turntable's top) is parallel to the first
+    return keep, notes, planes
+
+
 def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """``n`` points area-uniform on a mesh, with a fixed seed (a scan reads the same each time)."""
     area = face_areas(vertices, faces)
@@ -141,7 +288,7 @@ def _sample_faces(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray
 
 
 def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: str | None = None,
-                 up: str | None = None, name: str = "the scan") -> PreparedScan:
+                 up: str | None = None, name: str = "the scan", keep_dense: bool = True) -> PreparedScan:
     """Points (P, 3) in a file's frame → a ``PreparedScan`` in metres, +Y up.
 
     faces: (F, 3) if the scan is a mesh (points are then also sampled on its faces).
@@ -150,6 +297,9 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
     up: one of ``UP_AXES``, or None: the axis along which the points spread most (a standing
         body's height); its sign is found by the initial alignment (``align.py``), which tries
         both, so the prepared scan may be upside down when ``up`` is not given.
+    keep_dense: keep every point of a scan denser than ``PREPARE_POINTS`` as ``dense`` (its
+        outliers and floor removed: a KD-tree query per point, seconds a million); False: only the
+        subsample (``dense`` None).
     Raises MeshError for an empty scan, fewer than ``MIN_POINTS`` points, or NaN.
     """
     p = np.asarray(points, dtype=float)
@@ -179,11 +329,23 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
     if welded:
         assumed.append(f"merged {welded} repeated vertices (a triangle soup: each corner written once per "
                        f"triangle) into {len(mesh_vertices)}")
-    isolated = isolated_points(p)
+    dense = None
+    if len(p) > PREPARE_POINTS:
+        # A dense scan (photogrammetry: millions of points) is fitted on a random subsample; its
+        # every point is kept for the detail transfer (``PreparedScan.dense``).
+        dense, p = p, p[np.random.default_rng(0).choice(len(p), PREPARE_POINTS, replace=False)]
+        assumed.append(f"{len(dense):,} points: the fit uses {PREPARE_POINTS:,} of them spread at random"
+                       + (" (the detail transfer all)" if keep_dense else ""))
+        if not keep_dense:
+            dense = None
+    isolated, limit = _isolation(p)
     if isolated.any():
         p = p[~isolated]
         assumed.append(f"removed {int(isolated.sum())} isolated points ({100 * isolated.mean():.1f} %: far from the "
                        "surface the others sample)")
+    if dense is not None:
+        # The dense points near the kept ones (an outlier of the subsample's is far from them all).
+        dense = dense[cKDTree(p).query(dense, workers=cores())[0] <= limit]
     if units is None:
         centred = p - np.median(p, axis=0)
         extent = float(np.max(np.percentile(centred, 99.5, axis=0) - np.percentile(centred, 0.5, axis=0)))
@@ -192,10 +354,34 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
             raise MeshError(f"{name}: its points span {extent:.4g} units; no length unit makes that a human body "
                             f"(0.5-3.2 m); give the unit with --units ({', '.join(MESH_UNITS)})")
         units = fits[0]
-        assumed.append(f"units: {units} (the points span {extent:.4g} {units}; --units sets it)")
+        # Centimetres and inches overlap (a 51-unit scan: a 1.30 m child in inches or a 0.51 m
+        # toddler in cm): the other reading is named, with the flag that settles it.
+        other = "".join(f"; as {u} it would be {extent * MESH_UNITS[u]:.2f} m" for u in fits[1:])
+        assumed.append(f"units: {units} (the points span {extent:.4g} {units}, {extent * MESH_UNITS[units]:.2f} m{other}; "
+                       "--units sets it)")
     elif units not in MESH_UNITS:
         raise ParameterError(f"units={units!r}; expected one of {', '.join(MESH_UNITS)}")
     scale = MESH_UNITS[units]
+    given_up = None
+    if up is not None:
+        if up not in UP_AXES:
+            raise ParameterError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
+        given_up = to_internal(np.eye(3), np.zeros((0, 3), dtype=np.int64), "m", up)[0].T[1]   # file axis up
+    keep, floors, planes = remove_floors(p * scale, given_up)
+    floor_normal = planes[-1][0] if planes else None
+    if floors:
+        p = p[keep]
+        if dense is not None:
+            for normal, offset, cut in planes:
+                dense = dense[(dense * scale) @ normal - offset >= cut]
+        assumed.extend(floors)
+        if len(p) < MIN_POINTS:
+            raise MeshError(f"{name}: has {len(p)} points besides the floor; expected at least {MIN_POINTS} on a body")
+        axis = int(np.argmax(np.abs(floor_normal)))
+        if up is None and abs(floor_normal[axis]) > np.cos(np.radians(FLOOR_UP_DEGREES)):
+            # The floor says which way is up, sign included (the body stands on it).
+            up = "xyz"[axis] if floor_normal[axis] > 0 else "-" + "xyz"[axis]
+            assumed.append(f"up axis: {up} (the floor's normal; --up sets it)")
     if up is None:
         centred = p - p.mean(axis=0)
         _, _, vt = np.linalg.svd(centred[:: max(1, len(p) // 20000)], full_matrices=False)
@@ -212,4 +398,5 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
     to_scan[:3, :3] = rot.T / scale
     normals = estimate_normals(q)
     mv = None if mesh_vertices is None else (mesh_vertices * scale) @ rot.T
-    return PreparedScan(q, normals, to_scan, units, up, up_known, assumed, mv, faces if mv is not None else None)
+    return PreparedScan(q, normals, to_scan, units, up, up_known, assumed, mv, faces if mv is not None else None,
+                        None if dense is None else (dense * scale) @ rot.T)
