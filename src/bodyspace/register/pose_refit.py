@@ -108,7 +108,7 @@ OFFSET_PRIOR_POINTS = 2.0
 # our LBS puts it; its offset is trusted by 1 / (1 + (u / SKIN_UNCERTAINTY)^2) and filled in from
 # the trusted offsets around it for the rest (SKIN_FILL: the fill's edge weight against the data),
 # keeping up to SKIN_KEEP (metres) of its own departure from the fill. Chosen on the ISO study's 40
-# scans (no held-out set; docs/registration.md "Eighth round"): rings 4-10 and 1-5 mm gave the neck
+# scans (no held-out set; docs/registration.md "Eighth round"): rings 4-8 and 1-5 mm gave the neck
 # [-2.6, +2.4] at worst with SKIN_KEEP 0 (scan by scan 1002-1020 of 1,238 within, the upper arm
 # girths -1.3 to -1.8 mm), SKIN_KEEP 1 mm kept 1038-1041 but the neck at [-3.6, +1.3].
 SKIN_RINGS = 8
@@ -193,8 +193,8 @@ def skinning_uncertainty(template: Template, state: PoseState, rings: int | None
 
     For vertex v, the largest distance between where LBS with the rig's weights puts it
     (``posed_vertices``) and where the transform of any bone that weights a vertex within
-    ``rings`` edges of v (default ``SKIN_RINGS``) would carry it, times ``state.scale``. A vertex moved rigidly with its
-    neighbourhood's bones (every bone's transform the same there: the rest pose, the middle of a
+    ``rings`` edges of v (default ``SKIN_RINGS``) would carry it, times ``state.scale``. A vertex
+    moved rigidly with its neighbourhood's bones (every bone's transform the same there: the rest pose, the middle of a
     segment) scores 0; one where differently turned bones meet scores their spread, the most
     another set of weights diffused over ``rings`` edges could move it.
     """
