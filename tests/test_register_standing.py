@@ -11,7 +11,10 @@ from scipy.spatial import cKDTree
 from bodyspace.mesh.geometry import vertex_normals
 from bodyspace.register.model_fit import ShapeBasis
 from bodyspace.register.pose_fit import PoseState, posed_vertices
-from bodyspace.register.pose_refit import refit_pose, standing_body
+from bodyspace.measure import evaluate
+from bodyspace.measure.definitions import load_measurement_set
+from bodyspace.register.pose_refit import refit_pose, skinning_uncertainty, standing_body
+from bodyspace.rig.posing import pose_bodies
 from bodyspace.rig.kinematics import rotvec_to_matrix
 from bodyspace.synth.poses import load_pose_library
 from bodyspace.synth.scans import sample_surface
@@ -71,9 +74,15 @@ def test_standing_body_is_the_rest_body_with_the_fit_s_normal_offsets(template, 
     shift = stand.mean(axis=0) - rest.mean(axis=0)
     assert np.abs(stand - shift - rest).max() < 1e-9
     relief = 0.003 * np.sin(40.0 * x[:, 1]) * (x[:, 1] > x[:, 1].min() + 0.5)      # (V,) m, feet kept
-    bumped = standing_body(x + relief[:, None] * vertex_normals(x, template.faces), template.faces, template, truth)
+    bumpy = x + relief[:, None] * vertex_normals(x, template.faces)
+    bumped = standing_body(bumpy, template.faces, template, truth, skin_uncertainty=None)
     got = ((bumped - stand) * vertex_normals(stand, template.faces)).sum(axis=1)
     assert np.abs(got - relief).mean() < 2e-4
+    # By default the same where the pose's skinning is certain (elsewhere test_..._another_skinning).
+    certain = skinning_uncertainty(template, truth) < 0.0005
+    bumped = standing_body(bumpy, template.faces, template, truth)
+    got = ((bumped - stand) * vertex_normals(stand, template.faces)).sum(axis=1)
+    assert certain.mean() > 0.5 and np.abs(got - relief)[certain].mean() < 2e-4
 
 
 def test_standing_body_takes_its_offsets_from_the_scan_where_it_has_points(template, posed_truth):
@@ -103,4 +112,38 @@ def test_standing_body_takes_its_offsets_from_the_scan_where_it_has_points(templ
     got = ((stand - plain - [0.0, shift, 0.0]) * vertex_normals(rest, faces)).sum(axis=1)    # (V,) m
     assert abs(np.median(got[body]) - 0.002) < 0.0002, np.median(got[body])
     assert np.abs(got[body] - 0.002).mean() < 0.0004
-    assert np.abs(got[hole]).max() < 0.0003
+    # (where the pose's skinning is uncertain, at the neck's base, the hole's offsets are filled in
+    # from the scan's around it: standing_body's skin_uncertainty)
+    certain = skinning_uncertainty(template, truth) < 0.0005
+    assert (hole & certain).sum() > 0.8 * hole.sum() and np.abs(got[hole & certain]).max() < 0.0003
+
+
+def test_standing_body_does_not_keep_what_another_skinning_did_to_the_neck(template, phenotype_model):
+    """A body posed with other skin weights than ours (the smoothed ones: a real body's skin is
+    nobody's LBS) with its head turned, unposed by our LBS with the true pose and shape: the
+    offsets where bones turned against each other meet are another skinning's, not the body's
+    (the neck girth 15 mm short: the smoothed weights wring the neck); the standing body fills
+    them in from the trusted offsets around, keeping SKIN_KEEP of their own (5 mm short). Where
+    nothing turns the uncertainty is 0 and the body is kept exactly."""
+    rig = template.rigs["default"]
+    rest = phenotype_model.vertices(np.full((1, 11), 0.5))[0]
+    R = np.asarray(load_pose_library().rotations("head_turn_left", rig))
+    state = PoseState(rest, R, 1.0, np.zeros(3))
+    u = skinning_uncertainty(template, state)                          # (V,) m
+    still = PoseState(rest, np.repeat(np.eye(3)[None], rig.n_bones, axis=0), 1.0, np.zeros(3))
+    assert np.abs(skinning_uncertainty(template, still)).max() < 1e-12
+    feet = rest[:, 1] < rest[:, 1].min() + 0.3
+    assert u[feet].max() < 1e-12 and u.max() > 0.01, u.max()
+    mset = load_measurement_set()
+
+    def neck(v):
+        return evaluate(mset, v, template.faces, check_scale=False)["neck_girth"].value
+
+    x = pose_bodies(rest, rig, R, weights="smoothed", faces=template.faces)
+    truth = neck(rest)
+    kept = neck(standing_body(x, template.faces, template, state, skin_uncertainty=None))
+    stand = standing_body(x, template.faces, template, state)
+    assert abs(kept - truth) > 0.01, (kept, truth)
+    assert abs(neck(stand) - truth) < abs(kept - truth) / 2.5, (neck(stand), kept, truth)
+    moved = np.abs(stand - (rest - [0.0, rest[:, 1].min(), 0.0])).max(axis=1)
+    assert moved[feet].max() < 1e-9
