@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bodyspace.atomic import atomic_path
 from bodyspace.data.template import load_template
 from bodyspace.errors import MeshError
 from bodyspace.measure import evaluate, load_measurement_set
@@ -109,8 +110,8 @@ def main():
             lms, reg = mesh_landmarks(body.vertices, body.faces, template=template, check=False)
             fitted, quality = reg.vertices, reg.quality.describe()
             if cached is not None:
-                args.cache.mkdir(parents=True, exist_ok=True)
-                np.save(cached, fitted)
+                with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
+                    np.save(fh, fitted)
         sec = time.perf_counter() - t
         err = np.array([np.linalg.norm(w @ body.vertices[ids] - body.true_landmarks[n]) for n, (ids, w) in lms.items()])
         means.append(err.mean())
