@@ -79,13 +79,37 @@ def test_arms_crossed_chest_stays_on_the_torso(mset, posed, template):
 
 def test_thigh_at_the_crotch_is_one_leg(mset, mean_body, template):
     """A thigh plane as high as the crotch cuts both legs; the tape keeps only the left thigh."""
-    tape = _one(mset, "thigh_girth_l", at="crotch")
+    tape = _one(mset, "thigh_girth_l", at="crotch", band=None)
     r = evaluate(tape, mean_body, template.faces, keep_polylines=True)
     on = _labels_under(r["thigh_girth_l"].polyline, mean_body, mset.vertex_parts, template.faces)
     assert on <= {"thigh_l", "torso"}
     # One thigh at its top: above the girth at the thigh landmark, far below both legs' ~1 m.
     low = evaluate(mset, mean_body, template.faces)["thigh_girth_l"].value
     assert low < r["thigh_girth_l"].value < 1.3 * low
+
+
+def test_thigh_plane_hangs_on_the_joints_not_on_a_thigh_vertex(mset, mean_body, template):
+    """The thigh girth's plane (31.6 % of the way from the hip to the knee joint, normal to the
+    thigh) is the thigh landmark's plane on the mean body, and a thigh landmark slid 15 mm down the
+    leg (as a registration slides it: docs/registration.md) no longer moves the value."""
+    names = list(mset.landmarks)
+    P = np.asarray(mset.landmark_matrix(template.n_vertices) @ mean_body)
+    p = {n: P[i] for i, n in enumerate(names)}
+    axis = p["knee_joint_l"] - p["hip_joint_l"]
+    axis /= np.linalg.norm(axis)
+    anchor = p["hip_joint_l"] + 0.316 * (p["knee_joint_l"] - p["hip_joint_l"])
+    assert abs((anchor - p["thigh_l"]) @ axis) < 0.0015         # the same level within 1.5 mm
+    at_landmark = evaluate(_one(mset, "thigh_girth_l", at="thigh_l", band=None), mean_body, template.faces)
+    value = evaluate(_one(mset, "thigh_girth_l"), mean_body, template.faces)["thigh_girth_l"].value
+    assert abs(value - at_landmark["thigh_girth_l"].value) < 0.001
+    # The vertex nearest the thigh landmark 15 mm further down the thigh, as the landmark.
+    slid = int(np.argmin(np.linalg.norm(mean_body - (p["thigh_l"] + 0.015 * axis), axis=1)))
+    lms = {n: (ids, w) for n, (ids, w) in mset.landmarks.items()} | {"thigh_l": (np.array([slid]), np.array([1.0]))}
+    moved = dataclasses.replace(_one(mset, "thigh_girth_l"), landmarks=lms)
+    old_rule = dataclasses.replace(_one(mset, "thigh_girth_l", at="thigh_l", band=None), landmarks=lms)
+    assert evaluate(moved, mean_body, template.faces)["thigh_girth_l"].value == pytest.approx(value, abs=1e-9)
+    # ... where the plane through the landmark (the old definition) lost ~1 cm.
+    assert evaluate(old_rule, mean_body, template.faces)["thigh_girth_l"].value < value - 0.005
 
 
 def test_neck_in_look_down_keeps_the_chin_out(mset, posed, template):
@@ -207,7 +231,7 @@ def test_foreign_topology_tape_stays_on_its_part(foreign, posed, template, mset)
     r = evaluate(fset, bodies[[0, j]], topo.faces, keep_polylines=True, check_scale=False)
     assert "head" not in _labels_under(r["neck_girth"].polyline[1], bodies[j], labels, topo.faces)
     assert abs(r["neck_girth"].value[1] - r["neck_girth"].value[0]) < 0.03
-    t = evaluate(_one(fset, "thigh_girth_l", at="crotch"), bodies[0], topo.faces, keep_polylines=True)
+    t = evaluate(_one(fset, "thigh_girth_l", at="crotch", band=None), bodies[0], topo.faces, keep_polylines=True)
     assert _labels_under(t["thigh_girth_l"].polyline, bodies[0], labels, topo.faces) <= {"thigh_l", "torso"}
     # Same girths as the template's (its rig labels) within 1 cm, stature within 5 mm.
     ref = evaluate(mset, posed[0], template.faces)
