@@ -48,6 +48,8 @@ import numpy as np
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.definitions import DEFAULT_PATH, MeasurementSet
 from bodyspace.measure.points import format_point, point
+from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
+from bodyspace.mesh.geometry import face_areas, sample_surface
 from bodyspace.units import UNITS as _QUANTITY_UNITS
 
 # The largest side of a human body's bounding box, metres (a toddler lying down .. a very tall
@@ -411,6 +413,18 @@ def layout_checks(points: dict[str, np.ndarray], size: float, metres_per_unit: f
     return len(values), failed
 
 
+def up_vector(points: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The body's feet→head direction (3,), unit, in the mesh's frame: the sum of the
+    ``UP_SEGMENTS`` the names of ``points`` (name → (1, 3)) allow; None when none."""
+    have = set(points)
+    u = np.zeros(3)
+    for a, b in UP_SEGMENTS:
+        if set(_names(a)) | set(_names(b)) <= have:
+            u += (point(b, points) - point(a, points))[0]
+    norm = np.linalg.norm(u)
+    return u / norm if norm > 0 else None
+
+
 def up_axis(points: dict[str, np.ndarray]) -> tuple[str | None, float]:
     """The coordinate axis the body's feet→head direction is nearest, and the angle (degrees).
 
@@ -418,15 +432,9 @@ def up_axis(points: dict[str, np.ndarray]) -> tuple[str | None, float]:
     of the ``UP_SEGMENTS`` the names allow (legs, trunk, head); (None, NaN) when none, or when
     no axis is within ``UP_AXIS_MAX_ANGLE``.
     """
-    have = set(points)
-    u = np.zeros(3)
-    for a, b in UP_SEGMENTS:
-        if set(_names(a)) | set(_names(b)) <= have:
-            u += (point(b, points) - point(a, points))[0]
-    norm = np.linalg.norm(u)
-    if not norm > 0:
+    u = up_vector(points)
+    if u is None:
         return None, float("nan")
-    u = u / norm
     best = max(UP_AXES, key=lambda k: float(np.dot(u, _AXIS_VECTORS[k])))
     angle = float(np.degrees(np.arccos(np.clip(np.dot(u, _AXIS_VECTORS[best]), -1.0, 1.0))))
     return (best, angle) if angle <= UP_AXIS_MAX_ANGLE else (None, angle)
@@ -585,6 +593,195 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
     if findings:
         raise MeasurementError(describe(mesh_name, findings, words))
     return to_internal(vertices, faces, units or "m", up or "y", flip_winding)
+
+
+# ------------------------------------------------------------------------------ other geometry
+
+# A scanner's mesh often carries more than the body: the floor (a sheet or a disc under the
+# feet, a separate piece or welded to the soles), a turntable, a pole or a stool. Their faces
+# would add to the volume, the mass and the surface area, their extent to the stature, and they
+# make the mesh fit no unit. ``body_faces`` leaves them out: the pieces that carry no landmark,
+# then a floor sheet under the feet (``mesh.floor.find_floor`` on points sampled from the faces).
+# A floor is looked for only when the surface below the lowest landmark (the ankle joints of
+# a standing body) is more than FLOOR_GATE_AREA x (the landmarks' height span)²: the template's
+# feet are 0.042, a floor disc 1 m wide under them 0.31 (a false alarm costs only the search).
+FLOOR_GATE_AREA = 0.12
+# Points sampled from the faces to look for the floor in (find_floor takes a subsample of 20,000).
+FLOOR_SAMPLES = 20_000
+
+
+@dataclass(frozen=True)
+class BodyFaces:
+    """The body of a mesh that may carry other geometry (``body_faces``).
+
+    vertices: (V, 3) the mesh's vertices, mesh units; those only the left-out faces used are
+        moved onto a vertex of the body (their ids stay: a landmark file's ids keep their meaning;
+        no face uses them, and no extent or lowest point sees them).
+    faces: (F', 3) the body's faces, a subset of the mesh's in their order.
+    notes: one sentence per thing left out (empty: the mesh is all body).
+    left_out_area: the surface left out, m² (mesh units² when the unit is unknown).
+    welded: the floor was joined to the body: the body is open where it stood on it.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    notes: tuple[str, ...] = ()
+    left_out_area: float = 0.0
+    welded: bool = False
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_roots(faces, n_vertices, out):
+    """Union-find over the faces (F, 3): out (F,) the root vertex of each face's component."""
+    parent = np.arange(n_vertices)
+    for k in range(faces.shape[0]):
+        for j in range(1, 3):
+            a, b = faces[k, 0], faces[k, j]
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            while parent[b] != b:
+                parent[b] = parent[parent[b]]
+                b = parent[b]
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    for k in range(faces.shape[0]):
+        a = faces[k, 0]
+        while parent[a] != a:
+            a = parent[a]
+        out[k] = a
+
+
+def _landmarked(faces: np.ndarray, n_vertices: int, ids: np.ndarray) -> np.ndarray:
+    """(F,) bool: the faces of the connected pieces of ``faces`` that hold a vertex of ``ids``
+    (every face when the mesh is one piece, or when no piece holds one)."""
+    roots = np.empty(len(faces), dtype=np.int64)
+    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
+    if not len(roots) or (roots == roots[0]).all():
+        return np.ones(len(faces), dtype=bool)
+    on = np.zeros(n_vertices, dtype=bool)
+    on[ids] = True
+    pieces = np.unique(roots[on[faces].any(axis=1)])
+    if not len(pieces):
+        return np.ones(len(faces), dtype=bool)
+    return np.isin(roots, pieces)
+
+
+def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, units: str | None = None) -> BodyFaces:
+    """The body of one mesh (V, 3), (F, 3) without the floor, turntable or objects it carries.
+
+    Left out, in this order: the connected pieces that hold no landmark of ``mset`` (a floor, a
+    turntable, a pole beside the body); then a floor sheet under the feet of the rest (joined to
+    the soles, or a piece a landmark file put a point on): every face within the floor's noise
+    (``mesh.floor``: 3 sigma, at least 6 mm) of its plane or below it, and the pieces this cuts off.
+    ``units``: the mesh's unit (None: the one the landmarks' height span gives; without one no
+    floor is looked for). The up direction is the landmarks' feet→head (``up_vector``). A mesh
+    that is all body comes back as it was (the same arrays), after a union-find and one pass.
+    """
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    ids = np.unique(np.concatenate([i[np.asarray(w) != 0] for i, w in mset.landmarks.values()]).astype(np.int64))
+    keep = _landmarked(f, len(v), ids)
+    points = landmark_points(mset, v)
+    u = up_vector(points)
+    scale = MESH_UNITS[units] if units in MESH_UNITS else None
+    floors = []
+    if u is not None:
+        heights = np.array([float(p[0] @ u) for p in points.values()])
+        span = float(heights.max() - heights.min())
+        if scale is None:
+            fits = plausible_units(span)
+            scale = MESH_UNITS[fits[0]] if fits else None
+        low = (v @ u) < heights.min()                                   # (V,) below the lowest landmark
+        below = keep & low[f[:, 0]] & low[f[:, 1]] & low[f[:, 2]]
+        if scale is not None and below.any() and _area(v, f[below]) > FLOOR_GATE_AREA * span ** 2:
+            keep, floors = _cut_floors(v, f, keep, ids, u, scale)
+    if keep.all():
+        return BodyFaces(vertices, faces)
+    s = 1.0 if scale is None else scale
+    unit = "m" if scale is not None else "mesh units"
+    areas = face_areas(v, f) * s * s
+    out = ~keep
+    body_vertices = np.zeros(len(v), dtype=bool)
+    body_vertices[f[keep]] = True
+    dropped = np.zeros(len(v), dtype=bool)
+    dropped[f[out]] = True
+    welded = bool(floors) and bool((dropped & body_vertices).any())
+    notes = []
+    for what, mask in floors:
+        w = _across(v[np.unique(f[mask])], u) * s
+        notes.append(f"left out {what} {_metres(w, unit)} across under the feet: {int(mask.sum())} faces, "
+                     f"{areas[mask].sum():.3g} {unit}² of surface")
+    pieces = out.copy()
+    for _, mask in floors:
+        pieces &= ~mask
+    if pieces.any():
+        n = _count_pieces(f[pieces], len(v))
+        w = float(body_extent(v[np.unique(f[pieces])])) * s
+        notes.append(f"left out {n} piece{'s' if n > 1 else ''} not joined to the body (no landmark on "
+                     f"{'them' if n > 1 else 'it'}: a floor, a turntable, a stand?): {int(pieces.sum())} faces, "
+                     f"{areas[pieces].sum():.3g} {unit}² of surface, {_metres(w, unit)} across")
+    if welded:
+        notes.append("the floor was joined to the body, whose soles are open now: volume and mass count them "
+                     "closed by a flat cap on the floor's plane, the surface area leaves them out")
+    moved = dropped & ~body_vertices
+    moved[ids] = False
+    v = v.copy()
+    v[moved] = v[f[keep][0, 0]]
+    return BodyFaces(v, f[keep], tuple(notes), float(areas[out].sum()), welded)
+
+
+def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray, u: np.ndarray,
+                scale: float) -> tuple[np.ndarray, list]:
+    """``keep`` (F,) without the floors found under the body (up to ``FLOOR_ROUNDS``: the ground,
+    then a turntable's top), and [(what, (F,) bool faces of that floor)]."""
+    keep = keep.copy()
+    floors = []
+    for _ in range(FLOOR_ROUNDS):
+        idx = np.flatnonzero(keep)
+        pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
+        found = find_floor(pts, u, 0)
+        if found is None:
+            break
+        normal, offset = found
+        near = np.abs(pts @ normal - offset)
+        near = near[near < FLOOR_TOLERANCE]
+        noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+        height = v @ normal * scale - offset
+        cut = keep & (height[f] < FLOOR_CUT_SIGMAS * noise).all(axis=1)
+        if not cut.any():
+            break
+        # Pieces the cut parted from the body (a turntable's side under its top, a floor's rim).
+        sub = np.flatnonzero(keep & ~cut)
+        alone = np.zeros(len(f), dtype=bool)
+        alone[sub[~_landmarked(f[sub], len(v), ids)]] = True
+        cut |= alone
+        keep &= ~cut
+        floors.append(("the floor" if not floors else "a platform on it (a turntable's top with its side)", cut))
+    return keep, floors
+
+
+def _area(v: np.ndarray, f: np.ndarray) -> float:
+    """Total area of the faces f (F, 3) of v (V, 3)."""
+    a = v[f[:, 0]]
+    return 0.5 * float(np.linalg.norm(np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a), axis=1).sum())
+
+
+def _count_pieces(faces: np.ndarray, n_vertices: int) -> int:
+    roots = np.empty(len(faces), dtype=np.int64)
+    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
+    return len(np.unique(roots))
+
+
+def _across(points: np.ndarray, u: np.ndarray) -> float:
+    """The widest spread (98th percentile radius x 2) of points (P, 3) across the direction u."""
+    flat = points - points.mean(axis=0)
+    flat = flat - np.outer(flat @ u, u)
+    return 2.0 * float(np.percentile(np.linalg.norm(flat, axis=1), 98))
+
+
+def _metres(x: float, unit: str) -> str:
+    return f"{100 * x:.0f} cm" if unit == "m" else f"{x:.3g} {unit}"
 
 
 # ------------------------------------------------------------------------------ placement
