@@ -61,6 +61,11 @@ TYPICAL_STATURE_M = 1.7
 # 1.27 m; the bodies at the population's edges 0.86-1.68 m; a toddler (0.5 m² of skin) 0.7 m.
 TYPICAL_SIZE_M = 1.27
 BODY_SIZE_M = (0.4, 2.2)
+# The largest side of the bounding box of a body's landmarks, metres (a crouching child's ..
+# a tall adult's with the arms up; the template's 1.6 m): the landmarks still give the body's size
+# when the mesh carries a floor or objects that make the whole mesh fit no unit.
+LANDMARK_EXTENT_M = (0.3, 3.2)
+TYPICAL_LANDMARK_EXTENT_M = 1.6
 # Units a mesh may come in, metres per unit (the names are the length units of bodyspace.units).
 MESH_UNITS = {u: _QUANTITY_UNITS["length"][u] for u in ("m", "cm", "mm", "in")}
 _UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "in": "inches"}
@@ -165,6 +170,8 @@ class Conventions:
         few landmarks, a wrong layout, or no axis within ``UP_AXIS_MAX_ANGLE``).
     up_angle: degrees between the feet→head direction and that axis (NaN when unknown).
     size: the square root of its surface area, mesh units.
+    landmark_extent: the largest side of the bounding box of the set's landmarks, mesh units
+        (a body's own size even when the mesh carries a floor or objects besides it).
     """
 
     extent: float
@@ -176,6 +183,7 @@ class Conventions:
     up: str | None
     up_angle: float
     size: float
+    landmark_extent: float = float("nan")
 
     @property
     def layout_wrong(self) -> bool:
@@ -451,10 +459,16 @@ def inspect(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet) -> Co
     units = plausible_units(extent, np.sqrt(area))
     ratio = volume / area ** 1.5 if area > 0 else 0.0
     points = landmark_points(mset, v)
-    ran, failed = layout_checks(points, np.sqrt(area), MESH_UNITS[units[0]] if units else None) if area > 0 else (0, [])
+    spread = float(body_extent(np.concatenate(list(points.values())))) if points else float("nan")
+    size, per_unit = np.sqrt(area), MESH_UNITS[units[0]] if units else None
+    if not units and _landmark_unit(spread) is not None:
+        # No unit fits the whole mesh but the landmarks are a body's size: other geometry joined
+        # to it (a floor) inflates its area, so the layout is judged at the landmarks' own size.
+        size, per_unit = spread * TYPICAL_SIZE_M / TYPICAL_LANDMARK_EXTENT_M, MESH_UNITS[_landmark_unit(spread)]
+    ran, failed = layout_checks(points, size, per_unit) if area > 0 else (0, [])
     up, angle = up_axis(points)
     conv = Conventions(extent, units, volume * MESH_UNITS[units[0]] ** 3 if units else volume, ratio, ran,
-                       tuple(failed), up, angle, float(np.sqrt(area)))
+                       tuple(failed), up, angle, float(np.sqrt(area)), spread)
     if conv.layout_wrong:   # landmarks on the wrong body parts say nothing about the up axis
         conv = replace(conv, up=None, up_angle=float("nan"))
     return conv
@@ -490,8 +504,22 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
     found = []
     lo, hi = BODY_EXTENT_M
     said = units or "m"
-    if said not in conv.units:
-        if units is not None and conv.units:
+    extra = _extra_geometry(conv, units)
+    if said not in conv.units and extra is not None:
+        found.append(Finding(extra))
+    elif said not in conv.units:
+        if units is not None and not conv.units:
+            # No unit fits (the whole mesh's size): say what the given unit makes of it, never
+            # ask about another unit the user did not give unless the landmarks point to it.
+            f = MESH_UNITS[units]
+            lu = _landmark_unit(conv.landmark_extent)
+            hint = (f"; its landmarks span {conv.landmark_extent * MESH_UNITS[lu]:.3g} m in {_UNIT_WORDS[lu]}, a "
+                    "body's size" if lu is not None and lu != units else "")
+            found.append(Finding(f"in {_UNIT_WORDS[units]}, the unit given, it is {conv.extent * f:.3g} m across with "
+                                 f"{(conv.size * f) ** 2:.3g} m² of surface, a human body's is {lo:g}-{hi:g} m and "
+                                 f"{BODY_SIZE_M[0] ** 2:.2g}-{BODY_SIZE_M[1] ** 2:.2g} m²{hint}",
+                                 {"units": lu} if lu is not None and lu != units else {}))
+        elif units is not None and conv.units:
             metres = conv.extent * MESH_UNITS[units]
             fix = {"units": None} if conv.units[0] == "m" else {"units": conv.units}
             found.append(Finding(f"in {_UNIT_WORDS[units]} it would be {metres:.3g} m across, a human body is "
@@ -515,7 +543,10 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
             found.append(Finding(f"its bounding box is {conv.extent:.3g} across, a human body's is {lo:g}-{hi:g} m; "
                                  f"{_scale_advice(conv.extent)}"))
     unit_volume = f"{conv.signed_volume:.3g} m³" if conv.units else f"{conv.signed_volume:.3g} (mesh units)³"
-    if conv.volume_ratio < -INWARD_VOLUME_RATIO and not flip_winding:
+    if extra is not None or (not conv.units and _landmark_unit(conv.landmark_extent) is not None):
+        pass            # other geometry's faces (the landmarks are a body's, the mesh is not) make
+        # the signed volume say nothing of the body's
+    elif conv.volume_ratio < -INWARD_VOLUME_RATIO and not flip_winding:
         found.append(Finding(f"its faces are wound inwards (signed volume {unit_volume}, expected positive)",
                              {"flip_winding": True}))
     elif conv.volume_ratio > INWARD_VOLUME_RATIO and flip_winding:
@@ -533,6 +564,39 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
         else:
             found.append(Finding(f"{pointing}, not along {_signed(up)}", {"up": None if conv.up == "y" else conv.up}))
     return found
+
+
+def _landmark_unit(spread: float) -> str | None:
+    """The ``MESH_UNITS`` unit in which landmarks spread ``spread`` (mesh units) across are a
+    body's (``LANDMARK_EXTENT_M``), nearest the template's 1.6 m; None when none."""
+    lo, hi = LANDMARK_EXTENT_M
+    fits = [u for u in MESH_UNITS if np.isfinite(spread) and lo <= spread * MESH_UNITS[u] <= hi]
+    return min(fits, key=lambda u: abs(np.log(spread * MESH_UNITS[u] / TYPICAL_LANDMARK_EXTENT_M))) if fits else None
+
+
+def _extra_geometry(conv: Conventions, units: str | None) -> str | None:
+    """The finding for a mesh whose landmarks are a body's size in the unit the caller gave (or,
+    with none given, in one unit) while the whole mesh is not: it carries more than the body,
+    joined to it (``body_faces`` leaves out the pieces without a landmark and a floor sheet; this
+    is what it could not tell apart). None when that is not the case (then the unit is wrong)."""
+    if conv.layout_wrong or not np.isfinite(conv.landmark_extent):
+        return None
+    lo, hi = LANDMARK_EXTENT_M
+    if units is not None:            # the unit given: its own message, never "is it in mm?"
+        if units in conv.units or not lo <= conv.landmark_extent * MESH_UNITS[units] <= hi:
+            return None
+        u = units
+    else:                            # none given and none fits the whole mesh: the landmarks' unit
+        u = _landmark_unit(conv.landmark_extent)
+        if conv.units or u is None:
+            return None
+    f = MESH_UNITS[u]
+    given = f"in {_UNIT_WORDS[u]}, the unit given," if units is not None else f"in {_UNIT_WORDS[u]}"
+    return (f"{given} its landmarks span {conv.landmark_extent * f:.3g} m, a body's size, but the whole mesh's bounding box "
+            f"is {conv.extent * f:.3g} m across with {(conv.size * f) ** 2:.3g} m² of surface (a human body's: "
+            f"{BODY_EXTENT_M[0]:g}-{BODY_EXTENT_M[1]:g} m, {BODY_SIZE_M[0] ** 2:.2g}-{BODY_SIZE_M[1] ** 2:.2g} m²): "
+            "it carries more than the body, joined to it (a floor that is not flat, a stand, stray vertices far "
+            "away, a second body?) and not told apart from it; cut that away in a mesh editor and measure the body alone")
 
 
 def _set_name(mset: MeasurementSet) -> str:
