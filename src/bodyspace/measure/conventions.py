@@ -670,6 +670,9 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
 # a standing body) is more than FLOOR_GATE_AREA x (the landmarks' height span)²: the template's
 # feet are 0.042, a floor disc 1 m wide under them 0.31 (a false alarm costs only the search).
 FLOOR_GATE_AREA = 0.12
+# A mesh holds all of a turntable's side below its top (a scan sees little of it: 0.25 there):
+# up to this share of the rest may lie below the floor's plane.
+FLOOR_BELOW_SHARE_MESH = 0.45
 # Points sampled from the faces to look for the floor in (find_floor takes a subsample of 20,000).
 FLOOR_SAMPLES = 20_000
 
@@ -804,7 +807,7 @@ def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray,
     for _ in range(FLOOR_ROUNDS):
         idx = np.flatnonzero(keep)
         pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
-        found = find_floor(pts, u, 0)
+        found = find_floor(pts, u, 0, FLOOR_BELOW_SHARE_MESH)
         if found is None:
             break
         normal, offset = found
@@ -821,8 +824,35 @@ def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray,
         alone[sub[~_landmarked(f[sub], len(v), ids)]] = True
         cut |= alone
         keep &= ~cut
+        unpinched = _unpinch(f, keep, height < 2 * FLOOR_CUT_SIGMAS * noise)
+        cut |= keep & ~unpinched
+        keep = unpinched
         floors.append(("the floor" if not floors else "a platform on it (a turntable's top with its side)", cut))
     return keep, floors
+
+
+def _unpinch(f: np.ndarray, keep: np.ndarray, near: np.ndarray, rounds: int = 8) -> np.ndarray:
+    """``keep`` (F,) without the faces that pinch the hole a floor's cut opened: a vertex where
+    two holes meet (two boundary edges start there) makes the boundary non-manifold, and the
+    holes could not be capped for the volume. The kept faces at such a vertex that touch the
+    floor's band (``near`` (V,), twice the cut) go too, a few rounds until none is left."""
+    keep = keep.copy()
+    for _ in range(rounds):
+        kf = f[keep]
+        e = np.concatenate([kf[:, [0, 1]], kf[:, [1, 2]], kf[:, [2, 0]]])
+        n = int(max(f.max(), 0)) + 1
+        code = e[:, 0].astype(np.int64) * n + e[:, 1]
+        reverse = e[:, 1].astype(np.int64) * n + e[:, 0]
+        boundary = e[~np.isin(code, reverse)]
+        starts = np.bincount(boundary[:, 0], minlength=n)
+        pinched = starts > 1
+        if not pinched.any():
+            break
+        drop = keep & pinched[f].any(axis=1) & near[f].any(axis=1)
+        if not drop.any():
+            break
+        keep &= ~drop
+    return keep
 
 
 def _area(v: np.ndarray, f: np.ndarray) -> float:

@@ -43,11 +43,14 @@ FLOOR_MIN_NOISE = 0.002
 FLOOR_UP_DEGREES = 25.0
 
 
-def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple[np.ndarray, float] | None:
+def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0, below_share: float = FLOOR_BELOW_SHARE
+               ) -> tuple[np.ndarray, float] | None:
     """The floor a scanned body stands on (module constants ``FLOOR_*``), or None.
 
     points: (P, 3) metres; up: (3,) the up direction if known (the floor's normal must be within
     ``FLOOR_UP_DEGREES`` of it), None to accept any plane the rest of the scan stands on.
+    below_share: the share of the rest that may lie below it (a scan sees little of a turntable's
+    side; a mesh has all of it: ``measure.conventions`` gives more).
     Returns (normal (3,) unit, pointing to the body; offset d): the plane ``points @ normal = d``,
     and the points' signed heights over it are ``points @ normal - d``.
     """
@@ -97,7 +100,7 @@ def find_floor(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tuple
     if np.median(rest) < 0:
         normal, offset, rest = -normal, -offset, -rest
     below = rest[rest < 0]
-    if np.percentile(rest, 99) < FLOOR_MIN_HEIGHT or len(below) > FLOOR_BELOW_SHARE * len(rest) or (
+    if np.percentile(rest, 99) < FLOOR_MIN_HEIGHT or len(below) > below_share * len(rest) or (
             len(below) > 0.01 * len(rest) and np.percentile(-below, 99) > FLOOR_BELOW_DEPTH):
         return None
     if up is not None and normal @ up < np.cos(np.radians(FLOOR_UP_DEGREES)):
