@@ -592,11 +592,12 @@ def _extra_geometry(conv: Conventions, units: str | None) -> str | None:
             return None
     f = MESH_UNITS[u]
     given = f"in {_UNIT_WORDS[u]}, the unit given," if units is not None else f"in {_UNIT_WORDS[u]}"
-    return (f"{given} its landmarks span {conv.landmark_extent * f:.3g} m, a body's size, but the whole mesh's bounding box "
-            f"is {conv.extent * f:.3g} m across with {(conv.size * f) ** 2:.3g} m² of surface (a human body's: "
-            f"{BODY_EXTENT_M[0]:g}-{BODY_EXTENT_M[1]:g} m, {BODY_SIZE_M[0] ** 2:.2g}-{BODY_SIZE_M[1] ** 2:.2g} m²): "
-            "it carries more than the body, joined to it (a floor that is not flat, a stand, stray vertices far "
-            "away, a second body?) and not told apart from it; cut that away in a mesh editor and measure the body alone")
+    return (f"{given} its landmarks span {conv.landmark_extent * f:.3g} m, a body's size, but the whole mesh's "
+            f"bounding box is {conv.extent * f:.3g} m across with {(conv.size * f) ** 2:.3g} m² of surface (a human "
+            f"body's: {BODY_EXTENT_M[0]:g}-{BODY_EXTENT_M[1]:g} m, {BODY_SIZE_M[0] ** 2:.2g}-"
+            f"{BODY_SIZE_M[1] ** 2:.2g} m²): it carries more than the body, joined to it (a floor that is not flat, a "
+            "stand, stray vertices far away, a second body?) and not told apart from it; cut that away in a mesh "
+            "editor and measure the body alone")
 
 
 def _set_name(mset: MeasurementSet) -> str:
@@ -763,7 +764,7 @@ def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, un
         below = keep & low[f[:, 0]] & low[f[:, 1]] & low[f[:, 2]]
         if scale is not None and below.any() and _area(v, f[below]) > FLOOR_GATE_AREA * span ** 2:
             keep, floors = _cut_floors(v, f, keep, ids, u, scale)
-    if keep.all():
+    if keep.all() or not keep.any():     # all body, or nothing would be left: the door judges it whole
         return BodyFaces(vertices, faces)
     s = 1.0 if scale is None else scale
     unit = "m" if scale is not None else "mesh units"
