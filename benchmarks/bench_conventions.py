@@ -6,6 +6,8 @@
    first) against the batched measuring of the same 1,000 bodies (bench_measure.py's run):
    target < 5 %.
 3. The bounding-box extent per coordinate against the (V, 3)-axis reduction it replaced.
+4. ``conventions.body_faces`` (the floor, turntable or pole a scanner's mesh carries, left out
+   before the door in ``bodyspace measure``) on bodies that carry none, against the door itself.
 """
 
 from __future__ import annotations
@@ -75,6 +77,12 @@ def main() -> None:
     assert np.array_equal(extent_axis(), conventions.body_extent(bodies))
     report("bounding-box extent", best_time(lambda: conventions.body_extent(bodies)), best_time(extent_axis),
            N, "bodies")
+
+    # 4. the look for other geometry on bodies that carry none (every mesh of `bodyspace measure`)
+    assert all(conventions.body_faces(v, faces, mset).faces is faces for v in singles)
+    t_body = best_time(lambda: [conventions.body_faces(v, faces, mset) for v in singles]) / N_SINGLE
+    print(f"body_faces per mesh (all body): {t_body * 1e3:.2f} ms, {t_body / t_eval:.1%} of evaluating it")
+    report("body_faces (all body) vs the door", t_body, t_door, N_SINGLE, "meshes")
 
 
 def _cpu() -> float:

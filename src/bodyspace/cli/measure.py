@@ -85,11 +85,18 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         if landmarks is not None:        # with the parts and joints bodyspace landmarks carries, if any
             mset = landmark_measurement_set(landmarks, base=mset)
         labels = _labels([str(p) for p in meshes])
-        results, bodies, postures = {}, [], {}
+        results, bodies, postures, left_out = {}, [], {}, {}
         for path, label in zip(meshes, labels):
             v, f = load_mesh(path)
             _check_vertex_count(path, len(v), mset, landmarks, model)
             check_compatible(mset, v, f, str(path))
+            # A scanner's floor, turntable or pole left out (said under the output): they would
+            # add to the volume, mass and stature, and make the mesh fit no unit.
+            body = conventions.body_faces(v, f, mset, units)
+            v, f = body.vertices, body.faces
+            if body.notes:
+                left_out[label] = {"value": round(body.left_out_area, 4), "unit": "m^2",
+                                   "note": "; ".join(body.notes)}
             # Off by a convention (mm, Z up, faces inwards, another vertex order): refused with
             # the flag that fixes it, or brought into metres, +Y up as the flags say.
             v, f = conventions.prepare(v, f, mset, str(path), units=units, up=up, flip_winding=flip_winding,
@@ -118,6 +125,10 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
     for label, posture in postures.items():
         if posture is not None:
             rows[label]["unposed"] = posture
+    if left_out:      # every mesh gets the row (the table's rows are the first mesh's)
+        for label in rows:
+            rows[label]["left_out"] = left_out.get(label, {"value": 0.0, "unit": "m^2",
+                                                          "note": "nothing left out: the mesh is all body"})
     if csv_out:
         buf = io.StringIO()
         w = csv.writer(buf)
@@ -134,6 +145,9 @@ def measure(meshes: list[Path] = typer.Argument(..., help="Mesh files (OBJ/PLY/G
         for name, posture in zip(_column_names(meshes), postures.values()):
             if posture is not None and posture["value"] is not None:
                 Console().print(f"[unposed] {name}: {posture['note']}", markup=False, highlight=False)
+        for name, label in zip(_column_names(meshes), labels):
+            if label in left_out:
+                Console().print(f"[left out] {name}: {left_out[label]['note']}", markup=False, highlight=False)
 
 
 def _standing(vertices: np.ndarray, faces: np.ndarray, path: Path, as_posed: bool) -> tuple[np.ndarray, dict | None]:
@@ -257,8 +271,8 @@ def _print_table(rows: dict[str, dict], headers: list[str]) -> None:
             if e["value"] is None:
                 k = reasons.setdefault(e.get("note") or "undefined for this body", len(reasons) + 1)
                 cells.append(escape(f"n/a [{k}]"))
-            elif e.get("note") and name != "unposed":    # a caveat (a landmark in a hole); the
-                # unposed row's note is printed under the table on its own line
+            elif e.get("note") and name not in ("unposed", "left_out"):    # a caveat (a landmark in a hole); the
+                # unposed and left_out rows' notes are printed under the table on their own lines
                 k = reasons.setdefault(e["note"], len(reasons) + 1)
                 cells.append(escape(f"{e['value']:.4g} [{k}]"))
             else:

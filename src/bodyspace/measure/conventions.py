@@ -48,6 +48,8 @@ import numpy as np
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.definitions import DEFAULT_PATH, MeasurementSet
 from bodyspace.measure.points import format_point, point
+from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
+from bodyspace.mesh.geometry import face_areas, sample_surface
 from bodyspace.units import UNITS as _QUANTITY_UNITS
 
 # The largest side of a human body's bounding box, metres (a toddler lying down .. a very tall
@@ -59,6 +61,11 @@ TYPICAL_STATURE_M = 1.7
 # 1.27 m; the bodies at the population's edges 0.86-1.68 m; a toddler (0.5 m² of skin) 0.7 m.
 TYPICAL_SIZE_M = 1.27
 BODY_SIZE_M = (0.4, 2.2)
+# The largest side of the bounding box of a body's landmarks, metres (a crouching child's ..
+# a tall adult's with the arms up; the template's 1.6 m): the landmarks still give the body's size
+# when the mesh carries a floor or objects that make the whole mesh fit no unit.
+LANDMARK_EXTENT_M = (0.3, 3.2)
+TYPICAL_LANDMARK_EXTENT_M = 1.6
 # Units a mesh may come in, metres per unit (the names are the length units of bodyspace.units).
 MESH_UNITS = {u: _QUANTITY_UNITS["length"][u] for u in ("m", "cm", "mm", "in")}
 _UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "in": "inches"}
@@ -163,6 +170,8 @@ class Conventions:
         few landmarks, a wrong layout, or no axis within ``UP_AXIS_MAX_ANGLE``).
     up_angle: degrees between the feet→head direction and that axis (NaN when unknown).
     size: the square root of its surface area, mesh units.
+    landmark_extent: the largest side of the bounding box of the set's landmarks, mesh units
+        (a body's own size even when the mesh carries a floor or objects besides it).
     """
 
     extent: float
@@ -174,6 +183,7 @@ class Conventions:
     up: str | None
     up_angle: float
     size: float
+    landmark_extent: float = float("nan")
 
     @property
     def layout_wrong(self) -> bool:
@@ -411,6 +421,18 @@ def layout_checks(points: dict[str, np.ndarray], size: float, metres_per_unit: f
     return len(values), failed
 
 
+def up_vector(points: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The body's feet→head direction (3,), unit, in the mesh's frame: the sum of the
+    ``UP_SEGMENTS`` the names of ``points`` (name → (1, 3)) allow; None when none."""
+    have = set(points)
+    u = np.zeros(3)
+    for a, b in UP_SEGMENTS:
+        if set(_names(a)) | set(_names(b)) <= have:
+            u += (point(b, points) - point(a, points))[0]
+    norm = np.linalg.norm(u)
+    return u / norm if norm > 0 else None
+
+
 def up_axis(points: dict[str, np.ndarray]) -> tuple[str | None, float]:
     """The coordinate axis the body's feet→head direction is nearest, and the angle (degrees).
 
@@ -418,15 +440,9 @@ def up_axis(points: dict[str, np.ndarray]) -> tuple[str | None, float]:
     of the ``UP_SEGMENTS`` the names allow (legs, trunk, head); (None, NaN) when none, or when
     no axis is within ``UP_AXIS_MAX_ANGLE``.
     """
-    have = set(points)
-    u = np.zeros(3)
-    for a, b in UP_SEGMENTS:
-        if set(_names(a)) | set(_names(b)) <= have:
-            u += (point(b, points) - point(a, points))[0]
-    norm = np.linalg.norm(u)
-    if not norm > 0:
+    u = up_vector(points)
+    if u is None:
         return None, float("nan")
-    u = u / norm
     best = max(UP_AXES, key=lambda k: float(np.dot(u, _AXIS_VECTORS[k])))
     angle = float(np.degrees(np.arccos(np.clip(np.dot(u, _AXIS_VECTORS[best]), -1.0, 1.0))))
     return (best, angle) if angle <= UP_AXIS_MAX_ANGLE else (None, angle)
@@ -443,10 +459,16 @@ def inspect(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet) -> Co
     units = plausible_units(extent, np.sqrt(area))
     ratio = volume / area ** 1.5 if area > 0 else 0.0
     points = landmark_points(mset, v)
-    ran, failed = layout_checks(points, np.sqrt(area), MESH_UNITS[units[0]] if units else None) if area > 0 else (0, [])
+    spread = float(body_extent(np.concatenate(list(points.values())))) if points else float("nan")
+    size, per_unit = np.sqrt(area), MESH_UNITS[units[0]] if units else None
+    if not units and _landmark_unit(spread) is not None:
+        # No unit fits the whole mesh but the landmarks are a body's size: other geometry joined
+        # to it (a floor) inflates its area, so the layout is judged at the landmarks' own size.
+        size, per_unit = spread * TYPICAL_SIZE_M / TYPICAL_LANDMARK_EXTENT_M, MESH_UNITS[_landmark_unit(spread)]
+    ran, failed = layout_checks(points, size, per_unit) if area > 0 else (0, [])
     up, angle = up_axis(points)
     conv = Conventions(extent, units, volume * MESH_UNITS[units[0]] ** 3 if units else volume, ratio, ran,
-                       tuple(failed), up, angle, float(np.sqrt(area)))
+                       tuple(failed), up, angle, float(np.sqrt(area)), spread)
     if conv.layout_wrong:   # landmarks on the wrong body parts say nothing about the up axis
         conv = replace(conv, up=None, up_angle=float("nan"))
     return conv
@@ -482,8 +504,22 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
     found = []
     lo, hi = BODY_EXTENT_M
     said = units or "m"
-    if said not in conv.units:
-        if units is not None and conv.units:
+    extra = _extra_geometry(conv, units)
+    if said not in conv.units and extra is not None:
+        found.append(Finding(extra))
+    elif said not in conv.units:
+        if units is not None and not conv.units:
+            # No unit fits (the whole mesh's size): say what the given unit makes of it, never
+            # ask about another unit the user did not give unless the landmarks point to it.
+            f = MESH_UNITS[units]
+            lu = _landmark_unit(conv.landmark_extent)
+            hint = (f"; its landmarks span {conv.landmark_extent * MESH_UNITS[lu]:.3g} m in {_UNIT_WORDS[lu]}, a "
+                    "body's size" if lu is not None and lu != units else "")
+            found.append(Finding(f"in {_UNIT_WORDS[units]}, the unit given, it is {conv.extent * f:.3g} m across with "
+                                 f"{(conv.size * f) ** 2:.3g} m² of surface, a human body's is {lo:g}-{hi:g} m and "
+                                 f"{BODY_SIZE_M[0] ** 2:.2g}-{BODY_SIZE_M[1] ** 2:.2g} m²{hint}",
+                                 {"units": lu} if lu is not None and lu != units else {}))
+        elif units is not None and conv.units:
             metres = conv.extent * MESH_UNITS[units]
             fix = {"units": None} if conv.units[0] == "m" else {"units": conv.units}
             found.append(Finding(f"in {_UNIT_WORDS[units]} it would be {metres:.3g} m across, a human body is "
@@ -507,7 +543,10 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
             found.append(Finding(f"its bounding box is {conv.extent:.3g} across, a human body's is {lo:g}-{hi:g} m; "
                                  f"{_scale_advice(conv.extent)}"))
     unit_volume = f"{conv.signed_volume:.3g} m³" if conv.units else f"{conv.signed_volume:.3g} (mesh units)³"
-    if conv.volume_ratio < -INWARD_VOLUME_RATIO and not flip_winding:
+    if extra is not None or (not conv.units and _landmark_unit(conv.landmark_extent) is not None):
+        pass            # other geometry's faces (the landmarks are a body's, the mesh is not) make
+        # the signed volume say nothing of the body's
+    elif conv.volume_ratio < -INWARD_VOLUME_RATIO and not flip_winding:
         found.append(Finding(f"its faces are wound inwards (signed volume {unit_volume}, expected positive)",
                              {"flip_winding": True}))
     elif conv.volume_ratio > INWARD_VOLUME_RATIO and flip_winding:
@@ -525,6 +564,40 @@ def find_problems(conv: Conventions, mset: MeasurementSet, units: str | None = N
         else:
             found.append(Finding(f"{pointing}, not along {_signed(up)}", {"up": None if conv.up == "y" else conv.up}))
     return found
+
+
+def _landmark_unit(spread: float) -> str | None:
+    """The ``MESH_UNITS`` unit in which landmarks spread ``spread`` (mesh units) across are a
+    body's (``LANDMARK_EXTENT_M``), nearest the template's 1.6 m; None when none."""
+    lo, hi = LANDMARK_EXTENT_M
+    fits = [u for u in MESH_UNITS if np.isfinite(spread) and lo <= spread * MESH_UNITS[u] <= hi]
+    return min(fits, key=lambda u: abs(np.log(spread * MESH_UNITS[u] / TYPICAL_LANDMARK_EXTENT_M))) if fits else None
+
+
+def _extra_geometry(conv: Conventions, units: str | None) -> str | None:
+    """The finding for a mesh whose landmarks are a body's size in the unit the caller gave (or,
+    with none given, in one unit) while the whole mesh is not: it carries more than the body,
+    joined to it (``body_faces`` leaves out the pieces without a landmark and a floor sheet; this
+    is what it could not tell apart). None when that is not the case (then the unit is wrong)."""
+    if conv.layout_wrong or not np.isfinite(conv.landmark_extent):
+        return None
+    lo, hi = LANDMARK_EXTENT_M
+    if units is not None:            # the unit given: its own message, never "is it in mm?"
+        if units in conv.units or not lo <= conv.landmark_extent * MESH_UNITS[units] <= hi:
+            return None
+        u = units
+    else:                            # none given and none fits the whole mesh: the landmarks' unit
+        u = _landmark_unit(conv.landmark_extent)
+        if conv.units or u is None:
+            return None
+    f = MESH_UNITS[u]
+    given = f"in {_UNIT_WORDS[u]}, the unit given," if units is not None else f"in {_UNIT_WORDS[u]}"
+    return (f"{given} its landmarks span {conv.landmark_extent * f:.3g} m, a body's size, but the whole mesh's "
+            f"bounding box is {conv.extent * f:.3g} m across with {(conv.size * f) ** 2:.3g} m² of surface (a human "
+            f"body's: {BODY_EXTENT_M[0]:g}-{BODY_EXTENT_M[1]:g} m, {BODY_SIZE_M[0] ** 2:.2g}-"
+            f"{BODY_SIZE_M[1] ** 2:.2g} m²): it carries more than the body, joined to it (a floor that is not flat, a "
+            "stand, stray vertices far away, a second body?) and not told apart from it; cut that away in a mesh "
+            "editor and measure the body alone")
 
 
 def _set_name(mset: MeasurementSet) -> str:
@@ -585,6 +658,225 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
     if findings:
         raise MeasurementError(describe(mesh_name, findings, words))
     return to_internal(vertices, faces, units or "m", up or "y", flip_winding)
+
+
+# ------------------------------------------------------------------------------ other geometry
+
+# A scanner's mesh often carries more than the body: the floor (a sheet or a disc under the
+# feet, a separate piece or welded to the soles), a turntable, a pole or a stool. Their faces
+# would add to the volume, the mass and the surface area, their extent to the stature, and they
+# make the mesh fit no unit. ``body_faces`` leaves them out: the pieces that carry no landmark,
+# then a floor sheet under the feet (``mesh.floor.find_floor`` on points sampled from the faces).
+# A floor is looked for only when the surface below the lowest landmark (the ankle joints of
+# a standing body) is more than FLOOR_GATE_AREA x (the landmarks' height span)²: the template's
+# feet are 0.042, a floor disc 1 m wide under them 0.31 (a false alarm costs only the search).
+FLOOR_GATE_AREA = 0.12
+# A mesh holds all of a turntable's side below its top (a scan sees little of it: 0.25 there):
+# up to this share of the rest may lie below the floor's plane.
+FLOOR_BELOW_SHARE_MESH = 0.45
+# Points sampled from the faces to look for the floor in (find_floor takes a subsample of 20,000).
+FLOOR_SAMPLES = 20_000
+
+
+@dataclass(frozen=True)
+class BodyFaces:
+    """The body of a mesh that may carry other geometry (``body_faces``).
+
+    vertices: (V, 3) the mesh's vertices, mesh units; those only the left-out faces used are
+        moved onto a vertex of the body (their ids stay: a landmark file's ids keep their meaning;
+        no face uses them, and no extent or lowest point sees them).
+    faces: (F', 3) the body's faces, a subset of the mesh's in their order.
+    notes: one sentence per thing left out (empty: the mesh is all body).
+    left_out_area: the surface left out, m² (mesh units² when the unit is unknown).
+    welded: the floor was joined to the body: the body is open where it stood on it.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    notes: tuple[str, ...] = ()
+    left_out_area: float = 0.0
+    welded: bool = False
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_roots(faces, n_vertices, out):
+    """Union-find over the faces (F, 3): out (F,) the root vertex of each face's component."""
+    parent = np.arange(n_vertices)
+    for k in range(faces.shape[0]):
+        for j in range(1, 3):
+            a, b = faces[k, 0], faces[k, j]
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            while parent[b] != b:
+                parent[b] = parent[parent[b]]
+                b = parent[b]
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    for k in range(faces.shape[0]):
+        a = faces[k, 0]
+        while parent[a] != a:
+            a = parent[a]
+        out[k] = a
+
+
+def _landmarked(faces: np.ndarray, n_vertices: int, ids: np.ndarray) -> np.ndarray:
+    """(F,) bool: the faces of the connected pieces of ``faces`` that hold a vertex of ``ids``
+    (every face when the mesh is one piece, or when no piece holds one)."""
+    roots = np.empty(len(faces), dtype=np.int64)
+    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
+    if not len(roots) or (roots == roots[0]).all():
+        return np.ones(len(faces), dtype=bool)
+    on = np.zeros(n_vertices, dtype=bool)
+    on[ids] = True
+    pieces = np.unique(roots[on[faces].any(axis=1)])
+    if not len(pieces):
+        return np.ones(len(faces), dtype=bool)
+    return np.isin(roots, pieces)
+
+
+def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, units: str | None = None) -> BodyFaces:
+    """The body of one mesh (V, 3), (F, 3) without the floor, turntable or objects it carries.
+
+    Left out, in this order: the connected pieces that hold no landmark of ``mset`` (a floor, a
+    turntable, a pole beside the body); then a floor sheet under the feet of the rest (joined to
+    the soles, or a piece a landmark file put a point on): every face within the floor's noise
+    (``mesh.floor``: 3 sigma, at least 6 mm) of its plane or below it, and the pieces this cuts off.
+    ``units``: the mesh's unit (None: the one the landmarks' height span gives; without one no
+    floor is looked for). The up direction is the landmarks' feet→head (``up_vector``). A mesh
+    that is all body comes back as it was (the same arrays), after a union-find and one pass.
+    """
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    ids = np.unique(np.concatenate([i[np.asarray(w) != 0] for i, w in mset.landmarks.values()]).astype(np.int64))
+    keep = _landmarked(f, len(v), ids)
+    points = landmark_points(mset, v)
+    u = up_vector(points)
+    scale = MESH_UNITS[units] if units in MESH_UNITS else None
+    floors = []
+    if u is not None:
+        heights = np.array([float(p[0] @ u) for p in points.values()])
+        span = float(heights.max() - heights.min())
+        if scale is None:
+            fits = plausible_units(span)
+            scale = MESH_UNITS[fits[0]] if fits else None
+        low = (v @ u) < heights.min()                                   # (V,) below the lowest landmark
+        below = keep & low[f[:, 0]] & low[f[:, 1]] & low[f[:, 2]]
+        if scale is not None and below.any() and _area(v, f[below]) > FLOOR_GATE_AREA * span ** 2:
+            keep, floors = _cut_floors(v, f, keep, ids, u, scale)
+    if keep.all() or not keep.any():     # all body, or nothing would be left: the door judges it whole
+        return BodyFaces(vertices, faces)
+    s = 1.0 if scale is None else scale
+    unit = "m" if scale is not None else "mesh units"
+    areas = face_areas(v, f) * s * s
+    out = ~keep
+    body_vertices = np.zeros(len(v), dtype=bool)
+    body_vertices[f[keep]] = True
+    dropped = np.zeros(len(v), dtype=bool)
+    dropped[f[out]] = True
+    welded = bool(floors) and bool((dropped & body_vertices).any())
+    notes = []
+    for what, mask in floors:
+        w = _across(v[np.unique(f[mask])], u) * s
+        notes.append(f"left out {what} {_metres(w, unit)} across under the feet: {int(mask.sum())} faces, "
+                     f"{areas[mask].sum():.3g} {unit}² of surface")
+    pieces = out.copy()
+    for _, mask in floors:
+        pieces &= ~mask
+    if pieces.any():
+        n = _count_pieces(f[pieces], len(v))
+        w = float(body_extent(v[np.unique(f[pieces])])) * s
+        notes.append(f"left out {n} piece{'s' if n > 1 else ''} not joined to the body (no landmark on "
+                     f"{'them' if n > 1 else 'it'}: a floor, a turntable, a stand?): {int(pieces.sum())} faces, "
+                     f"{areas[pieces].sum():.3g} {unit}² of surface, {_metres(w, unit)} across")
+    if welded:
+        notes.append("the floor was joined to the body, whose soles are open now: volume and mass count them "
+                     "closed by a flat cap on the floor's plane, the surface area leaves them out")
+    moved = dropped & ~body_vertices
+    moved[ids] = False
+    v = v.copy()
+    v[moved] = v[f[keep][0, 0]]
+    return BodyFaces(v, f[keep], tuple(notes), float(areas[out].sum()), welded)
+
+
+def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray, u: np.ndarray,
+                scale: float) -> tuple[np.ndarray, list]:
+    """``keep`` (F,) without the floors found under the body (up to ``FLOOR_ROUNDS``: the ground,
+    then a turntable's top), and [(what, (F,) bool faces of that floor)]."""
+    keep = keep.copy()
+    floors = []
+    for _ in range(FLOOR_ROUNDS):
+        idx = np.flatnonzero(keep)
+        pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
+        found = find_floor(pts, u, 0, FLOOR_BELOW_SHARE_MESH)
+        if found is None:
+            break
+        normal, offset = found
+        near = np.abs(pts @ normal - offset)
+        near = near[near < FLOOR_TOLERANCE]
+        noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+        height = v @ normal * scale - offset
+        cut = keep & (height[f] < FLOOR_CUT_SIGMAS * noise).all(axis=1)
+        if not cut.any():
+            break
+        # Pieces the cut parted from the body (a turntable's side under its top, a floor's rim).
+        sub = np.flatnonzero(keep & ~cut)
+        alone = np.zeros(len(f), dtype=bool)
+        alone[sub[~_landmarked(f[sub], len(v), ids)]] = True
+        cut |= alone
+        keep &= ~cut
+        unpinched = _unpinch(f, keep, height < 2 * FLOOR_CUT_SIGMAS * noise)
+        cut |= keep & ~unpinched
+        keep = unpinched
+        floors.append(("the floor" if not floors else "a platform on it (a turntable's top with its side)", cut))
+    return keep, floors
+
+
+def _unpinch(f: np.ndarray, keep: np.ndarray, near: np.ndarray, rounds: int = 8) -> np.ndarray:
+    """``keep`` (F,) without the faces that pinch the hole a floor's cut opened: a vertex where
+    two holes meet (two boundary edges start there) makes the boundary non-manifold, and the
+    holes could not be capped for the volume. The kept faces at such a vertex that touch the
+    floor's band (``near`` (V,), twice the cut) go too, a few rounds until none is left."""
+    keep = keep.copy()
+    for _ in range(rounds):
+        kf = f[keep]
+        e = np.concatenate([kf[:, [0, 1]], kf[:, [1, 2]], kf[:, [2, 0]]])
+        n = int(max(f.max(), 0)) + 1
+        code = e[:, 0].astype(np.int64) * n + e[:, 1]
+        reverse = e[:, 1].astype(np.int64) * n + e[:, 0]
+        boundary = e[~np.isin(code, reverse)]
+        starts = np.bincount(boundary[:, 0], minlength=n)
+        pinched = starts > 1
+        if not pinched.any():
+            break
+        drop = keep & pinched[f].any(axis=1) & near[f].any(axis=1)
+        if not drop.any():
+            break
+        keep &= ~drop
+    return keep
+
+
+def _area(v: np.ndarray, f: np.ndarray) -> float:
+    """Total area of the faces f (F, 3) of v (V, 3)."""
+    a = v[f[:, 0]]
+    return 0.5 * float(np.linalg.norm(np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a), axis=1).sum())
+
+
+def _count_pieces(faces: np.ndarray, n_vertices: int) -> int:
+    roots = np.empty(len(faces), dtype=np.int64)
+    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
+    return len(np.unique(roots))
+
+
+def _across(points: np.ndarray, u: np.ndarray) -> float:
+    """The widest spread (98th percentile radius x 2) of points (P, 3) across the direction u."""
+    flat = points - points.mean(axis=0)
+    flat = flat - np.outer(flat @ u, u)
+    return 2.0 * float(np.percentile(np.linalg.norm(flat, axis=1), 98))
+
+
+def _metres(x: float, unit: str) -> str:
+    return f"{100 * x:.0f} cm" if unit == "m" else f"{x:.3g} {unit}"
 
 
 # ------------------------------------------------------------------------------ placement
