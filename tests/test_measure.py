@@ -22,6 +22,7 @@ from bodyspace.measure import (
 )
 from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.mesh.io import save_mesh
+from bodyspace.synth.phenotype import DEFAULTS, PARAMETERS
 from bodyspace.measure.slicing import (
     contour_girths,
     mesh_edges,
@@ -734,3 +735,39 @@ def test_cli_measure_bad_landmark_files(body_files, tmp_path, content, match):
     result = runner.invoke(app, ["measure", str(body_files / "a.obj"), "--landmarks", str(path)])
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
     assert re.search(f"error: {re.escape(str(path))}.*{match}", result.output.replace("\n", "")), result.output
+
+
+def test_underbust_just_below_low_breasts(mset, phenotype_model, template):
+    """ISO 8559-1 5.3.8: the underbust girth is taken just below the breasts. On large, low breasts
+    (a study scan's phenotype, issue 15) the plane through the underbust point cuts the breasts (its
+    girth was 99 % of the chest girth); the band goes down to their underside. On the mean body and
+    a man it stays on the underbust point's plane."""
+    old = mset.to_dict()
+    for m in old["measurements"]:
+        if m["name"] == "underbust_girth":
+            m.pop("band")
+            m["at"] = "underbust_front"
+    old = measurement_set_from_dict(old)
+    phen = np.array([[DEFAULTS[k] for k in PARAMETERS]] * 3)
+    phen[1, [PARAMETERS.index("gender"), PARAMETERS.index("weight")]] = 1.0, 0.7
+    phen[2] = [0.0, 0.36, 0.96, 0.89, 0.14, 0.93, 0.93, 0.04, 0.9, 0.04, 0.06]     # study scan 44
+    v = phenotype_model.vertices(phen)
+    new = evaluate(mset, v, template.faces)
+    ub, chest = new["underbust_girth"].value, new["chest_girth"].value
+    at_point = evaluate(old, v, template.faces)["underbust_girth"].value
+    np.testing.assert_allclose(ub[:2], at_point[:2], atol=1e-9)
+    assert at_point[2] > 0.95 * chest[2]                     # the plane through the point: the breasts
+    assert ub[2] < 0.75 * chest[2] and ub[2] < at_point[2] - 0.15
+
+
+@pytest.mark.parametrize("band, match", [
+    ({"slope": "steep"}, r"underbust_girth' field 'band.slope': got 'steep' with mode 'min', expected a number"),
+    ({"slope": -1.0}, "got -1.0"),
+    ({"mode": "max"}, "got 2.0 with mode 'max'.*and mode \"min\""),
+])
+def test_band_slope_errors(mset, band, match):
+    d = json.loads(open(mset.source).read())
+    m = next(m for m in d["measurements"] if m["name"] == "underbust_girth")
+    m["band"].update(band)
+    with pytest.raises(MeasurementError, match=match):
+        measurement_set_from_dict(d, "x.json")

@@ -41,6 +41,7 @@ from bodyspace.measure.slicing import (
     PartMesh,
     approx_heights,
     band_contours,
+    band_penalty,
     contour_girths,
     edge_neighbours,
     face_edge_ids,
@@ -198,7 +199,8 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     if part is not None and chunk.parts is not None and not chunk.keep_polylines:
         # The compiled slicer: the same planes, crossings, choice and hull as below, one pass a body.
         mode = MODE_ONE if band is None else (MODE_MAX if band["mode"] == "max" else MODE_MIN)
-        girth, _, missed = part_girths(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal, mode)
+        girth, _, missed = part_girths(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal, mode,
+                                       slope=float(band.get("slope", 0.0)) if band is not None else 0.0)
         return girth, None, _missed_notes(part, missed)
     heights = chunk.cache.setdefault("heights", {})
     key = repr(m["normal"])
@@ -241,6 +243,8 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         # Pick the band's extreme plane by the fast support-function estimate, then measure
         # only that plane exactly: one hull per body instead of one per plane.
         est = support_perimeters(cuts, chosen, normals).reshape(n_planes, n)
+        if band["mode"] == "min" and band.get("slope"):
+            est = est + band_penalty(np.stack(origins), normal, band["slope"])
         if part is not None and chunk.parts is not None and band["mode"] == "min":
             whole = ~opened.reshape(n_planes, n)
             est = np.where(whole | ~whole.any(axis=0), est, np.nan)
@@ -274,6 +278,11 @@ def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
         check_point(where + " field 'band.to'", band.get("to"), landmarks)
         if band.get("mode") not in ("max", "min"):
             raise fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\" or \"min\"")
+        slope = band.get("slope")
+        if slope is not None and (band["mode"] != "min" or isinstance(slope, bool)
+                                  or not isinstance(slope, (int, float)) or not 0 <= slope < 100):
+            raise fail(where + " field 'band.slope'", f"got {slope!r} with mode {band['mode']!r}, expected a number "
+                       "from 0 to 100 (metres of girth per metre down the band) and mode \"min\"")
         steps = band.get("steps", 12)
         if not isinstance(steps, int) or steps < 1:
             raise fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")

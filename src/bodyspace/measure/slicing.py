@@ -754,7 +754,7 @@ MODE_ONE, MODE_MAX, MODE_MIN = 0, 1, 2
 
 
 def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals: np.ndarray,
-                mode: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                mode: int, slope: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tape round one body part of each body: ``vertices`` (N, V, 3), P parallel planes a body
     through ``origins`` (P, N, 3) with unit ``normals`` (N, 3); ``mode`` MODE_ONE (P = 1),
     MODE_MAX or MODE_MIN (a band: the plane of largest / smallest support-function estimate).
@@ -762,6 +762,9 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     part's border has its ring followed along the other parts' faces back onto the part and
     those crossings join its hull (``ring_runs``); a plane whose ring does not come back (a hole),
     or any plane that crosses the border without the mesh, is chosen only when every plane is.
+    ``slope`` (MODE_MIN only, >= 0): the choice minimizes the estimate plus ``slope`` times the
+    plane's distance from the band's first plane (metres of girth per metre), so a plane further
+    down the band wins only where the girth falls faster than ``slope`` on the way (``band_penalty``).
 
     Returns girth (N,) (the convex-hull perimeter of the chosen plane's crossings, NaN where it
     has fewer than three), the chosen plane (N,) and ``missed`` (N,) bool (no plane crosses the
@@ -778,8 +781,16 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     _part_girths_kernel(v, part.vertices, part.ea, part.eb, part.border, np.ascontiguousarray(offs), n,
                         np.ascontiguousarray(u), np.ascontiguousarray(w), int(mode), np.cos(th), np.sin(th),
                         2 * np.pi / _N_DIRS, part.gid, part.edges, part.edge_faces, part.face_edges, part.face_on,
-                        part.edge_on, girth, plane, missed)
+                        part.edge_on, float(slope), girth, plane, missed)
     return girth, plane, missed
+
+
+def band_penalty(origins: np.ndarray, normals: np.ndarray, slope: float) -> np.ndarray:
+    """(P, N) ``slope`` times each plane's distance from the band's first plane (``origins`` (P, N, 3),
+    unit ``normals`` (N, 3)): what a min band with a slope adds to each plane's estimate, with the
+    float32 offsets ``part_girths`` uses, so both paths choose the same plane."""
+    offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), np.asarray(normals, dtype=float)).astype(np.float32)
+    return float(slope) * np.abs(offs.astype(np.float64) - offs[:1].astype(np.float64))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -823,7 +834,7 @@ def _hull_chain(x, y, k, order, hull):
 
 @numba.njit(cache=True, nogil=True)
 def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos, sin, step,
-                        gid, edges, edge_faces, face_edges, face_on, edge_on, girth, plane, missed):
+                        gid, edges, edge_faces, face_edges, face_on, edge_on, slope, girth, plane, missed):
     """Per body: float32 heights of the part's vertices, every crossing of every plane (lo < off
     <= hi, as ``_band_crossings``), its in-plane point, for a min band with the mesh the runs off
     the part (``_ring_runs``), each plane's hull, the band's choice."""
@@ -956,6 +967,8 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
         best = np.inf if mode == 2 else -np.inf
         for p in range(n_planes):
             e_p = est[p]
+            if mode == 2 and slope > 0:
+                e_p += slope * abs(np.float64(offs[p, i]) - np.float64(offs[0, i]))
             if mode == 2 and any_whole and opened[p]:
                 e_p = np.nan
             if np.isnan(e_p):
