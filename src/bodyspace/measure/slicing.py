@@ -876,13 +876,26 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
             opened[p] = False
             o_lo = min(o_lo, offs[p, i])
             o_hi = max(o_hi, offs[p, i])
+        # A band's offsets run one way (its planes are evenly spaced along a segment): an edge
+        # then crosses a run of planes found by bisection, not by testing all P (a long band of
+        # many planes costs little more than a short one). Any other order tests every plane.
+        step_sign = 0
+        if n_planes > 2:
+            step_sign = 1 if offs[1, i] > offs[0, i] else -1
+            for p in range(1, n_planes):
+                if (offs[p, i] - offs[p - 1, i]) * step_sign <= 0:
+                    step_sign = 0
+                    break
         for e in range(n_edges):
             ha, hb = h[ea[e]], h[eb[e]]
             lo, hi = min(ha, hb), max(ha, hb)
             if hi < o_lo or lo >= o_hi:                  # crosses no plane of the band
                 continue
             a, b = verts[ea[e]], verts[eb[e]]
-            for p in range(n_planes):
+            p_from, p_to = 0, n_planes
+            if step_sign != 0:
+                p_from, p_to = _plane_run(offs, i, n_planes, step_sign, lo, hi)
+            for p in range(p_from, p_to):
                 off = offs[p, i]
                 if lo < off and off <= hi:
                     da = np.float64(ha) - np.float64(off)
@@ -977,6 +990,30 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                 best, best_p = e_p, p
         plane[i] = best_p
         girth[i] = per[best_p]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _count_past(offs, i, n_planes, step_sign, x):
+    """By bisection, for offsets ``offs[:, i]`` strictly increasing (``step_sign`` 1) or decreasing
+    (-1): how many are <= x (increasing) or > x (decreasing), the first that are."""
+    a, b = 0, n_planes
+    while a < b:
+        m = (a + b) // 2
+        if (offs[m, i] <= x) == (step_sign > 0):
+            a = m + 1
+        else:
+            b = m
+    return a
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _plane_run(offs, i, n_planes, step_sign, lo, hi):
+    """The planes p in [from, to) of body ``i`` whose offset is in (lo, hi] (``_count_past``)."""
+    k_lo = _count_past(offs, i, n_planes, step_sign, lo)
+    k_hi = _count_past(offs, i, n_planes, step_sign, hi)
+    if step_sign > 0:        # above lo: from k_lo on; at or below hi: before k_hi
+        return k_lo, k_hi
+    return k_hi, k_lo        # decreasing: above lo before k_lo, at or below hi from k_hi on
 
 
 @numba.njit(cache=True, nogil=True)
