@@ -934,12 +934,25 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
             for p in range(n_planes):
                 if closed[p]:
                     opened[p] = False
+        any_whole = False
+        for p in range(n_planes):
+            if not opened[p]:
+                any_whole = True
+        run_best = np.inf          # a min band: the smallest estimate (+ slope term) of a plane so far
         for p in range(n_planes):
             per[p] = np.nan
             est[p] = np.nan
             k = cnt[p]
             if k < 3:
                 continue
+            eligible = mode == 2 and not (any_whole and opened[p])
+            pen = slope * abs(np.float64(offs[p, i]) - np.float64(offs[0, i])) if mode == 2 and slope > 0 else 0.0
+            if eligible and run_best < np.inf:
+                # A plane that cannot be the band's min is not measured: the estimate is at least
+                # 0.99857 x the hull's perimeter (48 directions; the worst case is a segment), which
+                # is at least the perimeter of the octagon of its extreme points in 8 directions.
+                if 0.998 * _octagon_perimeter(xs[p], ys[p], k) + pen > run_best:
+                    continue
             m = _hull_chain(xs[p], ys[p], k, order, hull)
             if m < 2:
                 per[p] = 0.0
@@ -964,10 +977,8 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                         best = val
                 sup[d] = best
             est[p] = _pairwise_sum(sup) * step
-        any_whole = False
-        for p in range(n_planes):
-            if not opened[p]:
-                any_whole = True
+            if eligible and est[p] + pen < run_best:
+                run_best = est[p] + pen
         missed[i] = True
         for p in range(n_planes):
             if cnt[p] >= 3:
@@ -990,6 +1001,29 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                 best, best_p = e_p, p
         plane[i] = best_p
         girth[i] = per[best_p]
+
+
+@numba.njit(cache=True, nogil=True)
+def _octagon_perimeter(x, y, k):
+    """Perimeter of the polygon through the extreme points of (x[:k], y[:k]) in the directions
+    0, 45, ..., 315 degrees, in that order: a convex polygon inside their hull, so its perimeter is
+    at most the hull's."""
+    ix = np.zeros(8, dtype=np.int64)
+    val = np.empty(8)
+    for j in range(8):
+        val[j] = -np.inf
+    for q in range(k):
+        a, b = x[q], y[q]
+        c = (a, a + b, b, b - a, -a, -a - b, -b, a - b)
+        for j in range(8):
+            if c[j] > val[j]:
+                val[j] = c[j]
+                ix[j] = q
+    s = 0.0
+    for j in range(8):
+        a, b = ix[j], ix[(j + 1) % 8]
+        s += np.sqrt((x[b] - x[a]) ** 2 + (y[b] - y[a]) ** 2)
+    return s
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
