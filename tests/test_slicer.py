@@ -19,7 +19,7 @@ from bodyspace.measure.slicing import (
     MODE_MIN,
     MODE_ONE,
     _hull_chain,
-    band_penalty,
+    band_scores,
     hull_perimeter,
     part_girths,
     part_mesh,
@@ -100,11 +100,11 @@ def _reference(v, edges, border, origins, normal, mode, slope=0.0):
         k = np.zeros(n, dtype=np.int64)
     else:
         est = support_perimeters(cuts, chosen, normals).reshape(P, n)
-        if mode == MODE_MIN and slope:
-            est = est + band_penalty(origins, normal, slope)
         if mode == MODE_MIN:
             whole = ~opened.reshape(P, n)
             est = np.where(whole | ~whole.any(axis=0), est, np.nan)
+        if mode == MODE_MIN and slope:
+            est = band_scores(est, origins, normal, slope)
         est = np.where(np.isnan(est), -np.inf if mode == MODE_MAX else np.inf, est)
         k = np.argmax(est, axis=0) if mode == MODE_MAX else np.argmin(est, axis=0)
     group = k * n + np.arange(n)

@@ -41,7 +41,7 @@ from bodyspace.measure.slicing import (
     PartMesh,
     approx_heights,
     band_contours,
-    band_penalty,
+    band_scores,
     contour_girths,
     edge_neighbours,
     face_edge_ids,
@@ -243,11 +243,11 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         # Pick the band's extreme plane by the fast support-function estimate, then measure
         # only that plane exactly: one hull per body instead of one per plane.
         est = support_perimeters(cuts, chosen, normals).reshape(n_planes, n)
-        if band["mode"] == "min" and band.get("slope"):
-            est = est + band_penalty(np.stack(origins), normal, band["slope"])
         if part is not None and chunk.parts is not None and band["mode"] == "min":
             whole = ~opened.reshape(n_planes, n)
             est = np.where(whole | ~whole.any(axis=0), est, np.nan)
+        if band["mode"] == "min" and band.get("slope"):
+            est = band_scores(est, np.stack(origins), normal, band["slope"])
         est = np.where(np.isnan(est), -np.inf if band["mode"] == "max" else np.inf, est)
         k = np.argmax(est, axis=0) if band["mode"] == "max" else np.argmin(est, axis=0)
     group = k * n + np.arange(n)

@@ -763,8 +763,9 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     those crossings join its hull (``ring_runs``); a plane whose ring does not come back (a hole),
     or any plane that crosses the border without the mesh, is chosen only when every plane is.
     ``slope`` (MODE_MIN only, >= 0): the choice minimizes the estimate plus ``slope`` times the
-    plane's distance from the band's first plane (metres of girth per metre), so a plane further
-    down the band wins only where the girth falls faster than ``slope`` on the way (``band_penalty``).
+    plane's distance from the widest plane of the band up to it (metres of girth per metre), so a
+    plane further down wins only where the girth falls faster than ``slope`` from the widest level
+    above it (``band_scores``).
 
     Returns girth (N,) (the convex-hull perimeter of the chosen plane's crossings, NaN where it
     has fewer than three), the chosen plane (N,) and ``missed`` (N,) bool (no plane crosses the
@@ -785,12 +786,22 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     return girth, plane, missed
 
 
-def band_penalty(origins: np.ndarray, normals: np.ndarray, slope: float) -> np.ndarray:
-    """(P, N) ``slope`` times each plane's distance from the band's first plane (``origins`` (P, N, 3),
-    unit ``normals`` (N, 3)): what a min band with a slope adds to each plane's estimate, with the
-    float32 offsets ``part_girths`` uses, so both paths choose the same plane."""
+def band_scores(est: np.ndarray, origins: np.ndarray, normals: np.ndarray, slope: float) -> np.ndarray:
+    """A min band's score of each plane (P, N): its estimate ``est`` (P, N) (NaN: not a candidate)
+    plus ``slope`` times its distance from the widest candidate plane at or above it in the band
+    (the first of equal ones), ``origins`` (P, N, 3), unit ``normals`` (N, 3); the float32 offsets
+    and the order of ``part_girths``, so both paths choose the same plane."""
     offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), np.asarray(normals, dtype=float)).astype(np.float32)
-    return float(slope) * np.abs(offs.astype(np.float64) - offs[:1].astype(np.float64))
+    offs = offs.astype(np.float64)
+    run_max = np.full(est.shape[1], -np.inf)
+    off_m = offs[0].copy()
+    out = np.empty_like(est)
+    for p in range(len(est)):
+        wider = est[p] > run_max                                         # False for NaN
+        run_max = np.where(wider, est[p], run_max)
+        off_m = np.where(wider, offs[p], off_m)
+        out[p] = est[p] + float(slope) * np.abs(offs[p] - off_m)
+    return out
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -849,6 +860,7 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
     opened = np.zeros(n_planes, dtype=np.bool_)
     per = np.empty(n_planes)
     est = np.empty(n_planes)
+    score = np.empty(n_planes)
     order = np.empty(cap, dtype=np.int64)
     hull = np.empty(cap + 1, dtype=np.int64)
     sup = np.empty(n_dirs)
@@ -938,21 +950,30 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
         for p in range(n_planes):
             if not opened[p]:
                 any_whole = True
-        run_best = np.inf          # a min band: the smallest estimate (+ slope term) of a plane so far
+        run_best = np.inf          # a min band: the smallest score (estimate + slope term) so far
+        run_max = -np.inf          # with a slope: the widest plane so far (its estimate, its offset)
+        off_m = np.float64(offs[0, i])
         for p in range(n_planes):
             per[p] = np.nan
             est[p] = np.nan
+            score[p] = np.nan
             k = cnt[p]
             if k < 3:
                 continue
             eligible = mode == 2 and not (any_whole and opened[p])
-            pen = slope * abs(np.float64(offs[p, i]) - np.float64(offs[0, i])) if mode == 2 and slope > 0 else 0.0
             if eligible and run_best < np.inf:
                 # A plane that cannot be the band's min is not measured: the estimate is at least
                 # 0.99857 x the hull's perimeter (48 directions; the worst case is a segment), which
                 # is at least the perimeter of the octagon of its extreme points in 8 directions.
-                if 0.998 * _octagon_perimeter(xs[p], ys[p], k) + pen > run_best:
-                    continue
+                # With a slope, only a plane that cannot be the widest so far either (the estimate
+                # is at most its bounding box's perimeter): the widest sets the later planes' term.
+                lower = 0.998 * _octagon_perimeter(xs[p], ys[p], k)
+                if slope == 0:
+                    if lower > run_best:
+                        continue
+                elif _box_perimeter(xs[p], ys[p], k) * (1 + 1e-9) <= run_max:
+                    if lower + slope * abs(np.float64(offs[p, i]) - off_m) > run_best:
+                        continue
             m = _hull_chain(xs[p], ys[p], k, order, hull)
             if m < 2:
                 per[p] = 0.0
@@ -977,8 +998,13 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                         best = val
                 sup[d] = best
             est[p] = _pairwise_sum(sup) * step
-            if eligible and est[p] + pen < run_best:
-                run_best = est[p] + pen
+            if eligible:
+                if slope > 0 and est[p] > run_max:
+                    run_max = est[p]
+                    off_m = np.float64(offs[p, i])
+                score[p] = est[p] + (slope * abs(np.float64(offs[p, i]) - off_m) if slope > 0 else 0.0)
+                if score[p] < run_best:
+                    run_best = score[p]
         missed[i] = True
         for p in range(n_planes):
             if cnt[p] >= 3:
@@ -990,9 +1016,7 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
         best_p = 0
         best = np.inf if mode == 2 else -np.inf
         for p in range(n_planes):
-            e_p = est[p]
-            if mode == 2 and slope > 0:
-                e_p += slope * abs(np.float64(offs[p, i]) - np.float64(offs[0, i]))
+            e_p = score[p] if mode == 2 else est[p]
             if mode == 2 and any_whole and opened[p]:
                 e_p = np.nan
             if np.isnan(e_p):
@@ -1001,6 +1025,17 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                 best, best_p = e_p, p
         plane[i] = best_p
         girth[i] = per[best_p]
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_perimeter(x, y, k):
+    """Perimeter of the bounding box of (x[:k], y[:k]): at least the support-function estimate (its
+    48 directions include the axes, so the estimate's polygon lies in the box)."""
+    x0, x1, y0, y1 = x[0], x[0], y[0], y[0]
+    for q in range(1, k):
+        x0, x1 = min(x0, x[q]), max(x1, x[q])
+        y0, y1 = min(y0, y[q]), max(y1, y[q])
+    return 2.0 * ((x1 - x0) + (y1 - y0))
 
 
 @numba.njit(cache=True, nogil=True)
