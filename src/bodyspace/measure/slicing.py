@@ -966,12 +966,14 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                 # 0.99857 x the hull's perimeter (48 directions; the worst case is a segment), which
                 # is at least the perimeter of the octagon of its extreme points in 8 directions.
                 # With a slope, only a plane that cannot be the widest so far either (the estimate
-                # is at most its bounding box's perimeter): the widest sets the later planes' term.
-                lower = 0.998 * _octagon_perimeter(xs[p], ys[p], k)
+                # is at most the circumscribed octagon's perimeter): the widest sets the later
+                # planes' term.
+                inner, outer = _octagon_bounds(xs[p], ys[p], k)
+                lower = 0.998 * inner
                 if slope == 0:
                     if lower > run_best:
                         continue
-                elif _box_perimeter(xs[p], ys[p], k) * (1 + 1e-9) <= run_max:
+                elif outer * (1 + 1e-9) <= run_max:
                     if lower + slope * abs(np.float64(offs[p, i]) - off_m) > run_best:
                         continue
             m = _hull_chain(xs[p], ys[p], k, order, hull)
@@ -1028,21 +1030,11 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_perimeter(x, y, k):
-    """Perimeter of the bounding box of (x[:k], y[:k]): at least the support-function estimate (its
-    48 directions include the axes, so the estimate's polygon lies in the box)."""
-    x0, x1, y0, y1 = x[0], x[0], y[0], y[0]
-    for q in range(1, k):
-        x0, x1 = min(x0, x[q]), max(x1, x[q])
-        y0, y1 = min(y0, y[q]), max(y1, y[q])
-    return 2.0 * ((x1 - x0) + (y1 - y0))
-
-
-@numba.njit(cache=True, nogil=True)
-def _octagon_perimeter(x, y, k):
-    """Perimeter of the polygon through the extreme points of (x[:k], y[:k]) in the directions
-    0, 45, ..., 315 degrees, in that order: a convex polygon inside their hull, so its perimeter is
-    at most the hull's."""
+def _octagon_bounds(x, y, k):
+    """Two octagons of (x[:k], y[:k]) from their extreme points in the directions 0, 45, ..., 315
+    degrees: the perimeter of the polygon through those points in that order (inside the hull, so
+    at most the hull's) and of the one cut by the 8 supporting lines (around the hull, and the
+    support-function estimate's 48-gon lies inside it: at least the estimate)."""
     ix = np.zeros(8, dtype=np.int64)
     val = np.empty(8)
     for j in range(8):
@@ -1054,11 +1046,17 @@ def _octagon_perimeter(x, y, k):
             if c[j] > val[j]:
                 val[j] = c[j]
                 ix[j] = q
-    s = 0.0
+    inner = 0.0
     for j in range(8):
         a, b = ix[j], ix[(j + 1) % 8]
-        s += np.sqrt((x[b] - x[a]) ** 2 + (y[b] - y[a]) ** 2)
-    return s
+        inner += np.sqrt((x[b] - x[a]) ** 2 + (y[b] - y[a]) ** 2)
+    x1, y1, x0, y0 = val[0], val[2], -val[4], -val[6]
+    # The box, each corner cut by its diagonal line: depth d takes 2 d of the box's sides and adds
+    # d sqrt(2) (the cuts of one side never overlap: the side's own extreme point is between them).
+    cut = max(0.0, x1 + y1 - val[1]) + max(0.0, y1 - x0 - val[3]) + max(0.0, -x0 - y0 - val[5]) \
+        + max(0.0, x1 - y0 - val[7])
+    outer = 2.0 * ((x1 - x0) + (y1 - y0)) - (2.0 - np.sqrt(2.0)) * cut
+    return inner, outer
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
