@@ -17,12 +17,13 @@ from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
 from bodyspace.cli import app
+from bodyspace.data.template import load_template
 from bodyspace.measure.conventions import UP_ROTATIONS
 from bodyspace.mesh.io import save_mesh
 from bodyspace.rig.scan_body import scan_body
 from bodyspace.synth.foreign import foreign_topology, transfer
 
-from floor_meshes import scanner_meshes
+from floor_meshes import disc, scanner_meshes, turntable, with_extras
 
 NODE_DIR = Path(__file__).resolve().parent / "node"
 Z_UP = UP_ROTATIONS["z"]          # metres +Y up → +Z up (Blender's axes)
@@ -64,14 +65,13 @@ def test_the_body_is_found_under_any_scanner_geometry(bodies, name):
             assert said.startswith("left out 1 piece beside the body") and "2.00 m across" in said, said
         else:
             assert said.startswith("left out the floor"), said
-        assert ("cut off along its soles" in said) == (case == "welded"), said
+        assert ("cut off under the feet" in said) == (case == "welded"), said
 
 
 def _landmark_file(path: Path, topo, n_vertices: int, weights_of: np.ndarray) -> Path:
     """A landmark file as ``bodyspace landmarks`` writes it for a mesh of ``n_vertices`` whose
     first vertices are the remesh's: its landmarks and skin weights (``weights_of``: (V, 4) bone
     ids of rig default, weights in equal parts; the rest of the vertices on the first bone)."""
-    from bodyspace.data.template import load_template
     rig = load_template().rigs["default"]
     ids = np.zeros((n_vertices, 4), dtype=int)
     ids[:len(weights_of)] = weights_of
@@ -122,7 +122,7 @@ def test_rig_command_rigs_the_body_as_without_the_floor(bodies, foreign, tmp_pat
     said, clean = rig("clean", v, f)
     assert "[left out]" not in said and "source_vertices" not in clean["extras"]
     said, welded = rig("welded", *meshes["welded"])
-    assert "[left out] " in said and "left out the floor" in said and "cut off along its soles" in said, said
+    assert "[left out] " in said and "left out the floor" in said and "cut off under the feet" in said, said
     assert f"the glTF holds the body alone: {len(v)} of {len(meshes['welded'][0])} vertices, renumbered" in said
     assert welded["extras"]["source_vertices"]["ids"] == list(range(len(v)))
     for key in ("position", "heads"):
@@ -150,3 +150,17 @@ def test_rig_command_rigs_the_body_as_without_the_floor(bodies, foreign, tmp_pat
         for report in json.loads(done.stdout):
             assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]
             assert report["info"]["hasSkins"]
+
+
+def test_a_turntable_on_the_ground_and_a_mesh_wound_inwards(bodies):
+    """The ground, then the turntable's top (frame and unit found though the floors double the
+    area); a welded sheet on a mesh wound inwards: the soles still told from the sheet."""
+    v, f = bodies["template"]
+    y0, zc = v[:, 1].min(), v[:, 2].mean()
+    mv, mf = with_extras(v, f, disc((0.0, 0.0, zc), 1.0, y0 - 0.1), turntable((0.0, 0.0, zc), 0.5, y0, 0.1))
+    got = scan_body(mv @ Z_UP * 1000.0, mf)
+    assert np.array_equal(got.faces, f)
+    assert "left out the floor 2.00 m across" in got.notes[0] and "a turntable's top" in got.notes[1], got.notes
+    mv, mf = scanner_meshes(v, f)["welded"]
+    got = scan_body(mv @ Z_UP * 1000.0, mf[:, ::-1], up="z", units="mm")
+    assert np.array_equal(np.sort(got.faces, axis=1), np.sort(f, axis=1)), len(got.faces)

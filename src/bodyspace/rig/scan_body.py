@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bodyspace.measure.conventions import (FLOOR_BELOW_SHARE_MESH, FLOOR_SAMPLES, MESH_UNITS, body_faces,
-                                           landmark_points, plausible_units, up_vector)
+                                           landmark_points, plausible_units, signed_volume, up_vector)
 from bodyspace.measure.definitions import load_measurement_set
 from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
@@ -115,6 +115,8 @@ def _restore_soles(v: np.ndarray, f: np.ndarray, keep: np.ndarray, u: np.ndarray
     if u is None:
         return keep, 0
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    if signed_volume(v, f[keep])[0] < 0:        # wound inwards (refused later, or --flip-winding): normals in
+        n = -n
     length = np.linalg.norm(n, axis=1)
     up_facing = (n @ u) > 0.5 * np.maximum(length, 1e-300)
     candidates = ~keep & ~up_facing
@@ -130,9 +132,9 @@ def _restore_soles(v: np.ndarray, f: np.ndarray, keep: np.ndarray, u: np.ndarray
 
 def _welded_note(kept: int) -> str:
     if kept:
-        return (f"the floor was joined to the body: cut off along its soles ({kept} faces not facing up, the soles, "
-                "kept with the body)")
-    return "the floor was joined to the body: its soles are open in the rigged mesh"
+        return (f"the floor was joined to the body: cut off under the feet ({kept} faces on it that do not face up, "
+                "the soles, kept with the body)")
+    return "the floor was joined to the body: cut off under the feet, whose soles are open in the rigged mesh"
 
 
 
@@ -145,7 +147,9 @@ def _found_body(v: np.ndarray, f: np.ndarray, up: str | None, units: str | None)
     if units is not None:
         scale = MESH_UNITS[units]
     else:
-        fits = plausible_units(extent, float(np.sqrt(area.sum())))
+        # The size (sqrt of the area) first; a floor or a turntable can double the area, so then
+        # the extent alone (the body's height or the floor's width: both human-sized).
+        fits = plausible_units(extent, float(np.sqrt(area.sum()))) or plausible_units(extent)
         scale = MESH_UNITS[fits[0]] if fits else None
     unit = "m" if scale is not None else "mesh units"
     s = 1.0 if scale is None else scale
