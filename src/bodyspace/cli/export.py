@@ -165,7 +165,8 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
 
 def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or .stl): of the template topology "
                                               "(from bodyspace generate or sample), or any closed humanoid mesh "
-                                              "standing in an A- or T-pose (any vertex count, unit and up axis)."),
+                                              "standing in an A- or T-pose (any vertex count, unit and up axis); "
+                                              "a scan's floor, turntable or pole is left out, and said."),
         out: Path = typer.Option(..., "--out", help="The rigged binary glTF to write (.glb)."),
         rig_name: str = typer.Option("default", "--rig", help="The CC0 rig: " + ", ".join(RIG_NAMES) + "."),
         model: Optional[Path] = typer.Option(None, "--model", help="With --morphs: the model file (with semantic "
@@ -177,7 +178,8 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
                                                                   "from its size when left out."),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Another topology: the landmark file of "
                                                "bodyspace landmarks MESH, whose carried MakeHuman skin weights are "
-                                               "used instead of bone heat."),
+                                               "used instead of bone heat; its landmarks say which pieces of the "
+                                               "mesh are the body."),
         flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for a mesh whose "
                                           "faces are wound inwards (refused otherwise: viewers would draw it inside "
                                           "out)."),
