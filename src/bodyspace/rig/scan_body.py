@@ -211,13 +211,19 @@ def _found_body(v: np.ndarray, f: np.ndarray, up: str | None, units: str | None)
     body_v = np.unique(f[keep & (piece == body)])
     tree = cKDTree(v[body_v])
     gap = PROP_MIN_GAP_M / scale if scale is not None else PROP_MIN_GAP_M / 1.75 * extent
+    # Each other piece's median distance to the body, all pieces at once (a scan may hold
+    # thousands of specks).
+    small = (piece_area > 0) & (piece_area < PROP_MAX_SHARE * piece_area[body])
+    small[body] = False
     props = []
-    for p in np.flatnonzero(piece_area > 0):
-        if p == body or piece_area[p] >= PROP_MAX_SHARE * piece_area[body]:
-            continue
-        pv = np.unique(f[keep & (piece == p)])
-        if np.median(tree.query(v[pv])[0]) > gap:
-            props.append(p)
+    if small.any():
+        pv = np.unique(f[keep & small[piece]])
+        lab, d = labels[pv], tree.query(v[pv])[0]
+        order = np.lexsort((d, lab))
+        lab, d = lab[order], d[order]
+        groups, start, count = np.unique(lab, return_index=True, return_counts=True)
+        median = 0.5 * (d[start + (count - 1) // 2] + d[start + count // 2])
+        props = groups[median > gap].tolist()
     if props:
         out = keep & np.isin(piece, props)
         keep &= ~out
