@@ -48,8 +48,8 @@ import numpy as np
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.definitions import DEFAULT_PATH, MeasurementSet
 from bodyspace.measure.points import format_point, point
-from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
-from bodyspace.mesh.geometry import face_areas, sample_surface
+from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_ROUNDS, mesh_floor
+from bodyspace.mesh.geometry import face_areas
 from bodyspace.units import UNITS as _QUANTITY_UNITS
 
 # The largest side of a human body's bounding box, metres (a toddler lying down .. a very tall
@@ -671,11 +671,6 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
 # a standing body) is more than FLOOR_GATE_AREA x (the landmarks' height span)²: the template's
 # feet are 0.042, a floor disc 1 m wide under them 0.31 (a false alarm costs only the search).
 FLOOR_GATE_AREA = 0.12
-# A mesh holds all of a turntable's side below its top (a scan sees little of it: 0.25 there):
-# up to this share of the rest may lie below the floor's plane.
-FLOOR_BELOW_SHARE_MESH = 0.45
-# Points sampled from the faces to look for the floor in (find_floor takes a subsample of 20,000).
-FLOOR_SAMPLES = 20_000
 
 
 @dataclass(frozen=True)
@@ -806,15 +801,10 @@ def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray,
     keep = keep.copy()
     floors = []
     for _ in range(FLOOR_ROUNDS):
-        idx = np.flatnonzero(keep)
-        pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
-        found = find_floor(pts, u, 0, FLOOR_BELOW_SHARE_MESH)
+        found = mesh_floor(v, f[keep], scale, u)
         if found is None:
             break
-        normal, offset = found
-        near = np.abs(pts @ normal - offset)
-        near = near[near < FLOOR_TOLERANCE]
-        noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+        normal, offset, noise = found
         height = v @ normal * scale - offset
         cut = keep & (height[f] < FLOOR_CUT_SIGMAS * noise).all(axis=1)
         if not cut.any():

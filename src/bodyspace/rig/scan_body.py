@@ -26,12 +26,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bodyspace.measure.conventions import (FLOOR_BELOW_SHARE_MESH, FLOOR_SAMPLES, MESH_UNITS, body_faces,
-                                           landmark_points, plausible_units, signed_volume, up_vector)
+from bodyspace.measure.conventions import MESH_UNITS, body_faces, landmark_points, plausible_units, signed_volume, up_vector
 from bodyspace.measure.definitions import load_measurement_set
 from bodyspace.measure.landmark_check import landmark_measurement_set
-from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
-from bodyspace.mesh.geometry import face_areas, sample_surface
+from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_ROUNDS, mesh_floor, sheet_width
+from bodyspace.mesh.geometry import face_areas
 from bodyspace.mesh.topology import vertex_components
 
 __all__ = ["ScanBody", "scan_body", "PROP_MAX_SHARE", "PROP_MIN_GAP_M"]
@@ -162,15 +161,10 @@ def _found_body(v: np.ndarray, f: np.ndarray, up: str | None, units: str | None)
         # turntable with its side) go whole, so a body standing on a separate floor keeps its
         # soles; when none does, the floor is welded to the body and its faces are cut.
         for _ in range(2 * FLOOR_ROUNDS):
-            idx = np.flatnonzero(keep)
-            pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
-            found = find_floor(pts, u, 0, FLOOR_BELOW_SHARE_MESH)
+            found = mesh_floor(v, f[keep], scale, u)
             if found is None:
                 break
-            normal, offset = found
-            near = np.abs(pts @ normal - offset)
-            near = near[near < FLOOR_TOLERANCE]
-            noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+            normal, offset, noise = found
             band = v @ normal * scale - offset < FLOOR_CUT_SIGMAS * noise          # (V,) on it or below
             n, labels = vertex_components(f[keep], len(v))
             piece = labels[f[:, 0]]
@@ -189,10 +183,7 @@ def _found_body(v: np.ndarray, f: np.ndarray, up: str | None, units: str | None)
                 on_body[f[keep]] = True
                 if on_body[f[cut]].any():
                     welded, soles = True, soles + kept
-            flat = v[np.unique(f[cut])] * scale
-            flat = flat - flat.mean(axis=0)
-            flat -= np.outer(flat @ normal, normal)
-            across = 2 * float(np.percentile(np.linalg.norm(flat, axis=1), 98))
+            across = sheet_width(v[np.unique(f[cut])] * scale, normal)
             what = "the floor" if not notes else "a platform on it (a turntable's top with its side)"
             notes.append(f"left out {what} {across:.2f} m across under the feet"
                          f"{' (a piece of its own)' if whole else ''}: {int(cut.sum())} faces, "
