@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bodyspace.measure.conventions import MESH_UNITS, body_faces, landmark_points, plausible_units, signed_volume, up_vector
+from bodyspace.measure.conventions import (AXIS_VECTORS, MESH_UNITS, body_faces, landmark_points, plausible_units,
+                                           signed_volume, up_vector)
 from bodyspace.measure.definitions import load_measurement_set
 from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_ROUNDS, mesh_floor, sheet_width
@@ -42,10 +43,6 @@ PROP_MAX_SHARE = 0.5
 # unit, this share of the body's height times 1.75 m): eyes, teeth and hair cards sit on or in the
 # body, a pole or a stand beside it.
 PROP_MIN_GAP_M = 0.03
-
-_UP = {"x": (1.0, 0, 0), "-x": (-1.0, 0, 0), "y": (0, 1.0, 0), "-y": (0, -1.0, 0), "z": (0, 0, 1.0),
-       "-z": (0, 0, -1.0)}
-
 
 @dataclass(frozen=True)
 class ScanBody:
@@ -91,12 +88,9 @@ def _landmarked_body(v: np.ndarray, f: np.ndarray, landmarks, units: str | None)
     """(F,) bool faces of the body the landmark file's points say, and the notes."""
     mset = landmark_measurement_set(landmarks, base=load_measurement_set(), flag="--weights")
     got = body_faces(v, f, mset, units)
-    if got.faces is f or len(got.faces) == len(f):
+    if got.kept is None:
         return None, []
-    # body_faces keeps a subsequence of the faces: find it by the faces' vertex triples.
-    key = np.ascontiguousarray(f).view(np.dtype((np.void, f.dtype.itemsize * 3))).ravel()
-    kept = np.ascontiguousarray(np.asarray(got.faces, dtype=f.dtype)).view(key.dtype).ravel()
-    keep = np.isin(key, kept)
+    keep = got.kept
     notes = list(got.notes)
     if got.welded:      # measure's last note speaks of the volume; for a rig: the soles
         u = up_vector(landmark_points(mset, v))
@@ -152,7 +146,7 @@ def _found_body(v: np.ndarray, f: np.ndarray, up: str | None, units: str | None)
         scale = MESH_UNITS[fits[0]] if fits else None
     unit = "m" if scale is not None else "mesh units"
     s = 1.0 if scale is None else scale
-    u = np.array(_UP[up]) if up is not None else None
+    u = np.array(AXIS_VECTORS[up], dtype=float) if up is not None else None
     keep = np.ones(len(f), dtype=bool)
     notes = []
     welded, soles = False, 0
