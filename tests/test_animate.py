@@ -257,6 +257,25 @@ def test_a_mesh_of_another_topology_is_rigged_by_embedding_and_walks(template, p
     assert 1.4 < height < 2.1 and np.isfinite(frames).all()
 
 
+@needs_clips
+def test_a_scan_with_its_floor_walks_without_the_floor(template, tmp_path):
+    """A remeshed body on a scanned floor disc 1.6 m wide: the floor is left out (as ``rig`` leaves
+    it out) and said, and the body alone walks with its own faces."""
+    from floor_meshes import scanner_meshes
+    from bodyspace.synth.foreign import foreign_topology, transfer
+    topo = foreign_topology(template, 3000, rng=11)
+    v = transfer(topo.correspondence, template.faces, np.asarray(template.vertices, float))
+    v[:, 1] -= v[:, 1].min()
+    mesh_v, mesh_f = scanner_meshes(v, np.asarray(topo.faces))["disc"]
+    save_mesh(tmp_path / "on_floor.obj", mesh_v, mesh_f)
+    code, text = run("animate", tmp_path / "on_floor.obj", "--motion", CLIPS[0], "--frames", "0:8:4",
+                     "--out", tmp_path / "walk.npz")
+    assert code == 0 and "left out" in text and "skeleton embedded" in text, text
+    frames, faces = read_mesh_sequence(tmp_path / "walk.npz")[:2]
+    assert frames.shape == (2, len(v), 3) and np.array_equal(faces, topo.faces)
+    assert 1.4 < np.ptp(frames[0][:, 1]) < 2.1 and np.ptp(frames[0][:, 0]) < 1.2      # no 1.6 m disc
+
+
 # ----------------------------------------------------------------------------- arms and torso
 
 def test_arm_torso_measure_is_zero_at_rest_and_sees_an_arm_in_the_body(template):

@@ -16,47 +16,9 @@ from bodyspace.measure import evaluate, load_measurement_set
 from bodyspace.measure.landmark_check import landmark_measurement_set
 from bodyspace.mesh.io import save_mesh
 
+from floor_meshes import disc, welded_sheet
+
 runner = CliRunner()
-
-
-def disc(centre, radius, y, rings=6, seg=40):
-    """A flat disc (P, 3), (F, 3) at height y, its faces wound to face +Y."""
-    pts = [np.array([centre[0], y, centre[2]])]
-    a = np.linspace(0, 2 * np.pi, seg, endpoint=False)
-    for i in range(1, rings + 1):
-        r = radius * i / rings
-        pts += list(np.c_[centre[0] + r * np.cos(a), np.full(seg, y), centre[2] + r * np.sin(a)])
-    faces = [[0, 1 + (j + 1) % seg, 1 + j] for j in range(seg)]
-    for i in range(1, rings):
-        b0, b1 = 1 + (i - 1) * seg, 1 + i * seg
-        for j in range(seg):
-            k = (j + 1) % seg
-            faces += [[b0 + j, b0 + k, b1 + k], [b0 + j, b1 + k, b1 + j]]
-    p, f = np.array(pts), np.array(faces)
-    if np.cross(p[f[0, 1]] - p[f[0, 0]], p[f[0, 2]] - p[f[0, 0]])[1] < 0:
-        f = f[:, ::-1]
-    return p, f
-
-
-def welded_sheet(v, size=1.6, n=33):
-    """A square sheet (n x n grid) at the soles' height whose points over the soles are the soles'
-    own vertices (one connected mesh): (vertices (V + G, 3), faces (F_sheet, 3) into them)."""
-    y0 = v[:, 1].min()
-    xs = np.linspace(-size / 2, size / 2, n)
-    x, z = np.meshgrid(xs, xs + v[:, 2].mean())
-    grid = np.c_[x.ravel(), np.full(n * n, y0), z.ravel()]
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j
-            faces += [[a, c, b], [a, d, c]]
-    faces = np.array(faces)
-    sole = np.flatnonzero(v[:, 1] < y0 + 0.004)
-    ids = np.arange(n * n) + len(v)
-    d = np.linalg.norm(grid[:, None, [0, 2]] - v[sole][None, :, [0, 2]], axis=2)
-    near = d.min(axis=1) < 0.03
-    ids[near] = sole[d.argmin(axis=1)[near]]
-    return np.r_[v, grid], ids[faces]
 
 
 @pytest.fixture(scope="module")

@@ -59,6 +59,7 @@ from bodyspace.motion.matching import graph_from_motion, graph_from_skeleton, lo
 from bodyspace.motion.retarget import retarget, to_bvh
 from bodyspace.report.animation import animated_gif, filmstrip
 from bodyspace.rig.kinematics import linear_blend_skinning
+from bodyspace.rig.scan_body import scan_body
 from bodyspace.rig.volume import preserve_volume as correct_volume
 from bodyspace.rig.volume import volume_rig
 
@@ -107,16 +108,25 @@ def _body(body: Path, sets, database, refit, clamp, seed) -> tuple[np.ndarray, n
 
 
 def _skeleton(vertices, faces, rig_name: str, where: str):
-    """``(vertices, skeleton, weights, how)``: the template's rig and weights on a body of its
-    topology (in metres, +Y up, checked), else the rig embedded into the mesh with bone-heat
-    weights (``skeleton_and_weights``: the vertices come back in metres, +Y up)."""
+    """``(vertices, faces, skeleton, weights, how)``: the template's rig and weights on a body of
+    its topology (in metres, +Y up, checked), else the rig embedded into the mesh with bone-heat
+    weights (``skeleton_and_weights``: the vertices come back in metres, +Y up). A scanner's
+    floor, turntable or pole is left out first, as ``bodyspace rig`` leaves it out
+    (``rig.scan_body``; the body alone is animated, ``how`` says what was left out)."""
     template = load_template()
     if vertices.shape == template.vertices.shape and np.array_equal(faces, template.faces):
         size = float(np.ptp(vertices[:, 1]))
         if not 0.5 < size < 2.8:
             raise ParameterError(f"{where}: the body is {size:g} units tall; expected metres with +Y up (a body 0.5 "
                                  "to 2.8 m tall): scale it (centimetres x 0.01) and turn it first")
-    return skeleton_and_weights(vertices, faces, rig_name, where)
+        left_out = ""
+    else:
+        found = scan_body(vertices, faces)
+        left_out = "" if found is None else f"; left out: {'; '.join(found.notes)}"
+        if found is not None:
+            vertices, faces = vertices[found.vertex_ids], found.faces
+    vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where)
+    return vertices, faces, skeleton, weights, how + left_out
 
 
 def _facing_front(posed: np.ndarray, root_rotations: np.ndarray) -> np.ndarray:
@@ -215,7 +225,7 @@ def animate(body: Path = typer.Argument(..., help="A model file (.npz, bodyspace
     with progress(f"animating {motion.name}") as bar:
         bar("the body", 0.02)
         vertices, faces, said_body = _body(body, sets, database, refit, clamp, seed)
-        vertices, skeleton, weights, how = _skeleton(vertices, faces, rig_name, str(body))
+        vertices, faces, skeleton, weights, how = _skeleton(vertices, faces, rig_name, str(body))
         if how != "template topology":
             said_body = f"{said_body} ({how})"
         bar("matching the skeletons", 0.15)

@@ -11,6 +11,7 @@ standing on y = 0. Both branches meet in ``skeleton_and_weights``.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Optional
@@ -29,6 +30,7 @@ from bodyspace.model import BodyModel
 from bodyspace.report.rig_figure import rig_figure
 from bodyspace.rig.carried_weights import load_carried_weights
 from bodyspace.rig.embed import embed_skeleton, embedded_skeleton
+from bodyspace.rig.scan_body import scan_body
 from bodyspace.rig.skeleton import body_skeleton
 from bodyspace.rig.weights import bone_heat_weights
 
@@ -67,12 +69,15 @@ def check_rig_options(out: Path, rig: Optional[str], morphs: Optional[str], png:
 
 
 def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str, where: str, *,
-                         up: Optional[str] = None, units: Optional[str] = None, weights_file: Optional[Path] = None):
+                         up: Optional[str] = None, units: Optional[str] = None, weights_file: Optional[Path] = None,
+                         source_vertices: Optional[tuple[int, np.ndarray]] = None):
     """``(vertices, skeleton, weights, how)`` of a body for rig ``rig_name``: the template's rig and
     MakeHuman's weights when the body has the template topology (vertices as given); else the
     rig embedded into the mesh and bone-heat weights, the vertices in metres, our axes (``up``,
     ``units``: the mesh's, found from it when None). ``how`` says which, for people.
-    weights_file: a ``bodyspace landmarks`` file whose carried skin weights replace bone heat."""
+    weights_file: a ``bodyspace landmarks`` file whose carried skin weights replace bone heat.
+    source_vertices: (V0, ids (V,)) when the body is part of a mesh of V0 vertices the file is for
+    (``rig.scan_body``: its floor left out): the body's vertex i is the file's ``ids[i]``."""
     template = load_template()
     v, f = np.asarray(vertices, dtype=float), np.asarray(faces)
     rig = template.rigs.get(rig_name)
@@ -98,7 +103,11 @@ def skeleton_and_weights(vertices: np.ndarray, faces: np.ndarray, rig_name: str,
            f"{1000 * embedding.residual_m:.1f} mm), ")
     if weights_file is not None:
         # MakeHuman's weights carried by the registration (bodyspace landmarks): no bone heat.
-        return body, skeleton, load_carried_weights(weights_file, len(v), rig), how + f"skin weights of {weights_file}"
+        if source_vertices is None:
+            carried = load_carried_weights(weights_file, len(v), rig)
+        else:
+            carried = load_carried_weights(weights_file, source_vertices[0], rig)[source_vertices[1]]
+        return body, skeleton, carried, how + f"skin weights of {weights_file}"
     deform = np.asarray(abs(rig.weights).sum(axis=0)).ravel() > 0     # the bones MakeHuman's weights move
     weights = bone_heat_weights(body, f, skeleton.heads, skeleton.tails, deform=deform)
     how += "bone-heat weights"
@@ -115,14 +124,16 @@ def _linear_part(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: str, *, body_model=None,
                  morphs: Optional[str] = None, png: Optional[Path] = None, bones: Optional[str] = None,
                  where: str = "the body", up: Optional[str] = None, units: Optional[str] = None,
-                 weights_file: Optional[Path] = None) -> str:
-    """Write the rigged ``.glb`` (and the ``--png``); returns a line saying what was written."""
+                 weights_file: Optional[Path] = None, source_vertices: Optional[tuple[int, np.ndarray]] = None) -> str:
+    """Write the rigged ``.glb`` (and the ``--png``); returns a line saying what was written.
+    source_vertices: as in ``skeleton_and_weights``; the ids are stored in the asset's extras
+    (``source_vertices``) so the glTF's vertices can be traced back to the mesh's."""
     names = [b.strip() for b in bones.split(",")] if bones else None
     if morphs is not None and body_model is None:
         raise ParameterError("--morphs needs the model whose semantic variables they are; pass --model MODEL.npz")
     given = np.asarray(vertices, dtype=float)
     vertices, skeleton, weights, how = skeleton_and_weights(vertices, faces, rig_name, where, up=up, units=units,
-                                                            weights_file=weights_file)
+                                                            weights_file=weights_file, source_vertices=source_vertices)
     for b in names or []:
         if b not in skeleton.bone_names:
             raise ParameterError(f"--bones {b!r}: not a bone of rig {rig_name}; expected names such as "
@@ -138,8 +149,10 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
             # A body of the model's own (not the template's) topology is rigged by embedding, which
             # writes it in metres, +Y up, facing +Z: the same rigid move and scale carries the keys.
             targets = [replace(t, deltas=t.deltas @ _linear_part(given, vertices)) for t in targets]
-    write_gltf(out, vertices, faces, skeleton, weights, targets,
-               extras={"rig": rig_name, "template": load_template().template_id})
+    extras = {"rig": rig_name, "template": load_template().template_id}
+    if source_vertices is not None:
+        extras["source_vertices"] = {"count": int(source_vertices[0]), "ids": source_vertices[1].tolist()}
+    write_gltf(out, vertices, faces, skeleton, weights, targets, extras=extras)
     said = f"wrote {out}: rig {rig_name} ({skeleton.n_bones} bones), {len(vertices)} vertices, {how}"
     if targets:
         said += ", morph targets " + ", ".join(t.name for t in targets)
@@ -152,7 +165,8 @@ def write_rigged(out: Path, vertices: np.ndarray, faces: np.ndarray, rig_name: s
 
 def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or .stl): of the template topology "
                                               "(from bodyspace generate or sample), or any closed humanoid mesh "
-                                              "standing in an A- or T-pose (any vertex count, unit and up axis)."),
+                                              "standing in an A- or T-pose (any vertex count, unit and up axis); "
+                                              "a scan's floor, turntable or pole is left out, and said."),
         out: Path = typer.Option(..., "--out", help="The rigged binary glTF to write (.glb)."),
         rig_name: str = typer.Option("default", "--rig", help="The CC0 rig: " + ", ".join(RIG_NAMES) + "."),
         model: Optional[Path] = typer.Option(None, "--model", help="With --morphs: the model file (with semantic "
@@ -164,7 +178,8 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
                                                                   "from its size when left out."),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Another topology: the landmark file of "
                                                "bodyspace landmarks MESH, whose carried MakeHuman skin weights are "
-                                               "used instead of bone heat."),
+                                               "used instead of bone heat; its landmarks say which pieces of the "
+                                               "mesh are the body."),
         flip_winding: bool = typer.Option(False, "--flip-winding", help="Reverse every face: for a mesh whose "
                                           "faces are wound inwards (refused otherwise: viewers would draw it inside "
                                           "out)."),
@@ -183,6 +198,21 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
         if model is not None and morphs is None:
             raise ParameterError("--model is read for --morphs only; pass --morphs NAMES or leave --model out")
         v, f = load_mesh(mesh)
+        # A scanner's floor, turntable or pole is left out before anything sees it (its signed
+        # volume, the embedding, bone heat). The glTF holds the body alone, renumbered: an artist
+        # rigs a scan to animate the person; the floor is a capture artefact, and kept as an
+        # unskinned node it would sit at the origin of every shot and come into Blender or Unity
+        # as a second object to find and delete. The ids kept are in the asset's extras.
+        found = scan_body(v, f, up=up, units=units, landmarks=weights if _has_landmarks(weights) else None)
+        source = None
+        if found is not None:
+            source = (len(v), found.vertex_ids)
+            for note in found.notes:
+                console.print(f"[left out] {mesh}: {note}", markup=False, highlight=False)
+            console.print(f"[left out] {mesh}: the glTF holds the body alone: {len(found.vertex_ids)} of {len(v)} "
+                          "vertices, renumbered in their order (the mesh's ids in the asset's extras, "
+                          "source_vertices)", markup=False, highlight=False)
+            v, f = v[found.vertex_ids], found.faces
         if flip_winding:
             if not winding_inwards(v, f)[0]:
                 raise ParameterError(f"--flip-winding: the faces of {mesh} are wound outwards already; leave "
@@ -193,7 +223,19 @@ def rig(mesh: Path = typer.Argument(..., help="A body mesh (.obj, .ply, .glb or 
             raise ParameterError(f"--model {model}: holds no semantic regressors; fit them once with bodyspace generate "
                                  f"{model} --database DB ... (they are saved into the model file)")
         said = write_rigged(out, v, f, rig_name, body_model=body_model, morphs=morphs, png=png, bones=bones,
-                            where=str(mesh), up=up, units=units, weights_file=weights)
+                            where=str(mesh), up=up, units=units, weights_file=weights,
+                            source_vertices=source)
     except BodyspaceError as exc:
         fail(exc)
     console.print(said, highlight=False)
+
+
+def _has_landmarks(path: Optional[Path]) -> bool:
+    """Whether a --weights file carries landmarks (``bodyspace landmarks`` writes them) that say
+    which pieces of the mesh are the body; a file that cannot be read is refused later, naming it."""
+    if path is None:
+        return False
+    try:
+        return isinstance(d := json.loads(Path(path).read_text(encoding="utf-8")), dict) and "landmarks" in d
+    except (OSError, ValueError):
+        return False

@@ -48,8 +48,9 @@ import numpy as np
 from bodyspace.errors import MeasurementError
 from bodyspace.measure.definitions import DEFAULT_PATH, MeasurementSet
 from bodyspace.measure.points import format_point, point
-from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_MIN_NOISE, FLOOR_ROUNDS, FLOOR_TOLERANCE, find_floor
-from bodyspace.mesh.geometry import face_areas, sample_surface
+from bodyspace.mesh.floor import FLOOR_CUT_SIGMAS, FLOOR_ROUNDS, mesh_floor, sheet_width
+from bodyspace.mesh.geometry import face_areas
+from bodyspace.mesh.topology import face_component_roots
 from bodyspace.units import UNITS as _QUANTITY_UNITS
 
 # The largest side of a human body's bounding box, metres (a toddler lying down .. a very tall
@@ -73,7 +74,7 @@ _UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres", "in": "i
 _OTHER_FACTORS = {"km": 1000.0, "μm": 1e-6}
 
 UP_AXES = ("y", "-y", "x", "-x", "z", "-z")
-_AXIS_VECTORS = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z": (0, 0, 1), "-z": (0, 0, -1)}
+AXIS_VECTORS = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z": (0, 0, 1), "-z": (0, 0, -1)}
 # Rotations taking each up axis to +Y (proper rotations: no mirror). "z" is Blender's convention,
 # the person facing -Y, which becomes +Z (our front); "-y" (upside down) turns about X.
 UP_ROTATIONS = {
@@ -443,8 +444,8 @@ def up_axis(points: dict[str, np.ndarray]) -> tuple[str | None, float]:
     u = up_vector(points)
     if u is None:
         return None, float("nan")
-    best = max(UP_AXES, key=lambda k: float(np.dot(u, _AXIS_VECTORS[k])))
-    angle = float(np.degrees(np.arccos(np.clip(np.dot(u, _AXIS_VECTORS[best]), -1.0, 1.0))))
+    best = max(UP_AXES, key=lambda k: float(np.dot(u, AXIS_VECTORS[k])))
+    angle = float(np.degrees(np.arccos(np.clip(np.dot(u, AXIS_VECTORS[best]), -1.0, 1.0))))
     return (best, angle) if angle <= UP_AXIS_MAX_ANGLE else (None, angle)
 
 
@@ -671,11 +672,6 @@ def prepare(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, mesh_
 # a standing body) is more than FLOOR_GATE_AREA x (the landmarks' height span)²: the template's
 # feet are 0.042, a floor disc 1 m wide under them 0.31 (a false alarm costs only the search).
 FLOOR_GATE_AREA = 0.12
-# A mesh holds all of a turntable's side below its top (a scan sees little of it: 0.25 there):
-# up to this share of the rest may lie below the floor's plane.
-FLOOR_BELOW_SHARE_MESH = 0.45
-# Points sampled from the faces to look for the floor in (find_floor takes a subsample of 20,000).
-FLOOR_SAMPLES = 20_000
 
 
 @dataclass(frozen=True)
@@ -689,6 +685,7 @@ class BodyFaces:
     notes: one sentence per thing left out (empty: the mesh is all body).
     left_out_area: the surface left out, m² (mesh units² when the unit is unknown).
     welded: the floor was joined to the body: the body is open where it stood on it.
+    kept: (F,) bool, the mesh's faces that are ``faces``; None when the mesh is all body.
     """
 
     vertices: np.ndarray
@@ -696,35 +693,13 @@ class BodyFaces:
     notes: tuple[str, ...] = ()
     left_out_area: float = 0.0
     welded: bool = False
-
-
-@numba.njit(cache=True, nogil=True)
-def _face_roots(faces, n_vertices, out):
-    """Union-find over the faces (F, 3): out (F,) the root vertex of each face's component."""
-    parent = np.arange(n_vertices)
-    for k in range(faces.shape[0]):
-        for j in range(1, 3):
-            a, b = faces[k, 0], faces[k, j]
-            while parent[a] != a:
-                parent[a] = parent[parent[a]]
-                a = parent[a]
-            while parent[b] != b:
-                parent[b] = parent[parent[b]]
-                b = parent[b]
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    for k in range(faces.shape[0]):
-        a = faces[k, 0]
-        while parent[a] != a:
-            a = parent[a]
-        out[k] = a
+    kept: np.ndarray | None = None
 
 
 def _landmarked(faces: np.ndarray, n_vertices: int, ids: np.ndarray) -> np.ndarray:
     """(F,) bool: the faces of the connected pieces of ``faces`` that hold a vertex of ``ids``
     (every face when the mesh is one piece, or when no piece holds one)."""
-    roots = np.empty(len(faces), dtype=np.int64)
-    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
+    roots = face_component_roots(faces, n_vertices)
     if not len(roots) or (roots == roots[0]).all():
         return np.ones(len(faces), dtype=bool)
     on = np.zeros(n_vertices, dtype=bool)
@@ -762,7 +737,7 @@ def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, un
             scale = MESH_UNITS[fits[0]] if fits else None
         low = (v @ u) < heights.min()                                   # (V,) below the lowest landmark
         below = keep & low[f[:, 0]] & low[f[:, 1]] & low[f[:, 2]]
-        if scale is not None and below.any() and _area(v, f[below]) > FLOOR_GATE_AREA * span ** 2:
+        if scale is not None and below.any() and face_areas(v, f[below]).sum() > FLOOR_GATE_AREA * span ** 2:
             keep, floors = _cut_floors(v, f, keep, ids, u, scale)
     if keep.all() or not keep.any():     # all body, or nothing would be left: the door judges it whole
         return BodyFaces(vertices, faces)
@@ -777,14 +752,14 @@ def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, un
     welded = bool(floors) and bool((dropped & body_vertices).any())
     notes = []
     for what, mask in floors:
-        w = _across(v[np.unique(f[mask])], u) * s
+        w = sheet_width(v[np.unique(f[mask])], u) * s
         notes.append(f"left out {what} {_metres(w, unit)} across under the feet: {int(mask.sum())} faces, "
                      f"{areas[mask].sum():.3g} {unit}² of surface")
     pieces = out.copy()
     for _, mask in floors:
         pieces &= ~mask
     if pieces.any():
-        n = _count_pieces(f[pieces], len(v))
+        n = len(np.unique(face_component_roots(f[pieces], len(v))))
         w = float(body_extent(v[np.unique(f[pieces])])) * s
         notes.append(f"left out {n} piece{'s' if n > 1 else ''} not joined to the body (no landmark on "
                      f"{'them' if n > 1 else 'it'}: a floor, a turntable, a stand?): {int(pieces.sum())} faces, "
@@ -796,7 +771,7 @@ def body_faces(vertices: np.ndarray, faces: np.ndarray, mset: MeasurementSet, un
     moved[ids] = False
     v = v.copy()
     v[moved] = v[f[keep][0, 0]]
-    return BodyFaces(v, f[keep], tuple(notes), float(areas[out].sum()), welded)
+    return BodyFaces(v, f[keep], tuple(notes), float(areas[out].sum()), welded, keep)
 
 
 def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray, u: np.ndarray,
@@ -806,15 +781,10 @@ def _cut_floors(v: np.ndarray, f: np.ndarray, keep: np.ndarray, ids: np.ndarray,
     keep = keep.copy()
     floors = []
     for _ in range(FLOOR_ROUNDS):
-        idx = np.flatnonzero(keep)
-        pts = sample_surface(v, f[idx], FLOOR_SAMPLES, 0)[0] * scale
-        found = find_floor(pts, u, 0, FLOOR_BELOW_SHARE_MESH)
+        found = mesh_floor(v, f[keep], scale, u)
         if found is None:
             break
-        normal, offset = found
-        near = np.abs(pts @ normal - offset)
-        near = near[near < FLOOR_TOLERANCE]
-        noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+        normal, offset, noise = found
         height = v @ normal * scale - offset
         cut = keep & (height[f] < FLOOR_CUT_SIGMAS * noise).all(axis=1)
         if not cut.any():
@@ -854,25 +824,6 @@ def _unpinch(f: np.ndarray, keep: np.ndarray, near: np.ndarray, rounds: int = 8)
             break
         keep &= ~drop
     return keep
-
-
-def _area(v: np.ndarray, f: np.ndarray) -> float:
-    """Total area of the faces f (F, 3) of v (V, 3)."""
-    a = v[f[:, 0]]
-    return 0.5 * float(np.linalg.norm(np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a), axis=1).sum())
-
-
-def _count_pieces(faces: np.ndarray, n_vertices: int) -> int:
-    roots = np.empty(len(faces), dtype=np.int64)
-    _face_roots(np.ascontiguousarray(faces, dtype=np.int64), n_vertices, roots)
-    return len(np.unique(roots))
-
-
-def _across(points: np.ndarray, u: np.ndarray) -> float:
-    """The widest spread (98th percentile radius x 2) of points (P, 3) across the direction u."""
-    flat = points - points.mean(axis=0)
-    flat = flat - np.outer(flat @ u, u)
-    return 2.0 * float(np.percentile(np.linalg.norm(flat, axis=1), 98))
 
 
 def _metres(x: float, unit: str) -> str:

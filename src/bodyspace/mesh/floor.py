@@ -3,15 +3,18 @@
 Photogrammetry and booth scans carry the ground or the turntable the body stands on, a separate
 component or welded to the soles. ``find_floor`` finds such a plane by RANSAC in a body's points
 (metres) and ``remove_floors`` takes every floor away (a turntable: the ground, then its top).
-Used by the registration (``register.prepare``) on a scan's points, and by the measurement door
-(``measure.conventions.body_faces``) on points sampled from a mesh's faces.
+Used by the registration (``register.prepare``) on a scan's points; ``mesh_floor`` finds it in
+points sampled from a mesh's faces, for the measurement door (``measure.conventions.body_faces``)
+and the rigging (``rig.scan_body``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["find_floor", "remove_floors"]
+from bodyspace.mesh.geometry import sample_surface
+
+__all__ = ["find_floor", "remove_floors", "mesh_floor", "sheet_width"]
 
 # The floor (photogrammetry and booth scans carry the ground or the turntable the body stands on):
 # a plane found by RANSAC (``FLOOR_TRIALS`` planes through three points of a ``FLOOR_SAMPLE``
@@ -129,13 +132,45 @@ def remove_floors(points: np.ndarray, up: np.ndarray | None = None, rng=0) -> tu
         cut = height < FLOOR_CUT_SIGMAS * noise
         keep[idx[cut]] = False
         planes.append((normal, offset, FLOOR_CUT_SIGMAS * noise))
-        on = points[idx[near]]
-        flat = on - on.mean(axis=0)
-        flat = flat - np.outer(flat @ normal, normal)
         what = "the floor" if not notes else "a platform on it (a turntable's top with its side)"
         notes.append(f"removed {what}: {int(cut.sum())} points ({100 * cut.mean():.1f} %) on a flat sheet "
-                     f"{100 * 2 * np.percentile(np.linalg.norm(flat, axis=1), 98):.0f} cm across the body stands "
+                     f"{100 * sheet_width(points[idx[near]], normal):.0f} cm across the body stands "
                      f"on, within {1000 * FLOOR_CUT_SIGMAS * noise:.0f} mm of it or below it")
         if up is None:
             up = normal           # a second floor (a turntable's top) is parallel to the first
     return keep, notes, planes
+
+
+# A mesh holds all of a turntable's side below its top (a scan sees little of it: 0.25 there):
+# up to this share of the rest may lie below the floor's plane.
+FLOOR_BELOW_SHARE_MESH = 0.45
+# Points sampled from a mesh's faces to look for the floor in (find_floor takes a subsample of 20,000).
+FLOOR_SAMPLES = 20_000
+
+
+def mesh_floor(vertices: np.ndarray, faces: np.ndarray, scale: float,
+               up: np.ndarray | None = None) -> tuple[np.ndarray, float, float] | None:
+    """The floor under a mesh (``find_floor`` in ``FLOOR_SAMPLES`` points sampled from ``faces``),
+    or None: (normal (3,) towards the body, offset (metres), noise (metres): the robust spread of
+    the sampled points within ``FLOOR_TOLERANCE`` of the plane, at least ``FLOOR_MIN_NOISE``).
+
+    vertices: (V, 3) mesh units, ``scale`` metres each; faces: (F, 3) the faces to look in; up: as
+    in ``find_floor``. A vertex x's height over the floor is ``x @ normal * scale - offset``.
+    """
+    points = sample_surface(vertices, faces, FLOOR_SAMPLES, 0)[0] * scale
+    found = find_floor(points, up, 0, FLOOR_BELOW_SHARE_MESH)
+    if found is None:
+        return None
+    normal, offset = found
+    near = np.abs(points @ normal - offset)
+    near = near[near < FLOOR_TOLERANCE]
+    noise = max(1.4826 * float(np.median(near)), FLOOR_MIN_NOISE) if len(near) else FLOOR_MIN_NOISE
+    return normal, offset, noise
+
+
+def sheet_width(points: np.ndarray, normal: np.ndarray) -> float:
+    """How far across a floor's points (P, 3) are within its plane (``normal`` (3,)): twice the
+    98th percentile of their distances from their centroid (the same units as ``points``)."""
+    flat = points - points.mean(axis=0)
+    flat = flat - np.outer(flat @ normal, normal)
+    return 2 * float(np.percentile(np.linalg.norm(flat, axis=1), 98))

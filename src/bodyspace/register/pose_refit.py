@@ -172,9 +172,7 @@ def scan_offsets(posed: np.ndarray, faces: np.ndarray, points: np.ndarray, norma
     total, count = np.bincount(near, h, minlength=V), np.bincount(near, minlength=V).astype(float)
     own_total, own_count = np.bincount(own_near, own_h, minlength=V), np.bincount(own_near, minlength=V).astype(float)
     if rings:
-        e = mesh_edges(faces)
-        ring = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                             shape=(V, V)).tocsr() + sp.identity(V, format="csr")
+        ring = _ring_matrix(faces, V)
         for _ in range(rings):
             total, count, own_total, own_count = ring @ total, ring @ count, ring @ own_total, ring @ own_count
     offset = total / np.maximum(count, 1e-12) - own_total / np.maximum(own_count, 1e-12)

@@ -20,7 +20,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from bodyspace.errors import MeshError, ParameterError
-from bodyspace.measure.conventions import MESH_UNITS, UP_AXES, plausible_units, to_internal
+from bodyspace.measure.conventions import AXIS_VECTORS, MESH_UNITS, UP_AXES, plausible_units, to_internal
 from bodyspace.mesh.floor import FLOOR_UP_DEGREES, find_floor, remove_floors
 from bodyspace.mesh.geometry import face_areas, sample_surface
 from bodyspace.parallel import cores, halves, run_both
@@ -244,7 +244,7 @@ def prepare_scan(points: np.ndarray, faces: np.ndarray | None = None, *, units: 
     if up is not None:
         if up not in UP_AXES:
             raise ParameterError(f"up={up!r}; expected one of {', '.join(UP_AXES)}")
-        given_up = to_internal(np.eye(3), np.zeros((0, 3), dtype=np.int64), "m", up)[0].T[1]   # file axis up
+        given_up = np.array(AXIS_VECTORS[up], dtype=float)                          # file axis up
     keep, floors, planes = remove_floors(p * scale, given_up)
     floor_normal = planes[-1][0] if planes else None
     if floors:
