@@ -19,7 +19,6 @@ from bodyspace.measure.slicing import (
     MODE_MIN,
     MODE_ONE,
     _hull_chain,
-    band_scores,
     hull_perimeter,
     part_girths,
     part_mesh,
@@ -86,7 +85,7 @@ def test_same_girths_on_a_foreign_topology(mset, bodies, template, tmp_path):
     _same(fset, moved, topo.faces, _slices(fset))
 
 
-def _reference(v, edges, border, origins, normal, mode, slope=0.0):
+def _reference(v, edges, border, origins, normal, mode):
     """``methods.slice_girth``'s numpy steps for a part: girth (N,), missed (N,)."""
     from bodyspace.measure.slicing import contour_girths, support_perimeters
 
@@ -103,8 +102,6 @@ def _reference(v, edges, border, origins, normal, mode, slope=0.0):
         if mode == MODE_MIN:
             whole = ~opened.reshape(P, n)
             est = np.where(whole | ~whole.any(axis=0), est, np.nan)
-        if mode == MODE_MIN and slope:
-            est = band_scores(est, origins, normal, slope)
         est = np.where(np.isnan(est), -np.inf if mode == MODE_MAX else np.inf, est)
         k = np.argmax(est, axis=0) if mode == MODE_MAX else np.argmin(est, axis=0)
     group = k * n + np.arange(n)
@@ -264,26 +261,3 @@ def _tube_girths(v, faces, on, origins, normal):
             "gid": np.flatnonzero(keep), "on": on}
     pm = part_mesh(edges[keep], border, mesh=mesh)
     return (*part_girths(v, pm, origins, normal, MODE_MIN), pm)
-
-
-def test_min_band_with_a_slope(mset, bodies, template):
-    """A min band with a slope (the underbust's): the compiled choice is the numpy path's, a slope
-    of 0 is the plain min, a steep one keeps the band's first plane, one between picks a plane
-    between (the girth must fall faster than the slope for a lower plane to win)."""
-    topo = Topology(template.faces)
-    edges, border = topo.part_edges(mset.vertex_parts, "torso")
-    v = bodies[::len(POSES)]                                                  # the three standing
-    normal = np.tile([0.0, 1.0, 0.0], (len(v), 1))
-    lo, hi = v[:, :, 1].min(1), v[:, :, 1].max(1)
-    origins = np.zeros((15, len(v), 3))
-    origins[..., 1] = lo + np.linspace(0.68, 0.55, 15)[:, None] * (hi - lo)     # chest down to the waist
-    mesh = part_mesh(edges, border)
-    plain, p0, _ = part_girths(v, mesh, origins, normal, MODE_MIN)
-    np.testing.assert_array_equal(part_girths(v, mesh, origins, normal, MODE_MIN, slope=0.0)[0], plain)
-    steep, p_steep, _ = part_girths(v, mesh, origins, normal, MODE_MIN, slope=50.0)
-    assert (p_steep == 0).all() and (plain < steep - 0.02).all()              # the band narrows by > 2 cm
-    np.testing.assert_allclose(steep, part_girths(v, mesh, origins[:1], normal, MODE_ONE)[0], atol=TOL)
-    for slope in (1.0, 3.0):
-        g, plane, _ = part_girths(v, mesh, origins, normal, MODE_MIN, slope=slope)
-        np.testing.assert_allclose(g, _reference(v, edges, border, origins, normal, MODE_MIN, slope)[0], atol=TOL)
-        assert (g >= plain - TOL).all() and (g <= steep + TOL).all()
