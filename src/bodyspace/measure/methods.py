@@ -203,15 +203,15 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
             # fine planes and the planes below a fold only for the bodies with one.
             pm = geo.part_mesh(chunk.parts, part)
             fronts, girth, missed = part_fronts(v, pm, coarse, normal, forward, hull_plane=1)
-            window, folded = fold_planes(a, b, normal, ts, fronts, steep, below,
+            window, folded = fold_planes(a, b, normal, coarse, ts, fronts, steep, below,
                                          lambda o, act: part_fronts(v, pm, o, normal, forward, active=act)[0])
-            if folded.any():
+            if window is not None:
                 girth = np.where(folded, part_girths(v, pm, window, normal, MODE_MIN, active=folded)[0], girth)
             return girth, None, _missed_notes(part, missed)
-        window, _ = fold_planes(a, b, normal, ts, _plane_fronts(m, chunk, normal, coarse, forward), steep, below,
-                                lambda o, act: _plane_fronts(m, chunk, normal, o, forward))
-        origins = list(window)
-        band = dict(band, mode="min")
+        window, _ = fold_planes(a, b, normal, coarse, ts, _plane_fronts(m, chunk, normal, coarse, forward), steep,
+                                below, lambda o, act: _plane_fronts(m, chunk, normal, o, forward))
+        origins = [coarse[1]] if window is None else list(window)
+        band = None if window is None else dict(band, mode="min")
     elif band is None:
         origins = [point(m["at"], lm)]
     else:

@@ -808,7 +808,7 @@ def _run_kernel(vertices, part, origins, normals, mode, forward, hull_plane, act
 # A fold band (the underbust, docs/measurements.md "Underbust girth"): each gap of the band's
 # planes is cut into FOLD_FINE to find where the front stops receding, and the girth is the
 # smallest of FOLD_BELOW planes from there down the band's ``below``.
-FOLD_FINE = 6
+FOLD_FINE = 8
 FOLD_BELOW = 4
 
 
@@ -828,51 +828,47 @@ def _steep_run_end(fronts: np.ndarray, offs: np.ndarray, steep: float, first_top
     ``last_top`` (its upper plane's index) whose front falls by more than ``steep`` times the
     planes' distance, and the last gap of the run of such gaps it starts (it may go on below
     ``last_top``). Returns found (N,) bool and that last gap (N,) (0 where none)."""
-    drop = fronts[:-1] - fronts[1:]
-    dh = np.abs(offs[:-1] - offs[1:])
-    with np.errstate(invalid="ignore"):
-        s = drop > steep * dh                                             # NaN fronts: not steep
+    s = fronts[:-1] - fronts[1:] > steep * np.abs(offs[:-1] - offs[1:])     # NaN fronts: not steep
     g = np.arange(len(s))[:, None]
     top = (g >= first_top) & (g <= (len(s) - 1 if last_top is None else last_top))
     first = np.argmax(s & top, axis=0)
     found = (s & top).any(axis=0)
-    end = first.copy()
-    for k in range(1, len(s)):                   # the run goes on while the next gap is steep
-        end = np.where(found & (k == end + 1) & s[k], k, end)
+    # The run goes on to the gap before the first gap after it that is not steep (or the last).
+    flat = ~s & (g > first)
+    end = np.where(flat.any(axis=0), np.argmax(flat, axis=0), len(s)) - 1
     return found, np.where(found, end, 0)
 
 
-def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, ts: np.ndarray, fronts: np.ndarray,
-                steep: float, below: float, fine_fronts) -> tuple[np.ndarray, np.ndarray]:
-    """Where a fold band measures: ``a``, ``b`` (N, 3) its ends, unit ``normals`` (N, 3), ``ts``
-    (P,) the fractions of its planes (``fold_coarse``) and ``fronts`` (P, N) their fronts
-    (``part_fronts``). A breast's underside faces down: the front recedes by more than ``steep``
+def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.ndarray, ts: np.ndarray,
+                fronts: np.ndarray, steep: float, below: float, fine_fronts) -> tuple[np.ndarray | None, np.ndarray]:
+    """Where a fold band measures: ``a``, ``b`` (N, 3) its ends, unit ``normals`` (N, 3), its
+    planes' ``origins`` (P, N, 3) and fractions ``ts`` (P,) (``fold_coarse``) and ``fronts`` (P,
+    N) their fronts (``part_fronts``). A breast's underside faces down: the front recedes by more than ``steep``
     (metres per metre) from one plane to the next, and where it stops receding (on the chest
     wall) is the inframammary fold. The first such run of gaps is found on the band's planes,
     its last gap and the next are cut ``FOLD_FINE`` times (``fine_fronts(origins (Q, N, 3),
     active (N,) bool) -> (Q, N)``), and the fold is the plane below the last steep fine gap of
     the run. Returns ``FOLD_BELOW`` origins (FOLD_BELOW, N, 3) from the fold down ``below``
-    metres along the normal, none above plane 1 (``a + ts[1] (b - a)``), and ``folded`` (N,)
-    bool; a body without such a run has every origin on plane 1."""
-    n_planes = len(ts)
-    offs = front_offsets(np.stack([a + t * (b - a) for t in ts]), normals)
-    folded, k1 = _steep_run_end(fronts, offs, steep)
-    dt = ts[1] - ts[0]
-    t_fold = np.full(len(a), ts[1])
-    if folded.any():
-        # The run's last gap and the one below it, FOLD_FINE planes each (the fold may end just
-        # below the last steep gap: the next gap falls less than ``steep`` on the whole).
-        j = np.arange(2 * FOLD_FINE + 1)[:, None]
-        t_fine = np.minimum(ts[k1][None] + j * (dt / FOLD_FINE), ts[-1])                  # (Q, N)
-        fine = a[None] + t_fine[..., None] * (b - a)[None]
-        f = fine_fronts(fine, folded)
-        ok, end = _steep_run_end(f, front_offsets(fine, normals), steep, 0, FOLD_FINE - 1)
-        jf = np.where(ok, end + 1, FOLD_FINE)
-        t_fold = np.where(folded, np.take_along_axis(t_fine, jf[None], axis=0)[0], t_fold)
+    metres along the normal and ``folded`` (N,) bool (the fold is below plane 1, ``a + ts[1] (b -
+    a)``); a body without such a fold has every origin on plane 1 (None when no body has one)."""
+    folded, k1 = _steep_run_end(fronts, front_offsets(origins, normals), steep)
+    if not folded.any():
+        return None, folded
+    # The run's last gap and the one below it, FOLD_FINE planes each (the fold may end just below
+    # the last steep gap: the next gap falls less than ``steep`` on the whole).
+    j = np.arange(2 * FOLD_FINE + 1)[:, None]
+    t_fine = np.minimum(ts[k1][None] + j * ((ts[1] - ts[0]) / FOLD_FINE), ts[-1])            # (Q, N)
+    fine = a[None] + t_fine[..., None] * (b - a)[None]
+    ok, end = _steep_run_end(fine_fronts(fine, folded), front_offsets(fine, normals), steep, 0, FOLD_FINE - 1)
+    t_fold = np.take_along_axis(t_fine, np.where(ok, end + 1, FOLD_FINE)[None], axis=0)[0]
+    # A fold at or above plane 1 leaves plane 1: only a breast that hangs below it moves the tape.
+    folded &= t_fold > ts[1]
+    if not folded.any():
+        return None, folded
     # ``below`` metres as a fraction of the way a -> b along the normal (the band's own scale).
     length = np.abs(np.einsum("ni,ni->n", a - b, normals))
     t_win = t_fold[None] + np.linspace(0.0, 1.0, FOLD_BELOW)[:, None] * (below / np.maximum(length, 1e-9))[None]
-    t_win = np.where(folded[None], np.maximum(t_win, ts[1]), ts[1])
+    t_win = np.where(folded[None], t_win, ts[1])
     return a[None] + t_win[..., None] * (b - a)[None], folded
 
 
@@ -1001,13 +997,15 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                     py = v[i, a, 1] + t * (v[i, b, 1] - v[i, a, 1])
                     pz = v[i, a, 2] + t * (v[i, b, 2] - v[i, a, 2])
                     c = cnt[p]
-                    xs[p, c] = px * u0 + py * u1 + pz * u2
-                    ys[p, c] = px * w0 + py * w1 + pz * w2
                     cnt[p] = c + 1
                     if front:
                         fz = px * f0 + py * f1 + pz * f2
                         if c == 0 or fz > fronts[p, i]:
                             fronts[p, i] = fz
+                        if p != hull_p:                  # a front alone: no hull, no ring
+                            continue
+                    xs[p, c] = px * u0 + py * u1 + pz * u2
+                    ys[p, c] = px * w0 + py * w1 + pz * w2
                     if border[e]:
                         opened[p] = True
                         bx_p[n_bx] = p
