@@ -822,17 +822,17 @@ def fold_coarse(a: np.ndarray, b: np.ndarray, start: float, stop: float, steps: 
     return np.stack([a + t * (b - a) for t in ts]), ts
 
 
-def _steep_run_end(fronts: np.ndarray, offs: np.ndarray, steep: float, first_top: np.ndarray | int = 0,
-                   last_top: np.ndarray | int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per body (fronts, offs (P, N)): the first gap g (planes g, g + 1) between ``first_top`` and
+def _steep_run_end(fronts: np.ndarray, offs: np.ndarray, steep: float, last_top: int | None = None,
+                   last: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per body (fronts, offs (P, N)): the first (``last``: the last) gap g (planes g, g + 1) up to
     ``last_top`` (its upper plane's index) whose front falls by more than ``steep`` times the
-    planes' distance, and the last gap of the run of such gaps it starts (it may go on below
+    planes' distance, and the last gap of the run of such gaps from it (it may go on below
     ``last_top``). Returns found (N,) bool and that last gap (N,) (0 where none)."""
     s = fronts[:-1] - fronts[1:] > steep * np.abs(offs[:-1] - offs[1:])     # NaN fronts: not steep
     g = np.arange(len(s))[:, None]
-    top = (g >= first_top) & (g <= (len(s) - 1 if last_top is None else last_top))
-    first = np.argmax(s & top, axis=0)
-    found = (s & top).any(axis=0)
+    top = s & (g <= (len(s) - 1 if last_top is None else last_top))
+    found = top.any(axis=0)
+    first = len(s) - 1 - np.argmax(top[::-1], axis=0) if last else np.argmax(top, axis=0)
     # The run goes on to the gap before the first gap after it that is not steep (or the last).
     flat = ~s & (g > first)
     end = np.where(flat.any(axis=0), np.argmax(flat, axis=0), len(s)) - 1
@@ -849,8 +849,9 @@ def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.n
     its last gap and the next are cut ``FOLD_FINE`` times (``fine_fronts(origins (Q, N, 3),
     active (N,) bool) -> (Q, N)``), and the fold is the plane below the last steep fine gap of
     the run. Returns ``FOLD_BELOW`` origins (FOLD_BELOW, N, 3) from the fold down ``below``
-    metres along the normal and ``folded`` (N,) bool (the fold is below plane 1, ``a + ts[1] (b -
-    a)``); a body without such a fold has every origin on plane 1 (None when no body has one)."""
+    metres along the normal, none above plane 1 (``a + ts[1] (b - a)``), and ``folded`` (N,) bool
+    (some of them below plane 1); a body without has every origin on plane 1 (None when no body
+    has one)."""
     folded, k1 = _steep_run_end(fronts, front_offsets(origins, normals), steep)
     if not folded.any():
         return None, folded
@@ -859,16 +860,18 @@ def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.n
     j = np.arange(2 * FOLD_FINE + 1)[:, None]
     t_fine = np.minimum(ts[k1][None] + j * ((ts[1] - ts[0]) / FOLD_FINE), ts[-1])            # (Q, N)
     fine = a[None] + t_fine[..., None] * (b - a)[None]
-    ok, end = _steep_run_end(fine_fronts(fine, folded), front_offsets(fine, normals), steep, 0, FOLD_FINE - 1)
+    # The last steep fine gap that starts in the coarse gap (a breast's lower curve may recede
+    # steeply too, then less, before its underside), and the run from it.
+    ok, end = _steep_run_end(fine_fronts(fine, folded), front_offsets(fine, normals), steep, FOLD_FINE - 1, last=True)
     t_fold = np.take_along_axis(t_fine, np.where(ok, end + 1, FOLD_FINE)[None], axis=0)[0]
-    # A fold at or above plane 1 leaves plane 1: only a breast that hangs below it moves the tape.
-    folded &= t_fold > ts[1]
-    if not folded.any():
-        return None, folded
-    # ``below`` metres as a fraction of the way a -> b along the normal (the band's own scale).
+    # ``below`` metres as a fraction of the way a -> b along the normal (the band's own scale); no
+    # plane above plane 1, and a body whose planes all reach it keeps plane 1 (a fold far above).
     length = np.abs(np.einsum("ni,ni->n", a - b, normals))
     t_win = t_fold[None] + np.linspace(0.0, 1.0, FOLD_BELOW)[:, None] * (below / np.maximum(length, 1e-9))[None]
-    t_win = np.where(folded[None], t_win, ts[1])
+    folded &= t_win[-1] > ts[1]
+    if not folded.any():
+        return None, folded
+    t_win = np.where(folded[None], np.maximum(t_win, ts[1]), ts[1])
     return a[None] + t_win[..., None] * (b - a)[None], folded
 
 
