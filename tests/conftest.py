@@ -25,3 +25,14 @@ def phenotype_model(template):
 @pytest.fixture(scope="session")
 def rng():
     return np.random.default_rng(1234)
+
+
+# The README test runs every README command in order (about 250 s, far the longest test). Run
+# first, it overlaps the rest of the suite on the other pytest-xdist worker; left at its place in
+# the alphabet it started about 60 % of the way through and the other worker idled at the end.
+RUN_FIRST = ("tests/test_readme.py::test_readme_runs_top_to_bottom",)
+
+
+def pytest_collection_modifyitems(config, items):
+    first = [item for item in items if item.nodeid in RUN_FIRST]
+    items[:] = first + [item for item in items if item.nodeid not in RUN_FIRST]
