@@ -22,6 +22,7 @@ from bodyspace.measure import (
 )
 from bodyspace.measure.tolerances import iso_tolerance
 from bodyspace.mesh.io import save_mesh
+from bodyspace.synth.phenotype import DEFAULTS, PARAMETERS
 from bodyspace.measure.slicing import (
     contour_girths,
     mesh_edges,
@@ -734,3 +735,50 @@ def test_cli_measure_bad_landmark_files(body_files, tmp_path, content, match):
     result = runner.invoke(app, ["measure", str(body_files / "a.obj"), "--landmarks", str(path)])
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
     assert re.search(f"error: {re.escape(str(path))}.*{match}", result.output.replace("\n", "")), result.output
+
+
+def test_underbust_just_below_low_breasts(mset, phenotype_model, template):
+    """ISO 8559-1 5.3.8: the underbust girth is taken just below the breasts. On large, low breasts
+    (a study scan's phenotype, issue 15) the plane through the underbust point cuts the breasts (its
+    girth was 99 % of the chest girth); the fold band goes down to their underside. On the mean
+    body, a man, a thin man whose torso narrows fast below the point (the study's scan 4) and a
+    heavy man it is the underbust point's plane, to the bit. The drawn line (numpy path) is the
+    compiled path's girth."""
+    old = mset.to_dict()
+    for m in old["measurements"]:
+        if m["name"] == "underbust_girth":
+            m.pop("band")
+            m["at"] = "underbust_front"
+    old = measurement_set_from_dict(old)
+    phen = np.array([[DEFAULTS[k] for k in PARAMETERS]] * 5)
+    phen[1, [PARAMETERS.index("gender"), PARAMETERS.index("weight")]] = 1.0, 0.7
+    phen[2] = [1.0, 0.76, 0.06, 0.1, 0.06, 0.83, 0.85, 0.93, 0.84, 0.13, 0.03]      # study scan 4
+    phen[3, [PARAMETERS.index("gender"), PARAMETERS.index("weight")]] = 1.0, 1.0
+    phen[4] = [0.0, 0.36, 0.96, 0.89, 0.14, 0.93, 0.93, 0.04, 0.9, 0.04, 0.06]     # study scan 44
+    v = phenotype_model.vertices(phen)
+    new = evaluate(mset, v, template.faces)
+    ub, chest = new["underbust_girth"].value, new["chest_girth"].value
+    at_point = evaluate(old, v, template.faces)["underbust_girth"].value
+    np.testing.assert_array_equal(ub[:4], at_point[:4])
+    assert at_point[4] > 0.95 * chest[4]                     # the plane through the point: the breasts
+    assert ub[4] < 0.75 * chest[4] and ub[4] < at_point[4] - 0.15
+    drawn = evaluate(mset, v[[0, 4]], template.faces, keep_polylines=True)["underbust_girth"]
+    np.testing.assert_allclose(drawn.value, ub[[0, 4]], atol=1e-9)
+    assert drawn.polyline[1][:, 1].max() < drawn.polyline[0][:, 1].max() - 0.03     # 3 cm lower
+
+
+@pytest.mark.parametrize("band, match", [
+    ({"steep": "steep"}, r"underbust_girth' field 'band.steep': got 'steep', expected a number > 0"),
+    ({"steep": 0}, "got 0, expected a number > 0"),
+    ({"below": -0.01}, r"field 'band.below': got -0.01, expected a number >= 0"),
+    ({"front": "up"}, r"field 'band.front': got 'up', expected a pair of points \[back, front\]"),
+    ({"front": ["neck_back", "nape"]}, "unknown landmark 'nape'"),
+    ({"steps": 1}, "got 1, expected a positive integer of at least 2 with mode \"fold\""),
+    ({"mode": "min"}, "below, front, steep with mode 'min': only a \"fold\" band has them"),
+])
+def test_fold_band_errors(mset, band, match):
+    d = json.loads(open(mset.source).read())
+    m = next(m for m in d["measurements"] if m["name"] == "underbust_girth")
+    m["band"].update(band)
+    with pytest.raises(MeasurementError, match=match):
+        measurement_set_from_dict(d, "x.json")

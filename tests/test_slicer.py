@@ -19,6 +19,7 @@ from bodyspace.measure.slicing import (
     MODE_MIN,
     MODE_ONE,
     _hull_chain,
+    part_fronts,
     hull_perimeter,
     part_girths,
     part_mesh,
@@ -261,3 +262,28 @@ def _tube_girths(v, faces, on, origins, normal):
             "gid": np.flatnonzero(keep), "on": on}
     pm = part_mesh(edges[keep], border, mesh=mesh)
     return (*part_girths(v, pm, origins, normal, MODE_MIN), pm)
+
+
+def test_part_fronts_are_the_crossings_front(mset, bodies, template):
+    """``part_fronts`` (the fold band's compiled pass): each plane's front is the largest forward
+    coordinate of its crossings with the part (``part_sections``' points), the hull plane's girth
+    is ``part_girths``' of that plane alone, and a body left out gets NaN."""
+    topo = Topology(template.faces)
+    edges, border = topo.part_edges(mset.vertex_parts, "torso")
+    v = bodies[::len(POSES)]                                                  # the three standing
+    normal = np.tile([0.0, 1.0, 0.0], (len(v), 1))
+    forward = np.tile([0.0, 0.0, 1.0], (len(v), 1))
+    lo, hi = v[:, :, 1].min(1), v[:, :, 1].max(1)
+    origins = np.zeros((9, len(v), 3))
+    origins[..., 1] = lo + np.linspace(0.72, 0.55, 9)[:, None] * (hi - lo)     # chest down to the waist
+    mesh = part_mesh(edges, border)
+    active = np.array([True, False, True])
+    fronts, girth, _ = part_fronts(v, mesh, origins, normal, forward, hull_plane=4, active=active)
+    cuts, _ = part_sections(v, edges, origins, normal)
+    want = np.full(len(origins) * len(v), -np.inf)
+    np.maximum.at(want, cuts.body, cuts.points[:, 2])
+    want = want.reshape(len(origins), len(v))
+    np.testing.assert_allclose(fronts[:, active], want[:, active], atol=1e-12)
+    assert np.isnan(fronts[:, ~active]).all() and np.isnan(girth[~active]).all()
+    one = part_girths(v, mesh, origins[4:5], normal, MODE_ONE)[0]
+    np.testing.assert_array_equal(girth[active], one[active])

@@ -637,7 +637,7 @@ def _point_fields(m: dict) -> set:
     for key in ("normal", "axis"):
         pts += axis_points(m.get(key))
     if m.get("band"):
-        pts += [m["band"]["from"], m["band"]["to"]]
+        pts += [m["band"]["from"], m["band"]["to"]] + axis_points(m["band"].get("front"))
     pts += m.get("through", [])
     names = set().union(*(point_names(p) for p in pts)) if pts else set()
     if m.get("method") == "top":

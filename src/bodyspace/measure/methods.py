@@ -44,7 +44,10 @@ from bodyspace.measure.slicing import (
     contour_girths,
     edge_neighbours,
     face_edge_ids,
+    fold_coarse,
+    fold_planes,
     mesh_edges,
+    part_fronts,
     part_girths,
     part_mesh,
     part_sections,
@@ -179,11 +182,37 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     body (``slicing.part_girths``); drawn polylines and sets without parts take the numpy path
     below, whose float32 coordinate planes and approximate vertex heights per normal axis are
     cached across the chunk's slices (chest, underbust, waist and hip share the torso axis).
+
+    A ``fold`` band (the underbust) measures just below a breast's underside where the breast
+    hangs below the band's first plane, else on that plane (``slicing.fold_planes``): the planes
+    it measures are chosen from the fronts of its planes first, then it is a min band over them.
     """
     v, lm, geo, n = chunk.vertices, chunk.landmarks, chunk.topology, chunk.n
     normal = axis(m["normal"], lm, n)
     band = m.get("band")
-    if band is None:
+    part = m.get("part")
+    if band is not None and band["mode"] == "fold":
+        a, b = point(band["from"], lm), point(band["to"], lm)
+        coarse, ts = fold_coarse(a, b, band.get("start", 0.0), band.get("stop", 1.0), band.get("steps", 12))
+        forward = axis(band["front"], lm, n)
+        forward = forward - np.sum(forward * normal, axis=-1, keepdims=True) * normal       # in the planes
+        forward /= np.maximum(np.linalg.norm(forward, axis=-1, keepdims=True), 1e-12)
+        steep, below = float(band["steep"]), float(band.get("below", 0.0))
+        if part is not None and chunk.parts is not None and not chunk.keep_polylines:
+            # Compiled: the band's fronts and the girth of its first plane in one pass a body; the
+            # fine planes and the planes below a fold only for the bodies with one.
+            pm = geo.part_mesh(chunk.parts, part)
+            fronts, girth, missed = part_fronts(v, pm, coarse, normal, forward, hull_plane=1)
+            window, folded = fold_planes(a, b, normal, coarse, ts, fronts, steep, below,
+                                         lambda o, act: part_fronts(v, pm, o, normal, forward, active=act)[0])
+            if window is not None:
+                girth = np.where(folded, part_girths(v, pm, window, normal, MODE_MIN, active=folded)[0], girth)
+            return girth, None, _missed_notes(part, missed)
+        window, _ = fold_planes(a, b, normal, coarse, ts, _plane_fronts(m, chunk, normal, coarse, forward), steep,
+                                below, lambda o, act: _plane_fronts(m, chunk, normal, o, forward))
+        origins = [coarse[1]] if window is None else list(window)
+        band = None if window is None else dict(band, mode="min")
+    elif band is None:
         origins = [point(m["at"], lm)]
     else:
         a, b = point(band["from"], lm), point(band["to"], lm)
@@ -193,25 +222,18 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     # Every plane of the band in one Contours: group p * n + i is plane p of body i.
     n_planes = len(origins)
     normals = np.tile(normal, (n_planes, 1))
-    part = m.get("part")
     notes = None
     if part is not None and chunk.parts is not None and not chunk.keep_polylines:
         # The compiled slicer: the same planes, crossings, choice and hull as below, one pass a body.
         mode = MODE_ONE if band is None else (MODE_MAX if band["mode"] == "max" else MODE_MIN)
         girth, _, missed = part_girths(v, geo.part_mesh(chunk.parts, part), np.stack(origins), normal, mode)
         return girth, None, _missed_notes(part, missed)
-    heights = chunk.cache.setdefault("heights", {})
-    key = repr(m["normal"])
-    if key not in heights:
-        if "planes" not in heights:
-            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
-            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
-        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
+    heights = _chunk_heights(m, chunk, normal)
     if part is not None and chunk.parts is not None:
         # The tape round one body part: only the part's edges are cut, and all its crossings
         # in a plane are the contour (``slicing.part_sections``).
         part_edges, border = geo.part_edges(chunk.parts, part)
-        cuts, edge = part_sections(v, part_edges, np.stack(origins), normal, heights=heights[key])
+        cuts, edge = part_sections(v, part_edges, np.stack(origins), normal, heights=heights)
         # A plane that crosses the part's border leaves the part (at a joint, or grazing a
         # triangle of another part). In a "min" band its ring goes on along the other parts'
         # skin it meets until it is back on the part (``slicing.ring_runs``: the tape's ring
@@ -227,7 +249,7 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
         notes = _missed_notes(part, (chosen < 0).reshape(n_planes, n).all(axis=0))
     else:
         cuts = band_contours(v, geo.edges, geo.edge_faces, np.stack(origins), normal,
-                             heights=heights[key], neighbours=geo.neighbours)
+                             heights=heights, neighbours=geo.neighbours)
         picks = np.concatenate(origins if pick_fixed is None else [pick_fixed] * n_planes)
         chosen = pick_contours(cuts, picks, normals)
         missed = np.flatnonzero(chosen < 0)
@@ -253,6 +275,41 @@ def slice_girth(m: dict, chunk: Chunk) -> tuple:
     return g[group], ([pl[i] for i in group] if chunk.keep_polylines else None), notes
 
 
+def _chunk_heights(m: dict, chunk: Chunk, normal: np.ndarray):
+    """The approximate vertex heights along the slice's normal (``slicing.approx_heights``), cached
+    per normal within the chunk (chest, underbust, waist and hip share the torso axis)."""
+    heights = chunk.cache.setdefault("heights", {})
+    key = repr(m["normal"])
+    if key not in heights:
+        if "planes" not in heights:
+            v = chunk.vertices
+            heights["planes"] = tuple(np.ascontiguousarray(v[..., k], dtype=np.float32) for k in range(3))
+            heights["scale"] = float(np.abs(v).sum(axis=-1).max())
+        heights[key] = approx_heights(heights["planes"], normal, heights["scale"])
+    return heights[key]
+
+
+def _plane_fronts(m: dict, chunk: Chunk, normal: np.ndarray, origins: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """The numpy path's fronts (P, N) of planes through ``origins`` (P, N, 3): the largest
+    coordinate along ``forward`` (N, 3) of the crossings with the part (``slicing.part_fronts``'
+    value), or without part labels of the contour containing the origin (else the nearest)."""
+    v, geo, n = chunk.vertices, chunk.topology, chunk.n
+    n_planes = len(origins)
+    heights = _chunk_heights(m, chunk, normal)
+    part = m.get("part")
+    if part is not None and chunk.parts is not None:
+        part_edges, _ = geo.part_edges(chunk.parts, part)
+        cuts, _ = part_sections(v, part_edges, origins, normal, heights=heights)
+        keep = np.ones(len(cuts.points), dtype=bool)
+    else:
+        cuts = band_contours(v, geo.edges, geo.edge_faces, origins, normal, heights=heights, neighbours=geo.neighbours)
+        chosen = pick_contours(cuts, origins.reshape(-1, 3), np.tile(normal, (n_planes, 1)))
+        keep = cuts.label == chosen[cuts.body]
+    out = np.full(n_planes * n, -np.inf)
+    np.maximum.at(out, cuts.body[keep], np.einsum("ki,ki->k", cuts.points[keep], forward[cuts.body[keep] % n]))
+    return np.where(np.isinf(out), np.nan, out).reshape(n_planes, n)
+
+
 def _missed_notes(part, missed: np.ndarray) -> list | None:
     """The note of each body (N,) whose girth planes all miss ``part`` (``missed`` (N,) bool)."""
     if not missed.any():
@@ -272,11 +329,27 @@ def check_slice(where: str, m: dict, landmarks, earlier: set) -> None:
             raise fail(where + " field 'band'", f"got {band!r}, expected an object")
         check_point(where + " field 'band.from'", band.get("from"), landmarks)
         check_point(where + " field 'band.to'", band.get("to"), landmarks)
-        if band.get("mode") not in ("max", "min"):
-            raise fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\" or \"min\"")
+        if band.get("mode") not in ("max", "min", "fold"):
+            raise fail(where + " field 'band.mode'", f"got {band.get('mode')!r}, expected \"max\", \"min\" or \"fold\"")
         steps = band.get("steps", 12)
-        if not isinstance(steps, int) or steps < 1:
-            raise fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer")
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps < (2 if band["mode"] == "fold" else 1):
+            raise fail(where + " field 'band.steps'", f"got {steps!r}, expected a positive integer"
+                       + (" of at least 2 with mode \"fold\"" if band["mode"] == "fold" else ""))
+        extra = {"front", "steep", "below"} & set(band)
+        if band["mode"] == "fold":
+            check_axis(where + " field 'band.front'", band.get("front"), landmarks)
+            if band.get("front") == "up" or isinstance(band.get("front"), dict):
+                raise fail(where + " field 'band.front'", f"got {band.get('front')!r}, expected a pair of points "
+                                                          "[back, front] (the body's forward direction)")
+            for key, lo in (("steep", 0.0), ("below", None)):
+                x = band.get(key, 0.0 if key == "below" else None)
+                if isinstance(x, bool) or not isinstance(x, (int, float)) or not (x > lo if lo is not None else x >= 0):
+                    raise fail(where + f" field 'band.{key}'", f"got {x!r}, expected " + (
+                        "a number > 0 (metres the front recedes per metre down the band at a breast's underside)"
+                        if key == "steep" else "a number >= 0 (metres below the fold the girth may be taken)"))
+        elif extra:
+            raise fail(where + " field 'band'", f"{', '.join(sorted(extra))} with mode {band['mode']!r}: only a "
+                                                "\"fold\" band has them")
     if m.get("pick") is not None:
         check_point(where + " field 'pick'", m["pick"], landmarks)
     check_part(where, m.get("part"))

@@ -750,11 +750,11 @@ def ring_runs(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals
     return np.concatenate(points), np.concatenate(groups), closed.ravel()
 
 
-MODE_ONE, MODE_MAX, MODE_MIN = 0, 1, 2
+MODE_ONE, MODE_MAX, MODE_MIN, MODE_FRONT = 0, 1, 2, 3
 
 
 def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals: np.ndarray,
-                mode: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                mode: int, active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tape round one body part of each body: ``vertices`` (N, V, 3), P parallel planes a body
     through ``origins`` (P, N, 3) with unit ``normals`` (N, 3); ``mode`` MODE_ONE (P = 1),
     MODE_MAX or MODE_MIN (a band: the plane of largest / smallest support-function estimate).
@@ -762,24 +762,124 @@ def part_girths(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
     part's border has its ring followed along the other parts' faces back onto the part and
     those crossings join its hull (``ring_runs``); a plane whose ring does not come back (a hole),
     or any plane that crosses the border without the mesh, is chosen only when every plane is.
+    ``active`` (N,) bool: the bodies measured (the others get NaN and plane 0).
 
     Returns girth (N,) (the convex-hull perimeter of the chosen plane's crossings, NaN where it
     has fewer than three), the chosen plane (N,) and ``missed`` (N,) bool (no plane crosses the
     part three times). Same values as ``part_sections`` + ``support_perimeters`` +
     ``contour_girths`` (``methods.slice_girth`` keeps that path for drawn polylines).
     """
+    girth, plane, missed, _ = _run_kernel(vertices, part, origins, normals, mode, None, -1, active)
+    return girth, plane, missed
+
+
+def part_fronts(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals: np.ndarray,
+                forward: np.ndarray, hull_plane: int = -1,
+                active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The front of each of P parallel planes round one body part (``part_girths``' planes and
+    crossings): the largest coordinate along unit ``forward`` (N, 3) (in the planes) of the
+    plane's crossings with the part, NaN where it has none; no hull but plane ``hull_plane``'s
+    (-1: none). ``active`` (N,) bool: the bodies measured.
+
+    Returns fronts (P, N), the girth (N,) of plane ``hull_plane`` (NaN without one) and ``missed``
+    (N,) bool (no plane crosses the part three times)."""
+    girth, _, missed, fronts = _run_kernel(vertices, part, origins, normals, MODE_FRONT, forward, hull_plane, active)
+    return fronts, girth, missed
+
+
+def _run_kernel(vertices, part, origins, normals, mode, forward, hull_plane, active):
     v = np.ascontiguousarray(vertices, dtype=float)
     n = np.ascontiguousarray(normals, dtype=float)
     offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
     u, w = plane_basis(n)
     th = np.linspace(0.0, 2 * np.pi, _N_DIRS, endpoint=False)
     nb = len(v)
-    girth, plane, missed = np.empty(nb), np.empty(nb, dtype=np.int64), np.empty(nb, dtype=np.bool_)
+    girth, plane, missed = np.full(nb, np.nan), np.zeros(nb, dtype=np.int64), np.zeros(nb, dtype=np.bool_)
+    fronts = np.full(offs.shape, np.nan)
+    fwd = np.zeros((nb, 3)) if forward is None else np.ascontiguousarray(forward, dtype=float)
+    act = np.ones(nb, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
     _part_girths_kernel(v, part.vertices, part.ea, part.eb, part.border, np.ascontiguousarray(offs), n,
                         np.ascontiguousarray(u), np.ascontiguousarray(w), int(mode), np.cos(th), np.sin(th),
                         2 * np.pi / _N_DIRS, part.gid, part.edges, part.edge_faces, part.face_edges, part.face_on,
-                        part.edge_on, girth, plane, missed)
-    return girth, plane, missed
+                        part.edge_on, fwd, int(hull_plane), act, girth, plane, missed, fronts)
+    return girth, plane, missed, fronts
+
+
+# A fold band (the underbust, docs/measurements.md "Underbust girth"): each gap of the band's
+# planes is cut into FOLD_FINE to find where the front stops receding, and the girth is the
+# smallest of FOLD_BELOW planes from there down the band's ``below``.
+FOLD_FINE = 8
+FOLD_BELOW = 4
+
+
+def fold_coarse(a: np.ndarray, b: np.ndarray, start: float, stop: float, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """A fold band's planes: ``steps`` evenly from ``start`` to ``stop`` of the way from ``a`` to
+    ``b`` (N, 3), and one more a step above ``start`` first (a fold just above the band's first
+    plane still shows as a steep gap). Returns origins (steps + 1, N, 3) and their fractions
+    (steps + 1,); plane 1 is ``a + start (b - a)``."""
+    ts = np.linspace(float(start), float(stop), int(steps))
+    ts = np.concatenate([[2 * ts[0] - ts[1]], ts])
+    return np.stack([a + t * (b - a) for t in ts]), ts
+
+
+def _steep_run_end(fronts: np.ndarray, offs: np.ndarray, steep: float, last_top: int | None = None,
+                   last: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per body (fronts, offs (P, N)): the first (``last``: the last) gap g (planes g, g + 1) up to
+    ``last_top`` (its upper plane's index) whose front falls by more than ``steep`` times the
+    planes' distance, and the last gap of the run of such gaps from it (it may go on below
+    ``last_top``). Returns found (N,) bool and that last gap (N,) (0 where none)."""
+    s = fronts[:-1] - fronts[1:] > steep * np.abs(offs[:-1] - offs[1:])     # NaN fronts: not steep
+    g = np.arange(len(s))[:, None]
+    top = s & (g <= (len(s) - 1 if last_top is None else last_top))
+    found = top.any(axis=0)
+    first = len(s) - 1 - np.argmax(top[::-1], axis=0) if last else np.argmax(top, axis=0)
+    # The run goes on to the gap before the first gap after it that is not steep (or the last).
+    flat = ~s & (g > first)
+    end = np.where(flat.any(axis=0), np.argmax(flat, axis=0), len(s)) - 1
+    return found, np.where(found, end, 0)
+
+
+def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.ndarray, ts: np.ndarray,
+                fronts: np.ndarray, steep: float, below: float, fine_fronts) -> tuple[np.ndarray | None, np.ndarray]:
+    """Where a fold band measures: ``a``, ``b`` (N, 3) its ends, unit ``normals`` (N, 3), its
+    planes' ``origins`` (P, N, 3) and fractions ``ts`` (P,) (``fold_coarse``) and ``fronts`` (P,
+    N) their fronts (``part_fronts``). A breast's underside faces down: the front recedes by more than ``steep``
+    (metres per metre) from one plane to the next, and where it stops receding (on the chest
+    wall) is the inframammary fold. The first such run of gaps is found on the band's planes,
+    its last gap and the next are cut ``FOLD_FINE`` times (``fine_fronts(origins (Q, N, 3),
+    active (N,) bool) -> (Q, N)``), and the fold is the plane below the last steep fine gap of
+    the run. Returns ``FOLD_BELOW`` origins (FOLD_BELOW, N, 3) from the fold down ``below``
+    metres along the normal, none above plane 1 (``a + ts[1] (b - a)``), and ``folded`` (N,) bool
+    (some of them below plane 1); a body without has every origin on plane 1 (None when no body
+    has one)."""
+    folded, k1 = _steep_run_end(fronts, front_offsets(origins, normals), steep)
+    if not folded.any():
+        return None, folded
+    # The run's last gap and the one below it, FOLD_FINE planes each (the fold may end just below
+    # the last steep gap: the next gap falls less than ``steep`` on the whole).
+    j = np.arange(2 * FOLD_FINE + 1)[:, None]
+    t_fine = np.minimum(ts[k1][None] + j * ((ts[1] - ts[0]) / FOLD_FINE), ts[-1])            # (Q, N)
+    fine = a[None] + t_fine[..., None] * (b - a)[None]
+    # The last steep fine gap that starts in the coarse gap (a breast's lower curve may recede
+    # steeply too, then less, before its underside), and the run from it.
+    ok, end = _steep_run_end(fine_fronts(fine, folded), front_offsets(fine, normals), steep, FOLD_FINE - 1, last=True)
+    t_fold = np.take_along_axis(t_fine, np.where(ok, end + 1, FOLD_FINE)[None], axis=0)[0]
+    # ``below`` metres as a fraction of the way a -> b along the normal (the band's own scale); no
+    # plane above plane 1, and a body whose planes all reach it keeps plane 1 (a fold far above).
+    length = np.abs(np.einsum("ni,ni->n", a - b, normals))
+    t_win = t_fold[None] + np.linspace(0.0, 1.0, FOLD_BELOW)[:, None] * (below / np.maximum(length, 1e-9))[None]
+    folded &= t_win[-1] > ts[1]
+    if not folded.any():
+        return None, folded
+    t_win = np.where(folded[None], np.maximum(t_win, ts[1]), ts[1])
+    return a[None] + t_win[..., None] * (b - a)[None], folded
+
+
+def front_offsets(origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The planes' offsets (P, N) along unit ``normals`` (N, 3) as the slicers take them
+    (float32, then float64): ``origins`` (P, N, 3)."""
+    n = np.asarray(normals, dtype=float)
+    return np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32).astype(np.float64)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -823,10 +923,12 @@ def _hull_chain(x, y, k, order, hull):
 
 @numba.njit(cache=True, nogil=True)
 def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos, sin, step,
-                        gid, edges, edge_faces, face_edges, face_on, edge_on, girth, plane, missed):
-    """Per body: float32 heights of the part's vertices, every crossing of every plane (lo < off
-    <= hi, as ``_band_crossings``), its in-plane point, for a min band with the mesh the runs off
-    the part (``_ring_runs``), each plane's hull, the band's choice."""
+                        gid, edges, edge_faces, face_edges, face_on, edge_on, fwd, hull_p, active,
+                        girth, plane, missed, fronts):
+    """Per active body: float32 heights of the part's vertices, every crossing of every plane (lo <
+    off <= hi, as ``_band_crossings``), its in-plane point (MODE_FRONT: and its coordinate along
+    ``fwd``, the plane's front the largest), for a min band with the mesh the runs off the part
+    (``_ring_runs``), each plane's hull (MODE_FRONT: plane ``hull_p``'s only), the band's choice."""
     n_bodies, n_planes, n_edges, n_dirs = v.shape[0], offs.shape[0], len(ea), len(cos)
     h = np.empty(len(verts), dtype=np.float32)
     walk = len(gid) > 0 and mode == 2
@@ -850,9 +952,13 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
     closed = np.ones(n_planes, dtype=np.bool_)
     pts = np.empty((_RUN_POINTS if walk else 0, 3))
     run_plane = np.empty(len(pts), dtype=np.int64)
+    front = mode == 3
     for i in range(n_bodies):
+        if not active[i]:
+            continue
         n_bx = 0
         n0, n1, n2 = normal[i, 0], normal[i, 1], normal[i, 2]
+        f0, f1, f2 = fwd[i, 0], fwd[i, 1], fwd[i, 2]
         u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
         w0, w1, w2 = w[i, 0], w[i, 1], w[i, 2]
         for k in range(len(verts)):
@@ -865,13 +971,26 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
             opened[p] = False
             o_lo = min(o_lo, offs[p, i])
             o_hi = max(o_hi, offs[p, i])
+        # A band's offsets run one way (its planes are evenly spaced along a segment): an edge
+        # then crosses a run of planes found by bisection, not by testing all P (a long band of
+        # many planes costs little more than a short one). Any other order tests every plane.
+        step_sign = 0
+        if n_planes > 2:
+            step_sign = 1 if offs[1, i] > offs[0, i] else -1
+            for p in range(1, n_planes):
+                if (offs[p, i] - offs[p - 1, i]) * step_sign <= 0:
+                    step_sign = 0
+                    break
         for e in range(n_edges):
             ha, hb = h[ea[e]], h[eb[e]]
             lo, hi = min(ha, hb), max(ha, hb)
             if hi < o_lo or lo >= o_hi:                  # crosses no plane of the band
                 continue
             a, b = verts[ea[e]], verts[eb[e]]
-            for p in range(n_planes):
+            p_from, p_to = 0, n_planes
+            if step_sign != 0:
+                p_from, p_to = _plane_run(offs, i, n_planes, step_sign, lo, hi)
+            for p in range(p_from, p_to):
                 off = offs[p, i]
                 if lo < off and off <= hi:
                     da = np.float64(ha) - np.float64(off)
@@ -881,9 +1000,15 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                     py = v[i, a, 1] + t * (v[i, b, 1] - v[i, a, 1])
                     pz = v[i, a, 2] + t * (v[i, b, 2] - v[i, a, 2])
                     c = cnt[p]
+                    cnt[p] = c + 1
+                    if front:
+                        fz = px * f0 + py * f1 + pz * f2
+                        if c == 0 or fz > fronts[p, i]:
+                            fronts[p, i] = fz
+                        if p != hull_p:                  # a front alone: no hull, no ring
+                            continue
                     xs[p, c] = px * u0 + py * u1 + pz * u2
                     ys[p, c] = px * w0 + py * w1 + pz * w2
-                    cnt[p] = c + 1
                     if border[e]:
                         opened[p] = True
                         bx_p[n_bx] = p
@@ -910,12 +1035,24 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
             for p in range(n_planes):
                 if closed[p]:
                     opened[p] = False
+        any_whole = False
+        for p in range(n_planes):
+            if not opened[p]:
+                any_whole = True
+        run_best = np.inf          # a min band: the smallest estimate so far
         for p in range(n_planes):
             per[p] = np.nan
             est[p] = np.nan
             k = cnt[p]
-            if k < 3:
+            if k < 3 or (front and p != hull_p):
                 continue
+            eligible = mode == 2 and not (any_whole and opened[p])
+            if eligible and run_best < np.inf:
+                # A plane that cannot be the band's min is not measured: the estimate is at least
+                # 0.99857 x the hull's perimeter (48 directions; the worst case is a segment), which
+                # is at least the perimeter of the octagon of its extreme points in 8 directions.
+                if 0.998 * _octagon_inner(xs[p], ys[p], k) > run_best:
+                    continue
             m = _hull_chain(xs[p], ys[p], k, order, hull)
             if m < 2:
                 per[p] = 0.0
@@ -928,7 +1065,7 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                     dy = ys[p, b] - ys[p, a]
                     s += np.sqrt(dx * dx + dy * dy)
                 per[p] = s
-            if mode == 0:
+            if mode == 0 or front:
                 continue
             # The support function over the hull's vertices (its maximum over all the points).
             for d in range(n_dirs):
@@ -940,10 +1077,8 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                         best = val
                 sup[d] = best
             est[p] = _pairwise_sum(sup) * step
-        any_whole = False
-        for p in range(n_planes):
-            if not opened[p]:
-                any_whole = True
+            if eligible and est[p] < run_best:
+                run_best = est[p]
         missed[i] = True
         for p in range(n_planes):
             if cnt[p] >= 3:
@@ -951,6 +1086,11 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
         if mode == 0:
             plane[i] = 0
             girth[i] = per[0]
+            continue
+        if front:
+            plane[i] = hull_p
+            if hull_p >= 0:
+                girth[i] = per[hull_p]
             continue
         best_p = 0
         best = np.inf if mode == 2 else -np.inf
@@ -964,6 +1104,52 @@ def _part_girths_kernel(v, verts, ea, eb, border, offs, normal, u, w, mode, cos,
                 best, best_p = e_p, p
         plane[i] = best_p
         girth[i] = per[best_p]
+
+
+@numba.njit(cache=True, nogil=True)
+def _octagon_inner(x, y, k):
+    """The perimeter of the polygon through the extreme points of (x[:k], y[:k]) in the directions
+    0, 45, ..., 315 degrees, in that order: inside the hull, so at most the hull's."""
+    ix = np.zeros(8, dtype=np.int64)
+    val = np.empty(8)
+    for j in range(8):
+        val[j] = -np.inf
+    for q in range(k):
+        a, b = x[q], y[q]
+        c = (a, a + b, b, b - a, -a, -a - b, -b, a - b)
+        for j in range(8):
+            if c[j] > val[j]:
+                val[j] = c[j]
+                ix[j] = q
+    inner = 0.0
+    for j in range(8):
+        a, b = ix[j], ix[(j + 1) % 8]
+        inner += np.sqrt((x[b] - x[a]) ** 2 + (y[b] - y[a]) ** 2)
+    return inner
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _count_past(offs, i, n_planes, step_sign, x):
+    """By bisection, for offsets ``offs[:, i]`` strictly increasing (``step_sign`` 1) or decreasing
+    (-1): how many are <= x (increasing) or > x (decreasing), the first that are."""
+    a, b = 0, n_planes
+    while a < b:
+        m = (a + b) // 2
+        if (offs[m, i] <= x) == (step_sign > 0):
+            a = m + 1
+        else:
+            b = m
+    return a
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _plane_run(offs, i, n_planes, step_sign, lo, hi):
+    """The planes p in [from, to) of body ``i`` whose offset is in (lo, hi] (``_count_past``)."""
+    k_lo = _count_past(offs, i, n_planes, step_sign, lo)
+    k_hi = _count_past(offs, i, n_planes, step_sign, hi)
+    if step_sign > 0:        # above lo: from k_lo on; at or below hi: before k_hi
+        return k_lo, k_hi
+    return k_hi, k_lo        # decreasing: above lo before k_lo, at or below hi from k_hi on
 
 
 @numba.njit(cache=True, nogil=True)
