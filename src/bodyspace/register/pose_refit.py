@@ -90,7 +90,8 @@ from bodyspace.parallel import cores
 from bodyspace.register.model_fit import SCALE_PRIOR, ShapeBasis
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 
-__all__ = ["refit_pose", "refit_prior", "standing_body", "scan_offsets", "skinning_uncertainty", "skin_trust", "REFIT_SHAPE_PRIOR",
+__all__ = ["refit_pose", "refit_prior", "standing_body", "scan_offsets",
+           "skinning_uncertainty", "skin_trust", "REFIT_SHAPE_PRIOR",
            "REFIT_ITERATIONS", "REFIT_GATE", "REFIT_POSE_PRIOR", "REFIT_SWING_PRIOR", "SKIN_RINGS",
            "SKIN_UNCERTAINTY"]
 
