@@ -13,9 +13,10 @@ from bodyspace.register.model_fit import ShapeBasis
 from bodyspace.register.pose_fit import PoseState, posed_vertices
 from bodyspace.measure import evaluate
 from bodyspace.measure.definitions import load_measurement_set
-from bodyspace.register.pose_refit import refit_pose, skinning_uncertainty, standing_body
+from bodyspace.register.pose_refit import (REFIT_POSE_PRIOR, REFIT_SWING_PRIOR, UPPER_ARM_TWIST_BONES, refit_pose,
+                                           refit_prior, skinning_uncertainty, standing_body)
 from bodyspace.rig.posing import pose_bodies
-from bodyspace.rig.kinematics import rotvec_to_matrix
+from bodyspace.rig.kinematics import matrix_to_rotvec, rotvec_to_matrix
 from bodyspace.synth.poses import load_pose_library
 from bodyspace.synth.scans import sample_surface
 
@@ -147,3 +148,48 @@ def test_standing_body_does_not_keep_what_another_skinning_did_to_the_neck(templ
     assert abs(neck(stand) - truth) < abs(kept - truth) / 2.5, (neck(stand), kept, truth)
     moved = np.abs(stand - (rest - [0.0, rest[:, 1].min(), 0.0])).max(axis=1)
     assert moved[feet].max() < 1e-9
+
+
+def test_refit_prior_holds_the_upper_arm_twist_bones_in_line_across_their_axis_only(template):
+    """``refit_prior``: every bone REFIT_POSE_PRIOR on each axis; the upper arm's twist bones also
+    REFIT_SWING_PRIOR across their own axis (their swing), not along it (their twist)."""
+    rig = template.rigs["default"]
+    prior = refit_prior(template)
+    assert prior.shape == (rig.n_bones, 3, 3)
+    heads, tails = rig.heads(template.vertices), rig.tails(template.vertices)
+    for b in range(rig.n_bones):
+        if rig.bone_names[b] in UPPER_ARM_TWIST_BONES:
+            axis = (tails[b] - heads[b]) / np.linalg.norm(tails[b] - heads[b])
+            across = np.cross(axis, [0.0, 0.0, 1.0])
+            across /= np.linalg.norm(across)
+            assert np.allclose(prior[b] @ axis, REFIT_POSE_PRIOR * axis)
+            assert np.allclose(prior[b] @ across, (REFIT_POSE_PRIOR + REFIT_SWING_PRIOR) * across)
+        else:
+            assert np.array_equal(prior[b], REFIT_POSE_PRIOR * np.eye(3))
+    assert np.array_equal(refit_prior(template, 0.0), REFIT_POSE_PRIOR * np.eye(3) * np.ones((rig.n_bones, 1, 1)))
+
+
+def test_refit_puts_an_upper_arm_bent_at_its_twist_bone_back_in_line(template, small_basis, posed_truth):
+    """The split the pose fit found on scans posed with another skinning (ISO study scans 43, 49:
+    the arm's swing moved from upperarm01 to its twist bone upperarm02, 15-20° each, the elbow in
+    place; the shoulders then came out 12-20 mm narrow): from such a start the refit with the swing
+    prior brings upperarm02 back in line with the upper arm, without it the bend stays."""
+    rig = template.rigs["default"]
+    truth, x = posed_truth
+    names = list(rig.bone_names)
+    R = truth.rotations.copy()
+    bend = {"L": rotvec_to_matrix(np.array([0.0, 0.0, 0.25])), "R": rotvec_to_matrix(np.array([0.0, 0.0, -0.25]))}
+    for side, S in bend.items():          # upperarm01 turned back by S, upperarm02 forward by S
+        R[names.index(f"upperarm01.{side}")] = R[names.index(f"upperarm01.{side}")] @ S.T
+        R[names.index(f"upperarm02.{side}")] = S @ R[names.index(f"upperarm02.{side}")]
+    start = PoseState(truth.rest, R, truth.scale, truth.translation, truth.coefficients)
+    n = vertex_normals(x, template.faces)
+
+    def swing(state):      # degrees of upperarm02's rotation, both sides' largest
+        return max(np.degrees(np.linalg.norm(matrix_to_rotvec(state.rotations[names.index(f"upperarm02.{s}")][None])))
+                   for s in "LR")
+
+    held = refit_pose(x, n, template, start, small_basis, scan_tree=cKDTree(x), iterations=4)
+    free = refit_pose(x, n, template, start, small_basis, scan_tree=cKDTree(x), iterations=4, swing_prior=0.0)
+    assert swing(start) > 14.0
+    assert swing(held) < swing(free) / 2, (swing(held), swing(free))

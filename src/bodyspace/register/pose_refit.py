@@ -54,6 +54,20 @@ against 164 with the true pose; docs/registration.md). Two things make the split
    Down-weighting the same vertices in ``refit_pose`` (so the shape would not take it up)
    was measured and not kept: the shape, unseen there, went astray (shoulder ring -65 to -99 mm
    on scan 25, the neck -26 mm on scan 14).
+5. ``refit_prior``: the upper arm's twist bones (``upperarm02``) held in line with the upper arm.
+   On the ISO study's scans posed with the smoothed weights and the arms moved (elbows flexed,
+   step forward) the pose fit splits the arm's swing between ``upperarm01`` and its twist bone
+   ``upperarm02`` (13-20° of swing each where the truth has all of it on ``upperarm01``; 4-7° on
+   scans posed with our weights), the elbow within 6 mm: with less of the swing on
+   ``upperarm01`` the shoulder's skin, which our weights tie to it, follows the arm less, as the
+   other weights' does, and the shape makes up the rest with narrow shoulders (shoulder width
+   -12 to -20 mm, shoulder ring -22 to -64 mm on scans 43 and 49, in the model's rest body as in
+   the standing body; unposing the true posed body with the true pose and shape gives -0.2 to
+   -0.9 mm and -0.2 to -2.9 mm, so neither the offsets nor the skinning gate carry it). The
+   humerus does not bend between the two bones, so a prior (``REFIT_SWING_PRIOR``) on the twist
+   bone's rotation across its own axis keeps the swing on ``upperarm01``; the twist stays free
+   but for the plain prior. Scans 43 and 49: width -20.5 / -12.6 -> -5.4 / -4.8 mm, ring -62.8 /
+   -26.6 -> -18.1 / -7.1 mm (docs/registration.md "Tenth round: shoulders").
 
 Vertex to vertex instead of to the scan (the registered mesh's vertices as targets, exact
 correspondence): measured and not kept. The registered vertices carry the pose fit's tangential
@@ -76,8 +90,10 @@ from bodyspace.parallel import cores
 from bodyspace.register.model_fit import SCALE_PRIOR, ShapeBasis
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 
-__all__ = ["refit_pose", "standing_body", "scan_offsets", "skinning_uncertainty", "skin_trust", "REFIT_SHAPE_PRIOR",
-           "REFIT_ITERATIONS", "REFIT_GATE", "REFIT_POSE_PRIOR", "SKIN_RINGS", "SKIN_UNCERTAINTY"]
+__all__ = ["refit_pose", "refit_prior", "standing_body", "scan_offsets",
+           "skinning_uncertainty", "skin_trust", "REFIT_SHAPE_PRIOR",
+           "REFIT_ITERATIONS", "REFIT_GATE", "REFIT_POSE_PRIOR", "REFIT_SWING_PRIOR", "SKIN_RINGS",
+           "SKIN_UNCERTAINTY"]
 
 # Shape prior of the refit (metres of RMS residual per standard deviation of a component): half
 # model_fit.SHAPE_PRIOR. Measurements within ISO 20685-1 of the standing body at 0.0001, 0.00005,
@@ -115,22 +131,46 @@ SKIN_RINGS = 8
 SKIN_UNCERTAINTY = 0.002
 SKIN_FILL = 1.0
 SKIN_KEEP = 0.0005
+# The upper arm's twist bones held in line with it (module docstring, 5): a prior of
+# REFIT_SWING_PRIOR (the pose prior's units) on their rotation across their own axis. 0.03, 0.1 and
+# 0.3 gave the same shoulders within 1 mm on scans 43, 49 and 41 of the ISO study.
+UPPER_ARM_TWIST_BONES = ("upperarm02.L", "upperarm02.R")
+REFIT_SWING_PRIOR = 0.1
+
+
+def refit_prior(template: Template, swing_prior: float = REFIT_SWING_PRIOR) -> np.ndarray:
+    """The refit's pose prior (B, 3, 3) (module docstring, 5): ``REFIT_POSE_PRIOR`` on every bone's
+    local rotation vector, plus ``swing_prior`` on the part of ``UPPER_ARM_TWIST_BONES``' rotation
+    across their own axis (the template's rest bone, head to tail); their twist keeps the plain
+    prior. A rig without those bones (a user's model) gets the plain prior only."""
+    rig = template.rigs["default"]
+    prior = REFIT_POSE_PRIOR * np.eye(3) * np.ones((rig.n_bones, 1, 1))
+    heads, tails = rig.heads(template.vertices), rig.tails(template.vertices)
+    for name in UPPER_ARM_TWIST_BONES:
+        if name not in rig.bone_names:
+            continue
+        b = rig.bone_names.index(name)
+        axis = (tails[b] - heads[b]) / np.linalg.norm(tails[b] - heads[b])
+        prior[b] += swing_prior * (np.eye(3) - np.outer(axis, axis))
+    return prior
 
 
 def refit_pose(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, basis: ShapeBasis, *,
                landmarks=None, scan_tree: cKDTree | None = None, iterations: int = REFIT_ITERATIONS,
-               shape_prior: float = REFIT_SHAPE_PRIOR, rng=0) -> PoseState:
-    """The pose fit's state refitted to the scan with a light shape prior (module docstring, 1).
+               shape_prior: float = REFIT_SHAPE_PRIOR, swing_prior: float = REFIT_SWING_PRIOR, rng=0) -> PoseState:
+    """The pose fit's state refitted to the scan with a light shape prior (module docstring, 1 and 5).
 
     points (P, 3), normals (P, 3): the scan in the fit's frame (metres, +Y up); state: the pose
     fit's ``PoseState`` (rotations (B, 3, 3), scale, translation, ``coefficients`` (K,) of
-    ``basis``); landmarks: as ``fit_pose``'s. Returns the refitted ``PoseState`` (its ``rest``
-    is ``basis.body(coefficients)``, unscaled).
+    ``basis``); landmarks: as ``fit_pose``'s. swing_prior: the upper arm's twist bones held in
+    line with the upper arm (``refit_prior``; 0: off). Returns the refitted ``PoseState`` (its
+    ``rest`` is ``basis.body(coefficients)``, unscaled).
     """
     coef = state.coefficients if state.coefficients is not None else np.zeros(len(basis.components))
+    prior = refit_prior(template, swing_prior) if swing_prior else REFIT_POSE_PRIOR
     refit, _ = fit_pose(points, normals, template, state, iterations=iterations, landmarks=landmarks,
                         scan_tree=scan_tree, start_distance=REFIT_GATE, end_distance=REFIT_GATE, fit_scale=True,
-                        pose_prior=REFIT_POSE_PRIOR, shape=(basis, coef, shape_prior, SCALE_PRIOR), rng=rng)
+                        pose_prior=prior, shape=(basis, coef, shape_prior, SCALE_PRIOR), rng=rng)
     return refit
 
 
