@@ -28,7 +28,8 @@ from bodyspace.register.pose_fit import MIN_COS, PoseState, sample_vertices
 from bodyspace.rig.posing import pose_bodies
 from bodyspace.synth.phenotype import PARAMETERS, PhenotypeModel, years_to_age
 
-__all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "BASIS_COMPONENTS", "PHENOTYPE_COMPONENTS"]
+__all__ = ["ShapeBasis", "phenotype_basis", "fit_shape", "reach_shape", "BASIS_COMPONENTS", "PHENOTYPE_COMPONENTS",
+           "REACH_PRIOR", "REACH_ITERATIONS", "REACH_GATE"]
 
 # Components of the default (phenotype) shape space and the bodies its PCA is taken over. 24
 # components hold 99.9 % of the variance but not the body's measurements: the least-squares projection of
@@ -48,6 +49,17 @@ SHAPE_PRIOR = 0.0002
 # held at the alignment's height ratio, a 2.17 m body was a 1.74 m mean body scaled 1.22 times,
 # its proportions those of the mean (legs 24 mm, feet 29 mm off after every fit).
 SCALE_PRIOR = 0.02
+# The last model fit (``reach_shape``): after the pose rounds, the shape refitted with the pose
+# held under a prior a quarter of ``SHAPE_PRIOR``'s weight, for ``REACH_ITERATIONS`` iterations
+# with pairs gated at ``REACH_GATE`` (metres). Large, low breasts (cup size 0.87-0.93, firmness
+# 0.03-0.04) lie 10-13σ out along a few components: at SHAPE_PRIOR the prior outweighed the 4 %
+# of the scan on them and the fit stopped with the breast vertices 87-123 mm from the truth's,
+# though the shape space holds those bodies to 2 mm; the ICP's pairs then reach the breast's
+# lower part a few centimetres at a time (3 iterations: 55-70 mm; 6: 2-4 mm).
+# docs/registration.md, "Tenth round".
+REACH_PRIOR = 0.00005
+REACH_ITERATIONS = 8
+REACH_GATE = 0.03
 
 
 @dataclass(frozen=True)
@@ -101,15 +113,15 @@ def phenotype_basis(template: Template, n_components: int = PHENOTYPE_COMPONENTS
 
 def fit_shape(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, basis: ShapeBasis,
               *, iterations: int = 3, max_distance: float = 0.05, scan_tree: cKDTree | None = None,
-              coefficients: np.ndarray | None = None, fit_scale: bool = True,
+              coefficients: np.ndarray | None = None, fit_scale: bool = True, prior: float = SHAPE_PRIOR,
               rng=0) -> tuple[PoseState, np.ndarray]:
     """Fit the shape coefficients (and translation, and scale) with the pose held (module docstring).
 
     points (P, 3), normals (P, 3) (any sign): the scan in the template's frame. state: the pose
     fit's result (its ``rest`` is replaced). fit_scale: also fit the global scale s (as
     ``a = s`` and ``b = s c``, so the problem stays linear), pulled towards 1 by
-    ``SCALE_PRIOR``. Returns the state with the fitted rest body (and scale) and the
-    coefficients (K,).
+    ``SCALE_PRIOR``. prior: the weight of the prior c_k / σ_k (``SHAPE_PRIOR``). Returns the
+    state with the fitted rest body (and scale) and the coefficients (K,).
     """
     rig = template.rigs["default"]
     faces = template.faces
@@ -146,7 +158,7 @@ def fit_shape(points: np.ndarray, normals: np.ndarray, template: Template, state
                 Jm = w[:, None] * np.concatenate([Jc, nrm, Js], axis=1)
                 rhs = Jm.T @ (w * (rp * nrm).sum(1))
                 H = Jm.T @ Jm
-                H[:K, :K] += np.diag((SHAPE_PRIOR / (s * basis.sigma)) ** 2)
+                H[:K, :K] += np.diag((prior / (s * basis.sigma)) ** 2)
                 H[-1, -1] += SCALE_PRIOR ** 2
                 rhs[-1] += SCALE_PRIOR ** 2
                 sol = np.linalg.solve(H + 1e-12 * np.eye(K + 4), rhs)
@@ -158,7 +170,18 @@ def fit_shape(points: np.ndarray, normals: np.ndarray, template: Template, state
                 Jm = w[:, None] * np.concatenate([Jc, nrm], axis=1)
                 b = -w * (((s * P0[rv] - rp) * nrm).sum(1))       # (c, t) are solved for whole
                 H = Jm.T @ Jm
-                H[:K, :K] += np.diag((SHAPE_PRIOR / basis.sigma) ** 2)
+                H[:K, :K] += np.diag((prior / basis.sigma) ** 2)
                 sol = np.linalg.solve(H + 1e-12 * np.eye(K + 3), Jm.T @ b)
                 c, t = sol[:K], sol[K:]
     return replace(state, rest=basis.body(c), translation=t, scale=s, coefficients=c), c
+
+
+def reach_shape(points: np.ndarray, normals: np.ndarray, template: Template, state: PoseState, basis: ShapeBasis,
+                *, scan_tree: cKDTree | None = None, rng=0) -> tuple[PoseState, np.ndarray]:
+    """The last model fit: the shape refitted from the pose fit's state with the pose held, a
+    light prior (``REACH_PRIOR``) and narrow gates (``REACH_GATE``), so that a body far out along
+    a few components (large, low breasts) reaches its scan points. points (P, 3), normals (P, 3):
+    the scan (fit frame, metres); state: the pose fit's result, its ``coefficients`` (K,) the
+    start. Returns the state and the coefficients (K,), as ``fit_shape``."""
+    return fit_shape(points, normals, template, state, basis, iterations=REACH_ITERATIONS, max_distance=REACH_GATE,
+                     scan_tree=scan_tree, coefficients=state.coefficients, prior=REACH_PRIOR, rng=rng)

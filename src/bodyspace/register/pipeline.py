@@ -9,7 +9,9 @@
 4. ``pose_fit.fit_pose``: the skeleton's pose by twist ICP with the shape held, then pose, shape
    and scale together in one Gauss-Newton problem (``POSE_ROUNDS``, gates narrowing);
    Then every body part is checked (``quality.assess``) and a limb off its points is restarted
-   from library limb poses (``align.restart_limbs``) and the joint rounds fitted again;
+   from library limb poses (``align.restart_limbs``) and the joint rounds fitted again; then
+   ``model_fit.reach_shape``: the shape once more with the pose held and a light prior (large,
+   low breasts stopped short of their scan points under the joint rounds' prior);
 5. ``nicp.nonrigid_icp``: per-vertex affine refinement, stiffness annealed 3000 → 10;
 6. ``quality.assess``: how much of the scan the fit explains, as a whole and per body part both
    ways; refused below ``MIN_QUALITY``, the failed parts named;
@@ -38,7 +40,7 @@ from bodyspace.measure.definitions import MeasurementSet, load_measurement_set
 from bodyspace.register.align import SCORE_ITERATIONS, initial_alignment, restart_limbs
 from bodyspace.register.correspondences import orient_normals
 from bodyspace.register.detail import Detail, detail_offsets
-from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis
+from bodyspace.register.model_fit import SCALE_PRIOR, SHAPE_PRIOR, ShapeBasis, fit_shape, phenotype_basis, reach_shape
 from bodyspace.register.nicp import nonrigid_icp
 from bodyspace.register.pose_fit import PoseState, fit_pose, posed_vertices
 from bodyspace.register.pose_refit import refit_pose, standing_body
@@ -302,6 +304,14 @@ def register_scan(points: np.ndarray, faces: np.ndarray | None = None, *, templa
         coef = state.coefficients if joint else coef
         _trace(f"limbs {k + 1}", state)
     seconds["limbs"] = time.perf_counter() - t
+
+    # The shape once more with the pose held and a light prior: a body far out along a few
+    # components (large, low breasts) stops short of its scan under the joint rounds' prior
+    # (model_fit.REACH_PRIOR; docs/registration.md, "Tenth round").
+    t = time.perf_counter()
+    state, coef = reach_shape(q, qn, template, state, basis, scan_tree=tree, rng=rng)
+    seconds["model"] += time.perf_counter() - t
+    _trace("reach", state)
 
     report("non-rigid refinement", 0.5)
     t = time.perf_counter()
