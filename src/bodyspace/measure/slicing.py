@@ -241,7 +241,7 @@ def _band_crossings(vertices, edges, origins, normals, heights) -> _Crossings:
     n = np.asarray(normals, dtype=float)
     if heights is None:
         heights = HeightBounds(vertex_heights(v, n), 0.0)
-    offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
+    offs = plane_offsets(origins, n)  # (P, N)
     n_planes = len(offs)
     o_lo, o_hi = offs.min(axis=0)[:, None], offs.max(axis=0)[:, None]
     # A vertex exactly on the plane counts as above it: edge crosses iff lo < off <= hi. An edge
@@ -328,6 +328,13 @@ def approx_heights(planes: tuple, normals: np.ndarray, scale: float) -> HeightBo
     h += y * n[:, 1:2]
     h += z * n[:, 2:]
     return HeightBounds(h, float(2.0 ** -18 * scale))
+
+
+def plane_offsets(origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The offsets (P, N) of planes through ``origins`` (P, N, 3) along unit ``normals`` (N, 3), in
+    float32 as every slicer compares them with the float32 vertex heights."""
+    n = np.asarray(normals, dtype=float)
+    return np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)
 
 
 def vertex_heights(vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -723,7 +730,7 @@ def ring_runs(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, normals
     plane comes back to the part; a plane without a run is closed)."""
     v = np.ascontiguousarray(vertices, dtype=float)
     n = np.ascontiguousarray(normals, dtype=float)
-    offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
+    offs = plane_offsets(origins, n)  # (P, N)
     n_planes, nb = offs.shape
     closed = np.ones((n_planes, nb), dtype=bool)
     points, groups = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)]
@@ -790,7 +797,7 @@ def part_fronts(vertices: np.ndarray, part: PartMesh, origins: np.ndarray, norma
 def _run_kernel(vertices, part, origins, normals, mode, forward, hull_plane, active):
     v = np.ascontiguousarray(vertices, dtype=float)
     n = np.ascontiguousarray(normals, dtype=float)
-    offs = np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32)  # (P, N)
+    offs = plane_offsets(origins, n)  # (P, N)
     u, w = plane_basis(n)
     th = np.linspace(0.0, 2 * np.pi, _N_DIRS, endpoint=False)
     nb = len(v)
@@ -852,7 +859,7 @@ def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.n
     metres along the normal, none above plane 1 (``a + ts[1] (b - a)``), and ``folded`` (N,) bool
     (some of them below plane 1); a body without has every origin on plane 1 (None when no body
     has one)."""
-    folded, k1 = _steep_run_end(fronts, front_offsets(origins, normals), steep)
+    folded, k1 = _steep_run_end(fronts, plane_offsets(origins, normals).astype(float), steep)
     if not folded.any():
         return None, folded
     # The run's last gap and the one below it, FOLD_FINE planes each (the fold may end just below
@@ -862,7 +869,8 @@ def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.n
     fine = a[None] + t_fine[..., None] * (b - a)[None]
     # The last steep fine gap that starts in the coarse gap (a breast's lower curve may recede
     # steeply too, then less, before its underside), and the run from it.
-    ok, end = _steep_run_end(fine_fronts(fine, folded), front_offsets(fine, normals), steep, FOLD_FINE - 1, last=True)
+    ok, end = _steep_run_end(fine_fronts(fine, folded), plane_offsets(fine, normals).astype(float), steep,
+                             FOLD_FINE - 1, last=True)
     t_fold = np.take_along_axis(t_fine, np.where(ok, end + 1, FOLD_FINE)[None], axis=0)[0]
     # ``below`` metres as a fraction of the way a -> b along the normal (the band's own scale); no
     # plane above plane 1, and a body whose planes all reach it keeps plane 1 (a fold far above).
@@ -875,11 +883,6 @@ def fold_planes(a: np.ndarray, b: np.ndarray, normals: np.ndarray, origins: np.n
     return a[None] + t_win[..., None] * (b - a)[None], folded
 
 
-def front_offsets(origins: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """The planes' offsets (P, N) along unit ``normals`` (N, 3) as the slicers take them
-    (float32, then float64): ``origins`` (P, N, 3)."""
-    n = np.asarray(normals, dtype=float)
-    return np.einsum("pni,ni->pn", np.asarray(origins, dtype=float), n).astype(np.float32).astype(np.float64)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
